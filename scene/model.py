@@ -1,0 +1,222 @@
+"""The in-memory scene model: base meshes, instances, materials, lights, camera.
+
+These are plain frozen dataclasses of numpy arrays; the JSON schema that users
+write lives in `scene.schema` and is converted into these by `scene.io`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from scene.errors import SceneError
+
+# Precision policy: vertices are stored as float32 (what Embree consumes);
+# transforms are float64 so instances far from the origin stay exact.
+VERTEX_DTYPE = np.float32
+INDEX_DTYPE = np.uint32
+TRANSFORM_DTYPE = np.float64
+
+
+@dataclass(frozen=True, eq=False)
+class Mesh:
+    """One base mesh in its own local space.
+
+    vertices : (v, 3) float32
+    faces    : (f, 3) uint32, indices into vertices
+    normals  : (v, 3) float32 or None, per-vertex shading normals
+    uvs      : (v, 2) float32 or None
+    material : index into Scene.materials
+    dropped_degenerate : number of zero-area triangles removed at load time
+    """
+
+    name: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray | None = None
+    uvs: np.ndarray | None = None
+    material: int = 0
+    dropped_degenerate: int = 0
+
+    @cached_property
+    def content_hash(self) -> str:
+        """sha256 of the geometry (vertices, faces), independent of name and material."""
+        h = hashlib.sha256()
+        h.update(np.ascontiguousarray(self.vertices, dtype=VERTEX_DTYPE).tobytes())
+        h.update(np.ascontiguousarray(self.faces, dtype=INDEX_DTYPE).tobytes())
+        return h.hexdigest()
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of geometry a shard holds for this mesh (vertices, faces, normals, uvs)."""
+        extra = sum(a.nbytes for a in (self.normals, self.uvs) if a is not None)
+        return int(self.vertices.nbytes + self.faces.nbytes + extra)
+
+    @cached_property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) float64 local-space AABB [min, max]."""
+        v = self.vertices.astype(np.float64)
+        return np.stack([v.min(axis=0), v.max(axis=0)])
+
+
+@dataclass(frozen=True, eq=False)
+class Instance:
+    """A placement of a base mesh. transform : (4, 4) float64 affine, local -> world."""
+
+    mesh: int
+    transform: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Material:
+    """Diffuse material. albedo : (3,) float; texture : (h, w, 3) float32 linear or None."""
+
+    name: str = "default"
+    albedo: tuple[float, float, float] = (0.8, 0.8, 0.8)
+    emission: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    texture: np.ndarray | None = None
+
+    @property
+    def is_emissive(self) -> bool:
+        return max(self.emission) > 0.0
+
+
+@dataclass(frozen=True)
+class QuadLight:
+    """One-sided emitting parallelogram corner + a*edge_u + b*edge_v, emitting along
+    cross(edge_u, edge_v). radiance : (3,) W/(sr m^2)."""
+
+    corner: tuple[float, float, float]
+    edge_u: tuple[float, float, float]
+    edge_v: tuple[float, float, float]
+    radiance: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class PointLight:
+    """Isotropic point light. intensity : (3,) W/sr."""
+
+    position: tuple[float, float, float]
+    intensity: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class DirectionalLight:
+    """Light arriving from infinitely far along `direction` (the direction light travels).
+    irradiance : (3,) W/m^2 on a surface facing the light."""
+
+    direction: tuple[float, float, float]
+    irradiance: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class Environment:
+    """Radiance for escaped rays. kind 'constant' uses `radiance`; 'sky' blends
+    `horizon` to `zenith` by the direction's +y component."""
+
+    kind: str = "constant"
+    radiance: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    zenith: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    horizon: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Pinhole look-at camera; fov_deg is the vertical field of view."""
+
+    eye: tuple[float, float, float] = (0.0, 0.0, 5.0)
+    target: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_deg: float = 45.0
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    meshes: tuple[Mesh, ...]
+    instances: tuple[Instance, ...]
+    materials: tuple[Material, ...] = (Material(),)
+    quad_lights: tuple[QuadLight, ...] = ()
+    point_lights: tuple[PointLight, ...] = ()
+    directional_lights: tuple[DirectionalLight, ...] = ()
+    environment: Environment = field(default_factory=Environment)
+    camera: Camera = field(default_factory=Camera)
+    name: str = "scene"
+
+    def __post_init__(self):
+        validate_scene(self)
+
+    @property
+    def instanced_triangles(self) -> int:
+        return int(sum(len(self.meshes[i.mesh].faces) for i in self.instances))
+
+    @property
+    def mesh_bytes(self) -> int:
+        return int(sum(m.nbytes for m in self.meshes))
+
+    def summary(self) -> dict:
+        return {
+            "name": self.name,
+            "base_meshes": len(self.meshes),
+            "instances": len(self.instances),
+            "instanced_triangles": self.instanced_triangles,
+            "base_mesh_triangles": int(sum(len(m.faces) for m in self.meshes)),
+            "mesh_bytes": self.mesh_bytes,
+            "lights": len(self.quad_lights) + len(self.point_lights)
+            + len(self.directional_lights),
+        }
+
+
+def validate_mesh(mesh: Mesh, where: str) -> None:
+    """Refuse meshes the renderer cannot trace; `where` names the mesh for the error."""
+    v, f = mesh.vertices, mesh.faces
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise SceneError(f"{where}: vertices must have shape (v, 3), got {v.shape}")
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise SceneError(f"{where}: faces must have shape (f, 3), got {f.shape}")
+    if len(v) == 0 or len(f) == 0:
+        raise SceneError(f"{where}: mesh is empty ({len(v)} vertices, {len(f)} faces)")
+    bad = ~np.isfinite(v).all(axis=1)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise SceneError(
+            f"{where}: vertex {i} is not finite ({v[i].tolist()}); "
+            f"{int(bad.sum())} non-finite vertices in all"
+        )
+    if f.max() >= len(v):
+        raise SceneError(f"{where}: face index {int(f.max())} out of range for {len(v)} vertices")
+    for name, arr, width in (("normals", mesh.normals, 3), ("uvs", mesh.uvs, 2)):
+        if arr is not None and arr.shape != (len(v), width):
+            raise SceneError(f"{where}: {name} must have shape ({len(v)}, {width}), got {arr.shape}")
+
+
+def validate_transform(t: np.ndarray, where: str) -> None:
+    if t.shape != (4, 4):
+        raise SceneError(f"{where}: transform must be 4x4, got shape {t.shape}")
+    if not np.isfinite(t).all():
+        raise SceneError(f"{where}: transform has non-finite entries")
+    if not np.allclose(t[3], [0, 0, 0, 1]):
+        raise SceneError(f"{where}: transform is not affine (last row {t[3].tolist()})")
+    lin = t[:3, :3]
+    det = float(np.linalg.det(lin))
+    scale = float(np.abs(lin).max())
+    # Relative test: a 1e-4 uniform scale (det 1e-12) is legitimate, a rank-deficient one is not.
+    if scale == 0.0 or abs(det) <= 1e-9 * scale**3:
+        raise SceneError(f"{where}: transform is singular (det={det:.3g})")
+
+
+def validate_scene(scene: Scene) -> None:
+    if not scene.meshes:
+        raise SceneError(f"scene {scene.name!r}: no meshes")
+    if not scene.instances:
+        raise SceneError(f"scene {scene.name!r}: no instances")
+    for i, m in enumerate(scene.meshes):
+        validate_mesh(m, f"mesh {i} ({m.name!r})")
+        if not 0 <= m.material < len(scene.materials):
+            raise SceneError(f"mesh {i} ({m.name!r}): material {m.material} does not exist")
+    for i, inst in enumerate(scene.instances):
+        if not 0 <= inst.mesh < len(scene.meshes):
+            raise SceneError(f"instance {i}: mesh {inst.mesh} does not exist")
+        validate_transform(inst.transform, f"instance {i} (mesh {scene.meshes[inst.mesh].name!r})")
