@@ -1,0 +1,141 @@
+"""Ray batches: frozen struct-of-arrays named by the stage that produces them.
+
+Every field has an explicit dtype; `nbytes` (the sum of the arrays' nbytes) is
+what the transfer statistics count.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+# Ray kinds, stored in RayBatch.kind (uint8).
+PRIMARY, SECONDARY, SHADOW = 0, 1, 2
+KIND_NAMES = ("primary", "secondary", "shadow")
+
+# Hit record sentinels in `hit_inst` (int32): no hit yet, or a quad light (-2 - light index).
+NO_HIT = -1
+LIGHT_BASE = -2
+
+
+def _check(name: str, arr: np.ndarray, n: int, width: int | None, dtype) -> None:
+    want = (n,) if width is None else (n, width)
+    if arr.shape != want or arr.dtype != dtype:
+        raise ValueError(
+            f"{name}: expected shape {want} dtype {np.dtype(dtype)}, got {arr.shape} {arr.dtype}"
+        )
+
+
+class _Batch:
+    """Shared struct-of-arrays behaviour; subclasses are frozen dataclasses."""
+
+    _SPEC: dict = {}
+
+    def __post_init__(self):
+        n = len(self.pixel)
+        for f in fields(self):
+            width, dtype = self._SPEC[f.name]
+            _check(f.name, getattr(self, f.name), n, width, dtype)
+
+    def __len__(self) -> int:
+        return len(self.pixel)
+
+    @property
+    def nbytes(self) -> int:
+        return int(sum(getattr(self, f.name).nbytes for f in fields(self)))
+
+    def take(self, index: np.ndarray):
+        """Rows selected by a bool mask or an index array."""
+        return type(self)(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    def replace(self, **changes):
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d.update(changes)
+        return type(self)(**d)
+
+    @classmethod
+    def concat(cls, batches: list):
+        batches = [b for b in batches if b is not None]
+        if not batches:
+            return cls.empty()
+        return cls(**{f.name: np.concatenate([getattr(b, f.name) for b in batches])
+                      for f in fields(cls)})
+
+    @classmethod
+    def empty(cls):
+        return cls(**{name: np.zeros((0,) if w is None else (0, w), dtype=dt)
+                      for name, (w, dt) in cls._SPEC.items()})
+
+
+_RAY_SPEC = {
+    "origin": (3, np.float32),
+    "direction": (3, np.float32),
+    "tmax": (None, np.float32),
+    "throughput": (3, np.float32),
+    "pixel": (None, np.uint32),
+    "sample": (None, np.uint32),
+    "depth": (None, np.uint8),
+    "kind": (None, np.uint8),
+    "visited": (None, np.uint64),
+    "pdf_prev": (None, np.float32),  # solid-angle pdf of the BSDF sample that made this ray (MIS)
+    "hit_inst": (None, np.int32),  # closest hit so far: instance, or LIGHT_BASE - light
+    "hit_prim": (None, np.int32),
+    "hit_u": (None, np.float32),
+    "hit_v": (None, np.float32),
+    "hops": (None, np.uint8),  # shard-to-shard transfers so far
+}
+
+
+@dataclass(frozen=True, eq=False)
+class RayBatch(_Batch):
+    """Camera and BSDF rays looking for their closest hit (kind PRIMARY or SECONDARY).
+
+    origin (n,3) f32, direction (n,3) f32, tmax (n,) f32 (closest hit so far),
+    throughput (n,3) f32, pixel (n,) u32, sample (n,) u32, depth (n,) u8,
+    kind (n,) u8, visited (n,) u64 shard bitmask, pdf_prev (n,) f32,
+    hit_inst/hit_prim (n,) i32, hit_u/hit_v (n,) f32, hops (n,) u8.
+    """
+
+    _SPEC = _RAY_SPEC
+    origin: np.ndarray
+    direction: np.ndarray
+    tmax: np.ndarray
+    throughput: np.ndarray
+    pixel: np.ndarray
+    sample: np.ndarray
+    depth: np.ndarray
+    kind: np.ndarray
+    visited: np.ndarray
+    pdf_prev: np.ndarray
+    hit_inst: np.ndarray
+    hit_prim: np.ndarray
+    hit_u: np.ndarray
+    hit_v: np.ndarray
+    hops: np.ndarray
+
+
+_SHADOW_SPEC = {
+    "origin": (3, np.float32),
+    "direction": (3, np.float32),
+    "tmax": (None, np.float32),
+    "contribution": (3, np.float32),  # radiance added to `pixel` if unoccluded
+    "pixel": (None, np.uint32),
+    "visited": (None, np.uint64),
+    "hops": (None, np.uint8),
+}
+
+
+@dataclass(frozen=True, eq=False)
+class ShadowRayBatch(_Batch):
+    """Next-event rays: contribution (n,3) f32 lands on pixel (n,) u32 unless occluded
+    before tmax (n,) f32. origin/direction (n,3) f32, visited (n,) u64, hops (n,) u8."""
+
+    _SPEC = _SHADOW_SPEC
+    origin: np.ndarray
+    direction: np.ndarray
+    tmax: np.ndarray
+    contribution: np.ndarray
+    pixel: np.ndarray
+    visited: np.ndarray
+    hops: np.ndarray

@@ -1,0 +1,83 @@
+"""Two-level intersection over a set of instances: top-level boxes, then Embree on the
+base mesh with rays moved into local space. A shard holds one of these for its own
+instances; the reference renderer holds one for all of them."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workers.geometry import MeshGeometry
+from workers.toplevel import InstanceTable
+
+
+class LocalGeometry:
+    """geometry : {mesh index: MeshGeometry} for the meshes held here;
+    instances : (k,) int32 instance indices intersected here."""
+
+    def __init__(self, geometry: dict[int, MeshGeometry], table: InstanceTable,
+                 instances: np.ndarray):
+        self.geometry, self.table = geometry, table
+        self.instances = np.asarray(instances, np.int32)
+        missing = set(table.mesh[self.instances].tolist()) - set(geometry)
+        if missing:
+            raise ValueError(f"instances reference meshes {sorted(missing)} not held here")
+
+    def __repr__(self) -> str:
+        return f"LocalGeometry({len(self.geometry)} meshes, {len(self.instances)} instances)"
+
+    def _pairs_by_mesh(self, origin, direction, tmax):
+        """Yield (mesh index, ray (p,) int64, inst (p,) int32, local origin/direction)."""
+        ray, inst, _, _ = self.table.box_entries(origin, direction, tmax, self.instances)
+        if len(ray) == 0:
+            return
+        mesh = self.table.mesh[inst]
+        order = np.argsort(mesh, kind="stable")
+        ray, inst, mesh = ray[order], inst[order], mesh[order]
+        starts = np.flatnonzero(np.r_[True, mesh[1:] != mesh[:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], len(mesh)], strict=True):
+            r, i = ray[a:b], inst[a:b]
+            lo, ld = self.table.to_local(i, origin[r], direction[r])
+            yield int(mesh[a]), r, i, lo, ld
+
+    def intersect_closest(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray):
+        """Closest hit among these instances within (0, tmax).
+
+        origin, direction : (n, 3) float32 world; tmax : (n,) float32
+        returns t (n,) float32 (tmax where no hit), inst (n,) int32 (-1), prim (n,) int32,
+        u, v (n,) float32
+        """
+        n = len(origin)
+        t_best = tmax.astype(np.float32).copy()
+        inst_best = np.full(n, -1, np.int32)
+        prim_best = np.full(n, -1, np.int32)
+        u_best = np.zeros(n, np.float32)
+        v_best = np.zeros(n, np.float32)
+        parts = []
+        for m, r, i, lo, ld in self._pairs_by_mesh(origin, direction, tmax):
+            t, prim, u, v = self.geometry[m].intersect_closest(lo, ld, tmax[r])
+            hit = prim >= 0
+            parts.append((r[hit], t[hit], i[hit], prim[hit], u[hit], v[hit]))
+        if parts:
+            r, t, i, prim, u, v = (np.concatenate(x) for x in zip(*parts, strict=True))
+            # Closest per ray; ties go to the lowest instance so any shard split agrees.
+            order = np.lexsort((i, t, r))
+            r, t, i, prim, u, v = r[order], t[order], i[order], prim[order], u[order], v[order]
+            first = np.ones(len(r), bool)
+            first[1:] = r[1:] != r[:-1]
+            r, t, i, prim, u, v = r[first], t[first], i[first], prim[first], u[first], v[first]
+            better = t < t_best[r]
+            r = r[better]
+            t_best[r], inst_best[r], prim_best[r] = t[better], i[better], prim[better]
+            u_best[r], v_best[r] = u[better], v[better]
+        return t_best, inst_best, prim_best, u_best, v_best
+
+    def intersect_occluded(self, origin: np.ndarray, direction: np.ndarray,
+                           tmax: np.ndarray) -> np.ndarray:
+        """(n,) bool: some instance here blocks the segment (0, tmax). Shapes as above."""
+        occluded = np.zeros(len(origin), bool)
+        for m, r, _, lo, ld in self._pairs_by_mesh(origin, direction, tmax):
+            live = ~occluded[r]
+            if live.any():
+                r = r[live]
+                occluded[r] |= self.geometry[m].intersect_occluded(lo[live], ld[live], tmax[r])
+        return occluded

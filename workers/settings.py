@@ -1,0 +1,42 @@
+"""Render settings: one validated pydantic model shared by the CLI, REST, gRPC and workers."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+Mode = Literal["exact", "proxy", "oracle"]
+
+
+class ProxySettings(BaseModel):
+    """The speed/accuracy knobs of the proxy traversal (DESIGN.md, "Traversal policies")."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    threshold: float = Field(0.5, ge=0.0, le=1.0, description="visibility above this is a hit")
+    band: float = Field(0.1, ge=0.0, le=1.0,
+                        description="|visibility - threshold| < band: fall back to exact")
+    accuracy_target: float = Field(0.97, gt=0.5, le=1.0,
+                                   description="held-out visibility accuracy a width must reach")
+
+
+class RenderSettings(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    width: int = Field(256, ge=1, le=16384, description="image width, pixels")
+    height: int = Field(256, ge=1, le=16384, description="image height, pixels")
+    spp: int = Field(16, ge=1, le=1 << 16, description="samples per pixel")
+    bounces: int = Field(5, ge=0, le=64, description="maximum path depth B")
+    shadow_rays: int = Field(4, ge=0, le=64, description="next-event shadow rays S per hit")
+    seed: int = Field(0, ge=0, lt=1 << 63)
+    russian_roulette: bool = Field(False, description="terminate low-throughput paths from depth 3")
+    mode: Mode = "exact"
+    shards: int = Field(0, ge=0, le=64, description="K shard actors; 0 = single-process reference")
+    tile_size: int = Field(64, ge=8, le=4096, description="tile edge, pixels")
+    spp_per_pass: int = Field(4, ge=1, le=1 << 16, description="samples per pixel in one pass")
+    proxy: ProxySettings = Field(default_factory=ProxySettings)
+
+    @model_validator(mode="after")
+    def _check(self):
+        if self.mode != "exact" and self.shards == 0:
+            raise ValueError(f"mode {self.mode!r} needs shards >= 1 (got shards=0)")
+        return self
