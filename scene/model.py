@@ -189,7 +189,9 @@ def validate_mesh(mesh: Mesh, where: str) -> None:
         raise SceneError(f"{where}: face index {int(f.max())} out of range for {len(v)} vertices")
     for name, arr, width in (("normals", mesh.normals, 3), ("uvs", mesh.uvs, 2)):
         if arr is not None and arr.shape != (len(v), width):
-            raise SceneError(f"{where}: {name} must have shape ({len(v)}, {width}), got {arr.shape}")
+            raise SceneError(
+                f"{where}: {name} must have shape ({len(v)}, {width}), got {arr.shape}"
+            )
 
 
 def validate_transform(t: np.ndarray, where: str) -> None:
@@ -220,3 +222,17 @@ def validate_scene(scene: Scene) -> None:
         if not 0 <= inst.mesh < len(scene.meshes):
             raise SceneError(f"instance {i}: mesh {inst.mesh} does not exist")
         validate_transform(inst.transform, f"instance {i} (mesh {scene.meshes[inst.mesh].name!r})")
+
+
+def instance_world_bounds(scene: Scene) -> np.ndarray:
+    """World AABBs of all instances (the top-level boxes).
+
+    returns : (n_instances, 2, 3) float64, [min, max] per instance
+    """
+    local = np.stack([scene.meshes[i.mesh].bounds for i in scene.instances])  # (n, 2, 3)
+    xf = np.stack([i.transform for i in scene.instances]).astype(np.float64)  # (n, 4, 4)
+    centre, half = local.mean(axis=1), 0.5 * (local[:, 1] - local[:, 0])
+    # Arvo: the box of a transformed box is centre R c + t, half-extent |R| e.
+    wc = np.einsum("nij,nj->ni", xf[:, :3, :3], centre) + xf[:, :3, 3]
+    we = np.einsum("nij,nj->ni", np.abs(xf[:, :3, :3]), half)
+    return np.stack([wc - we, wc + we], axis=1)

@@ -1,0 +1,107 @@
+"""glTF 2.0 / GLB loading through trimesh: each glTF mesh used by several nodes becomes one
+base mesh with one instance per node, with base-colour factor and texture as the material.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from scene.errors import SceneError
+from scene.io import build_mesh, scene_from_meshes, srgb_to_linear
+from scene.model import TRANSFORM_DTYPE, Material, Mesh, Scene, validate_transform
+
+log = logging.getLogger(__name__)
+
+
+def load_gltf(path) -> Scene:
+    """Load a .glb/.gltf file; meshes keep their local space, node world transforms become
+    instances. The scene gets a framing camera and a sky (glTF cameras/lights are ignored)."""
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(f"glTF file not found: {path}")
+    try:
+        tm = trimesh.load(path, force="scene", process=False)
+    except Exception as e:  # trimesh raises many exception types for bad files
+        raise SceneError(f"{path}: could not read glTF: {e}") from None
+    meshes: list[Mesh] = []
+    materials: list[Material] = []
+    mesh_of: dict[str, int] = {}  # geometry name -> base mesh index
+    material_of: dict[int, int] = {}  # id(trimesh material) -> material index
+    placements: list[tuple[int, np.ndarray]] = []
+    for node in sorted(tm.graph.nodes_geometry, key=str):
+        xf, geom_name = tm.graph[node]
+        geom = tm.geometry[geom_name]
+        if not isinstance(geom, trimesh.Trimesh):
+            log.warning("%s: node %r holds a %s, not triangles; skipped",
+                        path, node, type(geom).__name__)
+            continue
+        if geom_name not in mesh_of:
+            mat = _material_index(geom, geom_name, materials, material_of)
+            where = f"{path}: mesh {geom_name!r}"
+            tex = materials[mat].texture is not None
+            mesh_of[geom_name] = len(meshes)
+            meshes.append(build_mesh(
+                str(geom_name), geom.vertices, geom.faces,
+                normals=_file_normals(geom),
+                uvs=np.asarray(geom.visual.uv) if tex else None,
+                material=mat, where=where,
+            ))
+        xf = np.asarray(xf, dtype=TRANSFORM_DTYPE)
+        validate_transform(xf, f"{path}: node {node!r} (mesh {geom_name!r})")
+        placements.append((mesh_of[geom_name], xf))
+    if not placements:
+        raise SceneError(f"{path}: no triangle meshes in the glTF scene")
+    log.info("%s: %d base meshes, %d instances", path, len(meshes), len(placements))
+    return scene_from_meshes(meshes, placements, tuple(materials) or (Material(),), path.stem)
+
+
+def _file_normals(geom: trimesh.Trimesh) -> np.ndarray | None:
+    # Only normals the file carried: trimesh keeps them in its cache, computed ones are not there.
+    if "vertex_normals" in geom._cache:
+        return np.asarray(geom.vertex_normals)
+    return None
+
+
+def _material_index(geom: trimesh.Trimesh, geom_name: str, materials: list[Material],
+                    material_of: dict[int, int]) -> int:
+    visual = geom.visual
+    source = getattr(visual, "material", None)
+    key = id(source) if source is not None else -1 - len(materials)
+    if key not in material_of:
+        material_of[key] = len(materials)
+        materials.append(_convert_material(visual, source, geom_name, len(geom.vertices)))
+    return material_of[key]
+
+
+def _convert_material(visual, source, geom_name: str, n_vertices: int) -> Material:
+    """Base-colour factor -> albedo; base-colour texture (times the factor) -> texture."""
+    name = str(getattr(source, "name", None) or geom_name)
+    if source is None:  # ColorVisuals: one colour for the whole mesh
+        rgba = np.asarray(visual.main_color, dtype=np.float64) / 255.0
+        return Material(name, _albedo(rgba[:3]))
+    if hasattr(source, "baseColorFactor"):
+        factor = source.baseColorFactor
+        image = source.baseColorTexture
+        emission = source.emissiveFactor
+    else:  # SimpleMaterial (OBJ/MTL through glTF-less paths)
+        factor, image, emission = source.diffuse, source.image, None
+    rgb = np.ones(3) if factor is None else np.asarray(factor, dtype=np.float64)[:3]
+    rgb = rgb / 255.0 if np.asarray(factor).dtype == np.uint8 else rgb
+    uv = getattr(visual, "uv", None)
+    texture = None
+    if image is not None and uv is not None and np.shape(uv) == (n_vertices, 2):
+        texels = np.asarray(image.convert("RGB"), dtype=np.float32) / 255.0  # (h, w, 3)
+        texture = (srgb_to_linear(texels) * rgb.astype(np.float32)).astype(np.float32)
+    elif image is not None:
+        log.warning("mesh %r: base-colour texture without UVs; using the factor only", geom_name)
+    emit = (0.0, 0.0, 0.0) if emission is None else tuple(
+        float(x) for x in np.clip(np.asarray(emission, dtype=np.float64)[:3], 0.0, None))
+    return Material(name, _albedo(rgb), emit, texture)
+
+
+def _albedo(rgb: np.ndarray) -> tuple[float, float, float]:
+    return tuple(float(x) for x in np.clip(rgb, 0.0, 1.0))

@@ -1,0 +1,432 @@
+"""Reading and writing scenes: JSON scene files with PLY/OBJ/GLB meshes, and `load_any`.
+
+Every problem with the input surfaces as one `SceneError` naming the file and the place.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from pydantic import ValidationError
+from trimesh.exchange.ply import export_ply
+
+from scene import schema
+from scene.errors import SceneError
+from scene.model import (
+    INDEX_DTYPE,
+    TRANSFORM_DTYPE,
+    VERTEX_DTYPE,
+    Camera,
+    DirectionalLight,
+    Environment,
+    Instance,
+    Material,
+    Mesh,
+    PointLight,
+    QuadLight,
+    Scene,
+    instance_world_bounds,
+    validate_mesh,
+    validate_transform,
+)
+
+log = logging.getLogger(__name__)
+
+MESH_SUFFIXES = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+MAX_LISTED_ERRORS = 5
+
+
+# ---------------------------------------------------------------- meshes
+
+
+def drop_degenerate(vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, int]:
+    """Remove zero-area triangles (repeated or collinear corners, exactly, in float64).
+
+    vertices : (v, 3) float32
+    faces    : (f, 3) uint32
+    returns  : (kept faces (g, 3) uint32, number dropped)
+    """
+    tri = vertices.astype(np.float64)[faces]  # (f, 3, 3)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (f, 3)
+    keep = np.any(cross != 0.0, axis=1)
+    return faces[keep], int(len(faces) - keep.sum())
+
+
+def build_mesh(
+    name: str,
+    vertices,
+    faces,
+    normals=None,
+    uvs=None,
+    material: int = 0,
+    where: str | None = None,
+) -> Mesh:
+    """Validate, cast to the model's dtypes and drop degenerate triangles.
+
+    vertices : (v, 3) float, faces : (f, 3) int, normals : (v, 3) or None, uvs : (v, 2) or None
+    """
+    where = where or f"mesh {name!r}"
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces)
+    v = v.reshape(0, 3) if v.size == 0 else v
+    f = f.reshape(0, 3).astype(INDEX_DTYPE) if f.size == 0 else f
+    if not np.issubdtype(f.dtype, np.integer) or (f.size and f.min() < 0):
+        raise SceneError(f"{where}: face indices must be non-negative integers")
+    if np.isfinite(v).all() and np.abs(v).max(initial=0.0) > np.finfo(VERTEX_DTYPE).max:
+        raise SceneError(f"{where}: vertex coordinates overflow float32")
+    f = np.ascontiguousarray(f, dtype=INDEX_DTYPE)
+    n = None if normals is None else np.ascontiguousarray(normals, dtype=VERTEX_DTYPE)
+    uv = None if uvs is None else np.ascontiguousarray(uvs, dtype=VERTEX_DTYPE)
+    raw = Mesh(name, np.ascontiguousarray(v, dtype=VERTEX_DTYPE), f, n, uv, material)
+    validate_mesh(raw, where)
+    for label, arr in (("normals", n), ("uvs", uv)):
+        if arr is not None and not np.isfinite(arr).all():
+            raise SceneError(f"{where}: {label} contain non-finite values")
+    kept, dropped = drop_degenerate(raw.vertices, f)
+    if len(kept) == 0:
+        raise SceneError(f"{where}: all {len(f)} triangles are degenerate (zero area)")
+    if dropped:
+        log.info("%s: dropped %d degenerate triangles of %d", where, dropped, len(f))
+    return Mesh(name, raw.vertices, kept, n, uv, material, dropped)
+
+
+def read_mesh_file(path: Path, where: str) -> dict:
+    """Read one mesh file through trimesh (multi-mesh files are flattened into one).
+
+    returns : dict with vertices (v, 3), faces (f, 3), normals (v, 3) or None, uvs (v, 2) or None
+    """
+    if not path.is_file():
+        raise SceneError(f"{where}: mesh file not found: {path}")
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise SceneError(f"{where}: unsupported mesh format {path.suffix!r} ({path})")
+    try:
+        tm = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # trimesh raises many exception types for bad files
+        raise SceneError(f"{where}: could not read mesh file {path}: {e}") from None
+    if not isinstance(tm, trimesh.Trimesh):
+        raise SceneError(f"{where}: {path} holds no triangle mesh")
+    uv = getattr(tm.visual, "uv", None)
+    uv = uv if uv is not None and np.shape(uv) == (len(tm.vertices), 2) else None
+    return {
+        "vertices": tm.vertices,
+        "faces": tm.faces,
+        "normals": _ply_normals(tm),
+        "uvs": uv,
+    }
+
+
+def _ply_normals(tm: trimesh.Trimesh) -> np.ndarray | None:
+    # trimesh recomputes normals on load; the file's own nx/ny/nz survive in the raw PLY data.
+    raw = tm.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
+    if raw is None or raw.dtype.names is None or not {"nx", "ny", "nz"} <= set(raw.dtype.names):
+        return None
+    if len(raw) != len(tm.vertices):
+        return None
+    return np.column_stack([raw["nx"], raw["ny"], raw["nz"]]).astype(VERTEX_DTYPE)
+
+
+def _write_ply(mesh: Mesh, path: Path) -> None:
+    tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False, validate=False)
+    if mesh.normals is not None:
+        for i, axis in enumerate("xyz"):
+            tm.vertex_attributes["n" + axis] = mesh.normals[:, i].astype(VERTEX_DTYPE)
+    if mesh.uvs is not None:
+        tm.visual = trimesh.visual.TextureVisuals(uv=mesh.uvs)
+    path.write_bytes(export_ply(tm, encoding="binary", vertex_normal=False))
+
+
+# ---------------------------------------------------------------- textures
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """c : (..., 3) float in [0, 1], sRGB encoded -> linear, same shape, float32."""
+    c = np.asarray(c, dtype=np.float32)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def read_texture(path: Path, where: str) -> np.ndarray:
+    """An image (sRGB) or .npy (linear) as texture : (h, w, 3) float32 linear."""
+    if not path.is_file():
+        raise SceneError(f"{where}: texture file not found: {path}")
+    try:
+        if path.suffix.lower() == ".npy":
+            tex = np.load(path, allow_pickle=False).astype(np.float32)
+        else:
+            from PIL import Image
+
+            with Image.open(path) as img:
+                tex = srgb_to_linear(np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0)
+    except Exception as e:  # PIL/numpy raise many types for bad files
+        raise SceneError(f"{where}: could not read texture {path}: {e}") from None
+    if tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] == 0 or tex.shape[1] == 0:
+        raise SceneError(f"{where}: texture {path} must have shape (h, w, 3), got {tex.shape}")
+    if not np.isfinite(tex).all():
+        raise SceneError(f"{where}: texture {path} has non-finite texels")
+    return np.ascontiguousarray(tex)
+
+
+# ---------------------------------------------------------------- transforms
+
+
+def trs_matrix(translate=None, rotate_deg=None, scale=None) -> np.ndarray:
+    """T @ Rz @ Ry @ Rx @ S as (4, 4) float64; rotate_deg are Euler angles about x, y, z."""
+    m = np.eye(4, dtype=TRANSFORM_DTYPE)
+    if scale is not None:
+        m[:3, :3] = np.diag(np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)))
+    if rotate_deg is not None:
+        r = np.eye(4)
+        for axis, deg in zip("xyz", rotate_deg, strict=True):
+            r = trimesh.transformations.rotation_matrix(np.radians(deg), _AXES[axis]) @ r
+        m = r @ m
+    if translate is not None:
+        m[:3, 3] = translate
+    return m
+
+
+_AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
+
+
+# ---------------------------------------------------------------- scene files
+
+
+def load_scene(path) -> Scene:
+    """Load a JSON scene file; mesh and texture paths are relative to it."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise SceneError(f"scene file not found: {path}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise SceneError(f"{path}: could not read scene file: {e}") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise SceneError(
+            f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}"
+        ) from None
+    try:
+        spec = schema.SceneFile.model_validate(data)
+    except ValidationError as e:
+        raise validation_error(e, str(path)) from None
+    try:
+        return scene_from_spec(spec, path.parent)
+    except SceneError as e:
+        raise SceneError(f"{path}: {e}") from None
+
+
+def validation_error(err: ValidationError, source: str) -> SceneError:
+    """One SceneError listing the first few failing JSON field paths."""
+    errors = err.errors()
+    parts = [f"{_field_path(e['loc'])}: {e['msg'].removeprefix('Value error, ')}"
+             for e in errors[:MAX_LISTED_ERRORS]]
+    more = len(errors) - MAX_LISTED_ERRORS
+    tail = f" (and {more} more errors)" if more > 0 else ""
+    return SceneError(f"{source}: invalid scene file: " + "; ".join(parts) + tail)
+
+
+def _field_path(loc: tuple) -> str:
+    out = ""
+    for part in loc:
+        if isinstance(part, int):
+            out += f"[{part}]"
+        elif re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", part) and part not in _UNION_TAGS:
+            out += f".{part}" if out else part
+        # else: a union-member tag such as 'tuple[float, float, float]', noise for users
+    return out or "(top level)"
+
+
+_UNION_TAGS = {"str", "int", "float", "function-after", "list", "tuple", "none"}
+
+
+def _resolve(ref, names: list[str], kind: str, field: str) -> int:
+    if isinstance(ref, int):
+        if ref >= len(names):
+            raise SceneError(f"{field}: {kind} index {ref} out of range ({len(names)} {kind}es)")
+        return ref
+    hits = [i for i, n in enumerate(names) if n == ref]
+    if not hits:
+        raise SceneError(f"{field}: unknown {kind} {ref!r} (known: {', '.join(names[:10])})")
+    if len(hits) > 1:
+        raise SceneError(f"{field}: {kind} name {ref!r} is ambiguous; refer to it by index")
+    return hits[0]
+
+
+def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
+    """Convert a validated SceneFile; relative paths resolve against `base`."""
+    mat_names = [m.name for m in spec.materials]
+    materials = tuple(
+        Material(
+            m.name,
+            m.albedo,
+            m.emission,
+            read_texture(base / m.texture, f"materials[{i}] ({m.name!r})") if m.texture else None,
+        )
+        for i, m in enumerate(spec.materials)
+    ) or (Material(),)
+    meshes = []
+    for i, ms in enumerate(spec.meshes):
+        where = f"meshes[{i}] ({ms.name!r})"
+        mat = 0 if ms.material is None else _resolve(
+            ms.material, mat_names, "material", f"{where}.material"
+        )
+        if ms.path is not None:
+            arrays = read_mesh_file(base / ms.path, where)
+        else:
+            arrays = {"vertices": ms.vertices, "faces": ms.faces,
+                      "normals": ms.normals, "uvs": ms.uvs}
+        meshes.append(build_mesh(ms.name, material=mat, where=where, **arrays))
+    mesh_names = [m.name for m in spec.meshes]
+    instances = []
+    for i, inst in enumerate(spec.instances):
+        mi = _resolve(inst.mesh, mesh_names, "mesh", f"instances[{i}].mesh")
+        if inst.transform is not None:
+            xf = np.array(inst.transform, dtype=TRANSFORM_DTYPE)
+        else:
+            xf = trs_matrix(inst.translate, inst.rotate_deg, inst.scale)
+        validate_transform(xf, f"instances[{i}] (mesh {mesh_names[mi]!r})")
+        instances.append(Instance(mi, xf))
+    lights = spec.lights
+    return Scene(
+        meshes=tuple(meshes),
+        instances=tuple(instances),
+        materials=materials,
+        quad_lights=tuple(QuadLight(**q.model_dump()) for q in lights.quads),
+        point_lights=tuple(PointLight(**p.model_dump()) for p in lights.points),
+        directional_lights=tuple(DirectionalLight(**d.model_dump()) for d in lights.directionals),
+        environment=Environment(**spec.environment.model_dump()),
+        camera=Camera(**spec.camera.model_dump()),
+        name=spec.name,
+    )
+
+
+def save_scene(scene: Scene, path) -> Path:
+    """Write `path` (JSON) plus one binary PLY per mesh and one .npy per texture beside it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    stem = path.stem
+    mesh_refs = _refs([m.name for m in scene.meshes])
+    mat_refs = _refs([m.name for m in scene.materials])
+    mats = []
+    for i, m in enumerate(scene.materials):
+        tex = None
+        if m.texture is not None:
+            tex = f"{stem}.tex{i:03d}.npy"
+            np.save(path.parent / tex, np.asarray(m.texture, dtype=np.float32), allow_pickle=False)
+        mats.append({"name": m.name, "albedo": _floats(m.albedo),
+                     "emission": _floats(m.emission), "texture": tex})
+    meshes = []
+    for i, m in enumerate(scene.meshes):
+        file = f"{stem}.mesh{i:03d}.ply"
+        _write_ply(m, path.parent / file)
+        meshes.append({"name": m.name, "path": file, "material": mat_refs[m.material]})
+    doc = {
+        "version": schema.FORMAT_VERSION,
+        "name": scene.name,
+        "materials": mats,
+        "meshes": meshes,
+        "instances": [
+            {"mesh": mesh_refs[inst.mesh],
+             "transform": np.asarray(inst.transform, dtype=np.float64).tolist()}
+            for inst in scene.instances
+        ],
+        "lights": {
+            "quads": [_floats_dict(q) for q in scene.quad_lights],
+            "points": [_floats_dict(p) for p in scene.point_lights],
+            "directionals": [_floats_dict(d) for d in scene.directional_lights],
+        },
+        "environment": {"kind": scene.environment.kind,
+                        **_floats_dict(scene.environment, skip=("kind",))},
+        "camera": _floats_dict(scene.camera),
+    }
+    try:  # refuse to write a file that load_scene would reject
+        spec = schema.SceneFile.model_validate(doc)
+    except ValidationError as e:
+        raise validation_error(e, f"save_scene({path})") from None
+    path.write_text(_compact_json(spec.model_dump(mode="json", exclude_none=True)),
+                    encoding="utf-8")
+    return path
+
+
+def _compact_json(doc: dict) -> str:
+    # One line per list item: readable, diffable, and thousands of instances stay short.
+    def block(value, pad: str) -> str:
+        if isinstance(value, list) and value and isinstance(value[0], dict):
+            return "[\n" + ",\n".join(pad + "  " + json.dumps(v) for v in value) + "\n" + pad + "]"
+        if isinstance(value, dict) and any(isinstance(v, list) for v in value.values()):
+            inner = ",\n".join(f"{pad}  {json.dumps(k)}: {block(v, pad + '  ')}"
+                               for k, v in value.items())
+            return "{\n" + inner + "\n" + pad + "}"
+        return json.dumps(value)
+
+    return block(doc, "") + "\n"
+
+
+def _refs(names: list[str]) -> list:
+    # Names are the readable reference; positions stand in when names repeat or are empty.
+    unique = len(set(names)) == len(names) and all(names)
+    return list(names) if unique else list(range(len(names)))
+
+
+def _floats(x) -> list | float:
+    return np.asarray(x, dtype=np.float64).tolist()
+
+
+def _floats_dict(obj, skip: tuple[str, ...] = ()) -> dict:
+    return {k: _floats(v) for k, v in vars(obj).items() if k not in skip}
+
+
+# ---------------------------------------------------------------- convenience
+
+
+def frame_camera(bounds: np.ndarray, fov_deg: float = 40.0) -> Camera:
+    """A camera looking at the box from the front-right, above. bounds : (2, 3) float64."""
+    lo, hi = np.asarray(bounds, dtype=np.float64)
+    centre = 0.5 * (lo + hi)
+    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
+    dist = radius / np.sin(np.radians(fov_deg) / 2.0)
+    direction = np.array([0.6, 0.45, 1.0]) / np.linalg.norm([0.6, 0.45, 1.0])
+    return Camera(tuple((centre + dist * direction).tolist()), tuple(centre.tolist()),
+                  (0.0, 1.0, 0.0), fov_deg)
+
+
+def scene_from_meshes(meshes: list[Mesh], transforms: list[tuple[int, np.ndarray]],
+                      materials: tuple[Material, ...], name: str) -> Scene:
+    """A scene with a framing camera and a daylight sky, for files without their own."""
+    instances = tuple(Instance(mi, xf) for mi, xf in transforms)
+    bare = Scene(tuple(meshes), instances, materials, name=name)
+    wb = instance_world_bounds(bare)
+    bounds = np.stack([wb[:, 0].min(axis=0), wb[:, 1].max(axis=0)])
+    sky = Environment(kind="sky", zenith=(0.35, 0.5, 0.9), horizon=(0.9, 0.9, 0.85))
+    return Scene(tuple(meshes), instances, materials, environment=sky,
+                 camera=frame_camera(bounds), name=name)
+
+
+def load_any(source, size: str = "default", seed: int = 0) -> Scene:
+    """A demo name ("forest", "city:small"), a .json scene, a .glb/.gltf file or a mesh file."""
+    from scene import demos, gltf  # deferred: both import this module
+
+    if isinstance(source, str) and not source.lower().endswith((".json", *MESH_SUFFIXES)):
+        name, _, demo_size = source.partition(":")
+        if name in demos.DEMOS:
+            return demos.make_demo(name, size=demo_size or size, seed=seed)
+    path = Path(source)
+    suffix = path.suffix.lower()
+    if suffix == ".json":
+        return load_scene(path)
+    if suffix in (".glb", ".gltf"):
+        return gltf.load_gltf(path)
+    if suffix in MESH_SUFFIXES:
+        mesh = build_mesh(path.stem, where=str(path), **read_mesh_file(path, str(path)))
+        return scene_from_meshes([mesh], [(0, np.eye(4))], (Material(),), path.stem)
+    if not path.exists():
+        raise SceneError(
+            f"unknown scene {str(source)!r}: not a demo ({', '.join(demos.DEMOS)}) "
+            f"and no such file"
+        )
+    raise SceneError(f"{path}: unsupported scene format {suffix!r} (want .json, .glb, .gltf)")

@@ -1,0 +1,139 @@
+"""The JSON scene file format as pydantic v2 models, with its constraints on the fields.
+
+`scene.io` reads and writes these and converts them to and from `scene.model.Scene`.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+FORMAT_VERSION = 1
+
+Finite = Annotated[float, Field(allow_inf_nan=False)]
+NonNeg = Annotated[float, Field(ge=0.0, allow_inf_nan=False)]
+Unit = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+Positive = Annotated[float, Field(gt=0.0, allow_inf_nan=False)]
+Vec3 = tuple[Finite, Finite, Finite]
+Color = tuple[NonNeg, NonNeg, NonNeg]
+Albedo = tuple[Unit, Unit, Unit]
+Index = Annotated[int, Field(ge=0)]
+Row4 = tuple[Finite, Finite, Finite, Finite]
+# A mesh or material is referenced by its name, or by its position when names repeat.
+Ref = str | Index
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class MaterialSpec(_Strict):
+    """Diffuse material; `texture` is an image (PNG/JPEG, sRGB) or a .npy (linear float32)
+    relative to the scene file."""
+
+    name: str = Field(min_length=1)
+    albedo: Albedo = (0.8, 0.8, 0.8)
+    emission: Color = (0.0, 0.0, 0.0)
+    texture: str | None = Field(default=None, min_length=1)
+
+
+class MeshSpec(_Strict):
+    """A base mesh from a file (OBJ/PLY/STL/GLB/glTF relative to the scene file), or inline."""
+
+    name: str = Field(min_length=1)
+    path: str | None = Field(default=None, min_length=1)
+    vertices: list[Vec3] | None = None
+    faces: list[tuple[Index, Index, Index]] | None = None
+    normals: list[Vec3] | None = None
+    uvs: list[tuple[Finite, Finite]] | None = None
+    material: Ref | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self) -> MeshSpec:
+        inline = self.vertices is not None or self.faces is not None
+        if self.path is not None and inline:
+            raise ValueError("give either 'path' or inline 'vertices'/'faces', not both")
+        if self.path is None and (self.vertices is None or self.faces is None):
+            raise ValueError("needs a 'path' or both inline 'vertices' and 'faces'")
+        if self.path is not None and (self.normals is not None or self.uvs is not None):
+            raise ValueError("inline 'normals'/'uvs' are only allowed with inline vertices")
+        return self
+
+
+class InstanceSpec(_Strict):
+    """A placement: a 4x4 row-major `transform`, or translate/rotate/scale composed as
+    T @ R @ S with `rotate_deg` Euler angles applied about x, then y, then z."""
+
+    mesh: Ref
+    transform: tuple[Row4, Row4, Row4, Row4] | None = None
+    translate: Vec3 | None = None
+    rotate_deg: Vec3 | None = None
+    scale: Finite | Vec3 | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self) -> InstanceSpec:
+        trs = (self.translate, self.rotate_deg, self.scale)
+        if self.transform is not None and any(x is not None for x in trs):
+            raise ValueError("give either 'transform' or translate/rotate_deg/scale, not both")
+        return self
+
+
+class QuadLightSpec(_Strict):
+    """Parallelogram corner + a*edge_u + b*edge_v, emitting along cross(edge_u, edge_v)."""
+
+    corner: Vec3
+    edge_u: Vec3
+    edge_v: Vec3
+    radiance: Color
+
+
+class PointLightSpec(_Strict):
+    position: Vec3
+    intensity: Color
+
+
+class DirectionalLightSpec(_Strict):
+    """`direction` is the direction the light travels."""
+
+    direction: Vec3
+    irradiance: Color
+
+
+class LightsSpec(_Strict):
+    quads: list[QuadLightSpec] = []
+    points: list[PointLightSpec] = []
+    directionals: list[DirectionalLightSpec] = []
+
+
+class EnvironmentSpec(_Strict):
+    kind: Literal["constant", "sky"] = "constant"
+    radiance: Color = (0.0, 0.0, 0.0)
+    zenith: Color = (0.0, 0.0, 0.0)
+    horizon: Color = (0.0, 0.0, 0.0)
+
+
+class CameraSpec(_Strict):
+    eye: Vec3 = (0.0, 0.0, 5.0)
+    target: Vec3 = (0.0, 0.0, 0.0)
+    up: Vec3 = (0.0, 1.0, 0.0)
+    fov_deg: float = Field(default=45.0, gt=0.0, lt=180.0)
+
+    @model_validator(mode="after")
+    def _well_posed(self) -> CameraSpec:
+        if self.eye == self.target:
+            raise ValueError("'eye' and 'target' coincide")
+        return self
+
+
+class SceneFile(_Strict):
+    """The whole scene file."""
+
+    version: Literal[1] = FORMAT_VERSION
+    name: str = "scene"
+    materials: list[MaterialSpec] = []
+    meshes: list[MeshSpec] = Field(min_length=1)
+    instances: list[InstanceSpec] = Field(min_length=1)
+    lights: LightsSpec = LightsSpec()
+    environment: EnvironmentSpec = EnvironmentSpec()
+    camera: CameraSpec = CameraSpec()
