@@ -1,0 +1,87 @@
+"""The FastAPI app: routers, error mapping, the dashboard, and a lifespan that runs the job
+manager (and optionally the gRPC server) in the same process."""
+
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.responses import FileResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.formparsers import MultiPartException
+
+from service.config import ServiceSettings
+from service.errors import (
+    BadUpload,
+    Conflict,
+    InvalidScene,
+    NotFound,
+    ServiceError,
+    TooLarge,
+    UnknownScene,
+)
+from service.manager import JobManager
+from service.routers import jobs, scenes
+from service.scenes import SceneStore
+
+log = logging.getLogger(__name__)
+
+STATIC_DIR = Path(__file__).parent / "static"
+_STATUS = {NotFound: 404, Conflict: 409, BadUpload: 400, TooLarge: 413, InvalidScene: 422,
+           UnknownScene: 422}
+
+
+def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = None,
+               grpc_host: str = "127.0.0.1") -> FastAPI:
+    """grpc_port None = REST only; 0 = any free port (see app.state.grpc_port)."""
+    settings = settings or ServiceSettings()
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        scene_store = SceneStore(settings)
+        manager = JobManager(settings, scene_store)
+        app.state.settings, app.state.scenes, app.state.manager = settings, scene_store, manager
+        manager.start()
+        grpc_server = None
+        if grpc_port is not None:
+            from service.grpc_server import start_grpc_server
+
+            grpc_server, app.state.grpc_port = start_grpc_server(manager, settings,
+                                                                 grpc_host, grpc_port)
+        log.info("nprt service up: data dir %s, %d job slot(s)", settings.data_dir,
+                 settings.max_concurrent_jobs)
+        try:
+            yield
+        finally:
+            if grpc_server is not None:
+                grpc_server.stop(grace=1.0).wait()
+            manager.stop()
+
+    app = FastAPI(title="nprt render service", version="1", lifespan=lifespan,
+                  description="Distributed path tracing jobs: upload scenes, submit renders, "
+                              "follow tiles over SSE, fetch PNG/EXR. gRPC: protos/nprt.proto.")
+    app.state.settings = settings
+    app.include_router(scenes.router)
+    app.include_router(jobs.router)
+
+    @app.exception_handler(ServiceError)
+    async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=_STATUS.get(type(exc), 400))
+
+    @app.exception_handler(MultiPartException)
+    async def multipart_error(_: Request, exc: MultiPartException) -> JSONResponse:
+        return JSONResponse({"detail": f"bad multipart upload: {exc.message}"}, status_code=400)
+
+    @app.get("/", include_in_schema=False)
+    async def dashboard() -> FileResponse:
+        return FileResponse(STATIC_DIR / "index.html")
+
+    @app.get("/healthz", tags=["health"])
+    async def healthz() -> dict:
+        return {"status": "ok"}
+
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    return app

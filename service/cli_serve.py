@@ -1,0 +1,109 @@
+"""`nprt serve` (REST + gRPC in one process) and `nprt submit` (an httpx client that
+follows a job's SSE stream with a progress bar and downloads the image)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+_SETTING_FLAGS = (  # flag, RenderSettings field, type
+    ("--width", "width", int), ("--height", "height", int), ("--spp", "spp", int),
+    ("--bounces", "bounces", int), ("--shadow-rays", "shadow_rays", int),
+    ("--seed", "seed", int), ("--shards", "shards", int), ("--tile-size", "tile_size", int),
+    ("--spp-per-pass", "spp_per_pass", int),
+)
+
+
+def add_serve_parsers(subparsers) -> None:
+    """Register `serve` and `submit` on an argparse subparsers object."""
+    p = subparsers.add_parser("serve", help="run the REST + gRPC render service",
+                              description="REST (and /docs, dashboard at /) plus gRPC in one "
+                                          "process; other settings come from NPRT_* variables.")
+    p.add_argument("--host", default="127.0.0.1", help="bind address (REST and gRPC)")
+    p.add_argument("--port", type=int, default=8000, help="REST port")
+    p.add_argument("--grpc-port", type=int, default=50051, help="gRPC port; -1 disables gRPC")
+    p.add_argument("--data-dir", type=Path, help="jobs, scenes and database (NPRT_DATA_DIR)")
+    p.add_argument("--ray-address", help="Ray cluster to render on (default: local Ray)")
+    p.add_argument("--max-jobs", type=int, help="jobs rendering at once "
+                                                "(NPRT_MAX_CONCURRENT_JOBS)")
+    p.add_argument("--log-level", default="INFO")
+    p.set_defaults(func=cmd_serve)
+
+    s = subparsers.add_parser("submit", help="submit a render job to a running service",
+                              description="SCENE is a demo name (forest, city:small, "
+                                          "sculpture:tiny), an uploaded scene id, or a local "
+                                          ".glb/.gltf/.json/.zip file to upload first.")
+    s.add_argument("scene")
+    s.add_argument("--server", default=os.environ.get("NPRT_SERVER", DEFAULT_SERVER))
+    s.add_argument("--token", default=os.environ.get("NPRT_API_TOKEN"),
+                   help="bearer token (NPRT_API_TOKEN)")
+    for flag, _, typ in _SETTING_FLAGS:
+        s.add_argument(flag, type=typ)
+    s.add_argument("--mode", choices=("exact", "proxy", "oracle"))
+    s.add_argument("--russian-roulette", action="store_true", default=None)
+    s.add_argument("--threshold", type=float, help="proxy visibility threshold")
+    s.add_argument("--band", type=float, help="proxy confidence band")
+    s.add_argument("--wait", action="store_true", help="follow progress until the job ends")
+    s.add_argument("-o", "--output", type=Path,
+                   help="save the final image here (.png or .exr); implies --wait")
+    s.add_argument("--timeout-s", type=float, default=30.0, help="HTTP request timeout")
+    s.set_defaults(func=cmd_submit)
+
+
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from service.app import create_app
+    from service.config import ServiceSettings
+
+    logging.basicConfig(level=args.log_level.upper(),
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    overrides = {k: v for k, v in (("data_dir", args.data_dir),
+                                   ("ray_address", args.ray_address),
+                                   ("max_concurrent_jobs", args.max_jobs)) if v is not None}
+    settings = ServiceSettings(**overrides)
+    grpc_port = None if args.grpc_port < 0 else args.grpc_port
+    app = create_app(settings, grpc_port=grpc_port, grpc_host=args.host)
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level.lower(),
+                            timeout_graceful_shutdown=3)
+    uvicorn.Server(config).run()
+    return 0
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    from service.client import Client
+
+    body = {field: getattr(args, field) for _, field, _ in _SETTING_FLAGS}
+    body |= {"mode": args.mode, "russian_roulette": args.russian_roulette}
+    body = {k: v for k, v in body.items() if v is not None}
+    proxy = {k: v for k, v in (("threshold", args.threshold), ("band", args.band))
+             if v is not None}
+    if proxy:
+        body["proxy"] = proxy
+    with Client(args.server, token=args.token, timeout_s=args.timeout_s) as client:
+        scene = args.scene
+        if Path(scene).is_file():
+            scene = client.upload_scene(Path(scene))["id"]
+            print(f"uploaded {args.scene} as scene {scene}", file=sys.stderr)
+        job = client.submit(scene, body)
+        print(job["id"])
+        if not (args.wait or args.output):
+            return 0
+        job = client.follow(job["id"])
+        if job["state"] != "succeeded":
+            print(f"job {job['id']} {job['state']}: {job.get('error') or ''}", file=sys.stderr)
+            return 1
+        if args.output:
+            args.output.write_bytes(client.image(job["id"], args.output.suffix.lstrip(".")
+                                                 or "png"))
+            print(f"wrote {args.output}", file=sys.stderr)
+        print(json.dumps({k: job["stats"].get(k) for k in ("wall_s", "rays", "total_bytes")}),
+              file=sys.stderr)
+    return 0

@@ -1,0 +1,94 @@
+"""A small httpx client for the REST API, used by `nprt submit` and the benchmark."""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+
+_UPLOAD_TYPES = {".glb": "model/gltf-binary", ".gltf": "model/gltf+json",
+                 ".zip": "application/zip", ".json": "application/json"}
+
+
+class ApiError(RuntimeError):
+    def __init__(self, response: httpx.Response):
+        self.status_code = response.status_code
+        try:
+            detail = response.json().get("detail")
+        except ValueError:
+            detail = response.text
+        super().__init__(f"{response.request.method} {response.request.url} -> "
+                         f"{response.status_code}: {detail}")
+
+
+class Client:
+    def __init__(self, base_url: str, token: str | None = None, timeout_s: float = 30.0):
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout_s)
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.http.close()
+
+    def _ok(self, r: httpx.Response) -> httpx.Response:
+        if r.is_error:
+            raise ApiError(r)
+        return r
+
+    def upload_scene(self, path: Path) -> dict:
+        with path.open("rb") as f:
+            r = self.http.post("/v1/scenes", content=f, params={"filename": path.name},
+                               headers={"Content-Type": _UPLOAD_TYPES.get(
+                                   path.suffix.lower(), "application/octet-stream")})
+        return self._ok(r).json()
+
+    def submit(self, scene: str, settings: dict) -> dict:
+        return self._ok(self.http.post("/v1/jobs", json={"scene": scene, **settings})).json()
+
+    def job(self, job_id: str) -> dict:
+        return self._ok(self.http.get(f"/v1/jobs/{job_id}")).json()
+
+    def image(self, job_id: str, fmt: str = "png") -> bytes:
+        return self._ok(self.http.get(f"/v1/jobs/{job_id}/image.{fmt}")).content
+
+    def events(self, job_id: str) -> Iterator[tuple[str, str]]:
+        """(event, data) pairs of the job's SSE stream until the server closes it."""
+        with self.http.stream("GET", f"/v1/jobs/{job_id}/events",
+                              timeout=httpx.Timeout(self.http.timeout.connect, read=None)) as r:
+            if r.is_error:
+                r.read()
+                raise ApiError(r)
+            event, data = "message", []
+            for line in r.iter_lines():
+                if not line:
+                    if data:
+                        yield event, "\n".join(data)
+                    event, data = "message", []
+                elif line.startswith("event:"):
+                    event = line[6:].strip()
+                elif line.startswith("data:"):
+                    data.append(line[5:].removeprefix(" "))
+
+    def follow(self, job_id: str, progress: bool = True) -> dict:
+        """Follow SSE with a tqdm bar (passes) until the job ends; returns the final job."""
+        from tqdm import tqdm
+
+        job = None
+        with tqdm(total=None, unit="pass", disable=not progress, file=sys.stderr,
+                  desc=job_id[:8]) as bar:
+            for event, data in self.events(job_id):
+                if event == "state":
+                    job = json.loads(data)
+                    bar.total = job["passes_total"]
+                    bar.n = job["passes_done"]
+                    bar.set_postfix_str(job["state"])
+                elif event == "tile":
+                    bar.n = json.loads(data)["pass_index"] + 1
+                bar.refresh()
+        return self.job(job_id) if job is None or job["state"] not in (
+            "succeeded", "failed", "canceled") else job

@@ -1,0 +1,45 @@
+"""Service settings: one pydantic BaseSettings class, read from NPRT_* environment variables."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class ServiceSettings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="NPRT_", extra="ignore")
+
+    data_dir: Path = Field(Path("nprt-data"), description="jobs, scenes, proxies and the SQLite db")
+    ray_address: str | None = Field(None, description="Ray cluster address; unset = local Ray")
+    max_concurrent_jobs: int = Field(1, ge=1, le=64, description="jobs rendering at once")
+    max_upload_bytes: int = Field(256 << 20, ge=1, description="largest scene upload, bytes")
+    max_extracted_bytes: int = Field(1 << 30, ge=1,
+                                     description="largest unpacked zip upload, bytes")
+    api_token: str | None = Field(None, min_length=1,
+                                  description="Bearer token for writing endpoints; unset = open")
+    grpc_max_message_bytes: int = Field(64 << 20, ge=1 << 20,
+                                        description="gRPC message limit, bytes (tiles, images)")
+    scene_cache_size: int = Field(8, ge=0, description="loaded scenes kept in memory")
+
+    @property
+    def db_path(self) -> Path:
+        return self.data_dir / "jobs.sqlite3"
+
+    @property
+    def jobs_dir(self) -> Path:
+        return self.data_dir / "jobs"
+
+    @property
+    def scenes_dir(self) -> Path:
+        return self.data_dir / "scenes"
+
+    @property
+    def proxies_dir(self) -> Path:
+        return self.data_dir / "proxies"
+
+    @property
+    def tmp_dir(self) -> Path:
+        """Uploads are spooled here, on the same filesystem as the store, for os.replace."""
+        return self.data_dir / "tmp"

@@ -1,0 +1,31 @@
+"""Errors the job manager and scene store raise; REST and gRPC map them to status codes."""
+
+
+class ServiceError(Exception):
+    """Base class; the message is meant for the API client."""
+
+
+class NotFound(ServiceError):
+    """Unknown job or scene id (HTTP 404, gRPC NOT_FOUND)."""
+
+
+class Conflict(ServiceError):
+    """The request does not fit the job's state, e.g. cancelling a finished job (409,
+    FAILED_PRECONDITION)."""
+
+
+class BadUpload(ServiceError):
+    """A malformed or unsafe upload: unknown format, zip-slip path, no scene inside (400)."""
+
+
+class TooLarge(ServiceError):
+    """An upload or its extracted content over the configured limit (413)."""
+
+
+class InvalidScene(ServiceError):
+    """The upload is well-formed but the scene does not load: carries SceneError's message
+    (422, INVALID_ARGUMENT)."""
+
+
+class UnknownScene(ServiceError):
+    """A job names a scene that is neither stored nor a demo (422, INVALID_ARGUMENT)."""

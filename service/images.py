@@ -1,0 +1,42 @@
+"""Encode a film snapshot (sums + sample counts) as PNG or EXR bytes, whole or one tile."""
+
+from __future__ import annotations
+
+import io
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from workers.film import tonemap_srgb, write_exr
+
+
+def film_image(sums: np.ndarray, samples: np.ndarray, width: int, height: int) -> np.ndarray:
+    """sums : (h * w, 3) float64, samples : (h * w,) int64 -> (h, w, 3) float32 linear.
+    Same arithmetic as workers.film.Film.image(), so PNGs match a direct render bit for bit."""
+    div = np.maximum(samples, 1)[:, None]
+    return (sums / div).astype(np.float32).reshape(height, width, 3)
+
+
+def png_bytes(img: np.ndarray) -> bytes:
+    """img : (h, w, 3) float32 linear -> sRGB 8-bit PNG."""
+    buf = io.BytesIO()
+    Image.fromarray(tonemap_srgb(img)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def exr_bytes(img: np.ndarray) -> bytes:
+    """img : (h, w, 3) float32 linear -> OpenEXR (the library writes to paths only)."""
+    with tempfile.TemporaryDirectory(prefix="nprt-exr-") as d:
+        path = Path(d) / "image.exr"
+        write_exr(img, path)
+        return path.read_bytes()
+
+
+def encode(img: np.ndarray, fmt: str) -> bytes:
+    if fmt == "png":
+        return png_bytes(img)
+    if fmt == "exr":
+        return exr_bytes(img)
+    raise ValueError(f"unknown image format {fmt!r}; expected 'png' or 'exr'")

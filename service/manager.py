@@ -1,0 +1,248 @@
+"""The job manager: stores every job before it runs, renders FIFO on a bounded pool of
+threads, checkpoints after each pass, and re-queues unfinished jobs on startup."""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+import uuid
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from scene.errors import SceneError
+from service import checkpoint, images
+from service.config import ServiceSettings
+from service.errors import Conflict, NotFound
+from service.events import Deliver, EventBroker
+from service.joblog import job_log
+from service.scenes import SceneStore
+from service.store import TERMINAL, JobRecord, JobStore
+from workers.passes import plan_passes
+from workers.render import PassDone, RenderCanceled, make_renderer, render
+from workers.settings import RenderSettings
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _Live:
+    """What exists only while this process owns a queued or running job."""
+
+    cancel: threading.Event = field(default_factory=threading.Event)
+    # Copies taken after the last pass, so partial images never see a half-added tile.
+    sums: np.ndarray | None = None  # (h * w, 3) float64
+    samples: np.ndarray | None = None  # (h * w,) int64
+
+
+class JobManager:
+    def __init__(self, settings: ServiceSettings, scenes: SceneStore,
+                 store: JobStore | None = None, broker: EventBroker | None = None):
+        self.settings = settings
+        self.scenes = scenes
+        self.store = store or JobStore(settings.db_path)
+        self.broker = broker or EventBroker()
+        self._queue: queue.Queue[str | None] = queue.Queue()
+        self._live: dict[str, _Live] = {}
+        self._lock = threading.Lock()
+        self._stopping = threading.Event()
+        self._threads: list[threading.Thread] = []
+        settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+
+    # ------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        for rec in self.store.unfinished():
+            ck = checkpoint.load_checkpoint(self.job_dir(rec.id))
+            log.info("re-queueing job %s (was %s, resumes at pass %d of %d)", rec.id, rec.state,
+                     ck.next_pass if ck else 0, rec.passes_total)
+            self.store.update(rec.id, state="queued",
+                              passes_done=ck.next_pass if ck else 0)
+            self._enqueue(rec.id)
+        for i in range(self.settings.max_concurrent_jobs):
+            t = threading.Thread(target=self._worker, name=f"nprt-worker-{i}", daemon=True)
+            t.start()
+            self._threads.append(t)
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Interrupt renders at their next pass boundary; their jobs stay unfinished in the
+        store, so the next start resumes them from the checkpoint."""
+        self._stopping.set()
+        with self._lock:
+            for live in self._live.values():
+                live.cancel.set()
+        for _ in self._threads:
+            self._queue.put(None)
+        deadline = time.monotonic() + timeout_s
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+        self.store.close()
+
+    # ------------------------------------------------------------ API
+
+    def submit(self, scene: str, settings: RenderSettings) -> JobRecord:
+        self.scenes.check(scene)
+        job_id = uuid.uuid4().hex
+        self.job_dir(job_id).mkdir(parents=True, exist_ok=True)
+        rec = self.store.insert(job_id, scene, settings.model_dump(mode="json"),
+                                len(plan_passes(settings)))
+        self._enqueue(job_id)
+        log.info("job %s queued: scene %r, %dx%d, %d spp, mode %s, shards %d", job_id, scene,
+                 settings.width, settings.height, settings.spp, settings.mode, settings.shards)
+        return rec
+
+    def get(self, job_id: str) -> JobRecord:
+        rec = self.store.get(job_id)
+        if rec is None:
+            raise NotFound(f"no job with id {job_id!r}")
+        return rec
+
+    def list(self, offset: int = 0, limit: int = 50, state: str | None = None):
+        return self.store.list(offset, limit, state)
+
+    def cancel(self, job_id: str) -> JobRecord:
+        rec = self.get(job_id)
+        if rec.state in TERMINAL:
+            raise Conflict(f"job {job_id} already {rec.state}; nothing to cancel")
+        with self._lock:
+            live = self._live.get(job_id)
+        if live is not None:
+            live.cancel.set()
+        if rec.state == "queued":
+            # The worker skips it when dequeued; mark it now so clients see it at once.
+            self._set_state(job_id, "canceled", finished_at=time.time())
+        log.info("job %s: cancel requested (was %s)", job_id, rec.state)
+        return self.get(job_id)
+
+    def subscribe(self, job_id: str, deliver: Deliver):
+        return self.broker.subscribe(job_id, deliver)
+
+    def image(self, job_id: str, fmt: str) -> tuple[bytes, bool]:
+        """(encoded image, partial): the final file once succeeded, else the latest pass."""
+        rec = self.get(job_id)
+        s = rec.settings
+        final = self.job_dir(job_id) / f"image.{fmt}"
+        if rec.state == "succeeded" and final.exists():
+            return final.read_bytes(), False
+        with self._lock:
+            live = self._live.get(job_id)
+            sums, samples = (live.sums, live.samples) if live else (None, None)
+        if sums is None:
+            ck = checkpoint.load_checkpoint(self.job_dir(job_id))
+            if ck is None:
+                raise NotFound(f"job {job_id} has no image yet (state {rec.state}, "
+                               f"{rec.passes_done} of {rec.passes_total} passes done)")
+            sums, samples = ck.sums, ck.samples
+        img = images.film_image(sums, samples, s["width"], s["height"])
+        return images.encode(img, fmt), True
+
+    def job_dir(self, job_id: str) -> Path:
+        return self.settings.jobs_dir / job_id
+
+    # ------------------------------------------------------------ workers
+
+    def _enqueue(self, job_id: str) -> None:
+        with self._lock:
+            self._live[job_id] = _Live()
+        self._queue.put(job_id)
+
+    def _worker(self) -> None:
+        while (job_id := self._queue.get()) is not None:
+            if self._stopping.is_set():
+                return
+            try:
+                self._run(job_id)
+            except Exception:  # keep the worker alive for the next job
+                log.exception("job %s: unexpected error in the job manager", job_id)
+            finally:
+                with self._lock:
+                    self._live.pop(job_id, None)
+
+    def _run(self, job_id: str) -> None:
+        rec = self.store.get(job_id)
+        if rec is None or rec.state in TERMINAL:
+            return
+        job_dir = self.job_dir(job_id)
+        job_dir.mkdir(parents=True, exist_ok=True)
+        with job_log(job_dir / "job.log"):
+            self._render(rec, job_dir)
+
+    def _render(self, rec: JobRecord, job_dir: Path) -> None:
+        job_id = rec.id
+        live = self._live[job_id]
+        settings = RenderSettings.model_validate(rec.settings)
+        resume = checkpoint.load_checkpoint(job_dir)
+        self._set_state(job_id, "preparing", started_at=rec.started_at or time.time())
+        log.info("job %s: preparing scene %r%s", job_id, rec.scene,
+                 f" (resuming at pass {resume.next_pass})" if resume else "")
+        try:
+            scene = self.scenes.load(rec.scene)
+            renderer = make_renderer(scene, settings, ray_address=self.settings.ray_address,
+                                     proxy_dir=self.settings.proxies_dir)
+            try:
+                if live.cancel.is_set():
+                    raise RenderCanceled("canceled while preparing")
+                self._set_state(job_id, "running")
+                result = render(scene, settings, resume=resume, cancel=live.cancel,
+                                renderer=renderer,
+                                on_pass=lambda p: self._on_pass(job_id, job_dir, live, p))
+            finally:
+                renderer.close()
+            self._finish(job_id, job_dir, result)
+        except RenderCanceled as e:
+            if self._stopping.is_set():
+                log.info("job %s: interrupted by shutdown; resumes on next start", job_id)
+                return
+            log.info("job %s: %s", job_id, e)
+            self._set_state(job_id, "canceled", finished_at=time.time())
+        except SceneError as e:
+            log.error("job %s: scene %r failed to load: %s", job_id, rec.scene, e)
+            self._set_state(job_id, "failed", error=str(e), finished_at=time.time())
+        except Exception as e:
+            log.exception("job %s failed", job_id)
+            self._set_state(job_id, "failed", error=f"{type(e).__name__}: {e}",
+                            finished_at=time.time())
+
+    def _on_pass(self, job_id: str, job_dir: Path, live: _Live, p: PassDone) -> None:
+        sums, samples = p.film.sums.copy(), p.film.samples.copy()
+        stats = p.stats.to_dict()
+        checkpoint.save_checkpoint(job_dir, p.index + 1, sums, samples, stats)
+        with self._lock:
+            live.sums, live.samples = sums, samples
+        self.store.update(job_id, passes_done=p.index + 1, stats=stats)
+        t = p.pass_
+        w = p.film.width
+        pix = t.pixels(w)
+        rgb = (sums[pix] / np.maximum(samples[pix], 1)[:, None]).astype(np.float32)
+        self.broker.publish(job_id, {
+            "type": "tile", "pass_index": p.index, "passes_total": p.total,
+            "rect": (t.x0, t.y0, t.x1, t.y1), "sample0": t.sample0, "sample1": t.sample1,
+            "progress": (p.index + 1) / p.total,
+            "rgb": rgb.reshape(t.y1 - t.y0, t.x1 - t.x0, 3),
+        })
+
+    def _finish(self, job_id: str, job_dir: Path, result) -> None:
+        film = result.film
+        img = film.image()
+        (job_dir / "image.png").write_bytes(images.png_bytes(img))
+        (job_dir / "image.exr").write_bytes(images.exr_bytes(img))
+        stats = result.stats_dict()
+        checkpoint.atomic_write_bytes(job_dir / "stats.json",
+                                      json.dumps(stats, indent=1, default=str).encode())
+        # The final film stays on disk: it proves every pixel got its samples.
+        checkpoint.atomic_save_npy(job_dir / "sums.npy", film.sums)
+        checkpoint.atomic_save_npy(job_dir / "samples.npy", film.samples)
+        pixel_samples = {"min": int(film.samples.min()), "max": int(film.samples.max())}
+        self._set_state(job_id, "succeeded", finished_at=time.time(),
+                        stats=json.loads(json.dumps(stats, default=str)),
+                        pixel_samples=pixel_samples, passes_done=result.info["passes"])
+        checkpoint.clear_checkpoint(job_dir)
+        log.info("job %s succeeded in %.2f s", job_id, result.info.get("wall_s", 0.0))
+
+    def _set_state(self, job_id: str, state: str, **fields) -> None:
+        self.store.update(job_id, state=state, **fields)
+        self.broker.publish(job_id, {"type": "state", "job": self.store.get(job_id)})
