@@ -1,0 +1,107 @@
+"""Shared test helpers: a real uvicorn server on a loopback port, scene files, SSE parsing."""
+
+from __future__ import annotations
+
+import io
+import json
+import socket
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import trimesh
+import uvicorn
+from PIL import Image
+
+from service.app import create_app
+from service.config import ServiceSettings
+
+TINY = {"width": 32, "height": 32, "spp": 4, "bounces": 2, "shadow_rays": 1,
+        "tile_size": 16, "spp_per_pass": 2}
+START_TIMEOUT_S = 20.0
+
+
+class LiveServer:
+    """The app under uvicorn in a thread, on a socket bound here (no free-port race)."""
+
+    def __init__(self, settings: ServiceSettings, grpc: bool = False):
+        self.settings = settings
+        self.app = create_app(settings, grpc_port=0 if grpc else None)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.bind(("127.0.0.1", 0))
+        self.url = f"http://127.0.0.1:{self.sock.getsockname()[1]}"
+        config = uvicorn.Config(self.app, log_level="warning", timeout_graceful_shutdown=1)
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]},
+                                       daemon=True)
+
+    @property
+    def grpc_target(self) -> str:
+        return f"127.0.0.1:{self.app.state.grpc_port}"
+
+    def __enter__(self) -> LiveServer:
+        self.thread.start()
+        deadline = time.monotonic() + START_TIMEOUT_S
+        while not self.server.started:
+            if not self.thread.is_alive() or time.monotonic() > deadline:
+                raise RuntimeError(f"uvicorn did not start within {START_TIMEOUT_S} s")
+            time.sleep(0.02)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.server.should_exit = True
+        self.thread.join(15)
+        self.sock.close()
+
+
+def settings_for(tmp: Path, **overrides) -> ServiceSettings:
+    # Explicit values, so NPRT_* variables in the environment do not change the tests.
+    base = {"data_dir": tmp / "data", "max_concurrent_jobs": 2, "api_token": None,
+            "ray_address": None}
+    return ServiceSettings(**(base | overrides))
+
+
+def two_box_glb(path: Path) -> Path:
+    """One box mesh placed by two glTF nodes: one base mesh, two instances."""
+    box = trimesh.creation.box((1.0, 1.0, 1.0))
+    scene = trimesh.Scene()
+    scene.add_geometry(box, geom_name="box", node_name="left",
+                       transform=trimesh.transformations.translation_matrix([-0.8, 0, 0]))
+    right = trimesh.transformations.translation_matrix([0.8, 0.3, -0.5])
+    scene.graph.update(frame_to="right", frame_from=scene.graph.base_frame, matrix=right,
+                       geometry="box")
+    path.write_bytes(scene.export(file_type="glb"))
+    return path
+
+
+def sse_events(client: httpx.Client, url: str, timeout_s: float = 60.0):
+    """(event, parsed data) pairs until the server closes the stream."""
+    with client.stream("GET", url, timeout=httpx.Timeout(5.0, read=timeout_s)) as r:
+        assert r.status_code == 200, r.read()
+        event, data = "message", []
+        for line in r.iter_lines():
+            if line.startswith("event:"):
+                event = line[6:].strip()
+            elif line.startswith("data:"):
+                data.append(line[5:].strip())
+            elif not line and data:
+                text = "\n".join(data)
+                yield event, (json.loads(text) if text.startswith("{") else text)
+                event, data = "message", []
+
+
+def png_pixels(data: bytes) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(data)).convert("RGB"))
+
+
+def wait_for(predicate, timeout_s: float, interval_s: float = 0.05, what: str = "condition"):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval_s)
+    raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
