@@ -47,7 +47,8 @@ class MeshGeometry:
         r = self._scene.run(
             np.ascontiguousarray(origin, dtype=EMBREE_DTYPE),
             np.ascontiguousarray(direction, dtype=EMBREE_DTYPE),
-            dists=np.ascontiguousarray(tmax, dtype=EMBREE_DTYPE),
+            # A copy: embreex writes each hit's tfar back into `dists` in place.
+            dists=np.array(tmax, dtype=EMBREE_DTYPE),
             output=1,
         )
         prim = r["primID"].astype(np.int32)
