@@ -7,8 +7,15 @@ import numpy as np
 import pytest
 
 from scene.model import DirectionalLight, PointLight, QuadLight
-from tests.workers.helpers import (Camera, Material, assert_image_close, fail_with_images,
-                                   plane_mesh, render_image, single)
+from tests.workers.helpers import (
+    Camera,
+    Material,
+    assert_image_close,
+    fail_with_images,
+    plane_mesh,
+    render_image,
+    single,
+)
 
 RHO = np.array([0.9, 0.6, 0.3])
 HEIGHT, FOV_DEG = 3.0, 40.0  # camera above the origin, looking down -y

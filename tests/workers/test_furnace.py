@@ -6,9 +6,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.workers.helpers import (Camera, Environment, Material, assert_image_close,
-                                   fail_with_images, mesh_from_trimesh, render_image, single,
-                                   trs)
+from tests.workers.helpers import (
+    Camera,
+    Environment,
+    Material,
+    assert_image_close,
+    fail_with_images,
+    mesh_from_trimesh,
+    render_image,
+    single,
+    trs,
+)
 
 LE = np.array([1.0, 2.0, 0.5])  # emitted radiance of the enclosure walls, per channel
 RHO = np.array([0.2, 0.5, 0.8])  # per-channel albedo, so channels test different series
