@@ -4,6 +4,7 @@ base mesh with one instance per node, with base-colour factor and texture as the
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from pathlib import Path
 
@@ -19,7 +20,8 @@ log = logging.getLogger(__name__)
 
 def load_gltf(path) -> Scene:
     """Load a .glb/.gltf file; meshes keep their local space, node world transforms become
-    instances. The scene gets a framing camera and a sky (glTF cameras/lights are ignored)."""
+    instances, and identical meshes (geometry, UVs, normals, material) are stored once.
+    The scene gets a framing camera and a sky (glTF cameras/lights are ignored)."""
     path = Path(path)
     if not path.is_file():
         raise SceneError(f"glTF file not found: {path}")
@@ -30,7 +32,8 @@ def load_gltf(path) -> Scene:
     meshes: list[Mesh] = []
     materials: list[Material] = []
     mesh_of: dict[str, int] = {}  # geometry name -> base mesh index
-    material_of: dict[int, int] = {}  # id(trimesh material) -> material index
+    mesh_of_content: dict[tuple, int] = {}  # _content_key -> base mesh index
+    material_of: dict = {}  # id(trimesh material) or content key -> material index
     placements: list[tuple[int, np.ndarray]] = []
     for node in sorted(tm.graph.nodes_geometry, key=str):
         xf, geom_name = tm.graph[node]
@@ -41,15 +44,19 @@ def load_gltf(path) -> Scene:
             continue
         if geom_name not in mesh_of:
             mat = _material_index(geom, geom_name, materials, material_of)
-            where = f"{path}: mesh {geom_name!r}"
             tex = materials[mat].texture is not None
-            mesh_of[geom_name] = len(meshes)
-            meshes.append(build_mesh(
+            mesh = build_mesh(
                 str(geom_name), geom.vertices, geom.faces,
                 normals=_file_normals(geom),
                 uvs=np.asarray(geom.visual.uv) if tex else None,
-                material=mat, where=where,
-            ))
+                material=mat, where=f"{path}: mesh {geom_name!r}",
+            )
+            # Exporters often write one copy per node; identical copies become one base mesh.
+            key = _content_key(mesh)
+            if key not in mesh_of_content:
+                mesh_of_content[key] = len(meshes)
+                meshes.append(mesh)
+            mesh_of[geom_name] = mesh_of_content[key]
         xf = np.asarray(xf, dtype=TRANSFORM_DTYPE)
         validate_transform(xf, f"{path}: node {node!r} (mesh {geom_name!r})")
         placements.append((mesh_of[geom_name], xf))
@@ -57,6 +64,13 @@ def load_gltf(path) -> Scene:
         raise SceneError(f"{path}: no triangle meshes in the glTF scene")
     log.info("%s: %d base meshes, %d instances", path, len(meshes), len(placements))
     return scene_from_meshes(meshes, placements, tuple(materials) or (Material(),), path.stem)
+
+
+def _content_key(mesh: Mesh) -> tuple:
+    extra = hashlib.sha256()
+    for arr in (mesh.normals, mesh.uvs):
+        extra.update(b"-" if arr is None else arr.tobytes())
+    return mesh.content_hash, extra.hexdigest(), mesh.material
 
 
 def _file_normals(geom: trimesh.Trimesh) -> np.ndarray | None:
@@ -67,13 +81,21 @@ def _file_normals(geom: trimesh.Trimesh) -> np.ndarray | None:
 
 
 def _material_index(geom: trimesh.Trimesh, geom_name: str, materials: list[Material],
-                    material_of: dict[int, int]) -> int:
-    visual = geom.visual
-    source = getattr(visual, "material", None)
-    key = id(source) if source is not None else -1 - len(materials)
+                    material_of: dict) -> int:
+    """Index of the geometry's material in `materials`, appending it if new. Materials that
+    render the same (albedo, emission, texture) are stored once, whatever their names."""
+    source = getattr(geom.visual, "material", None)
+    if source is not None and id(source) in material_of:
+        return material_of[id(source)]
+    mat = _convert_material(geom.visual, source, geom_name, len(geom.vertices))
+    tex = b"" if mat.texture is None else mat.texture.tobytes()
+    shape = None if mat.texture is None else mat.texture.shape
+    key = (mat.albedo, mat.emission, shape, hashlib.sha256(tex).hexdigest())
     if key not in material_of:
         material_of[key] = len(materials)
-        materials.append(_convert_material(visual, source, geom_name, len(geom.vertices)))
+        materials.append(mat)
+    if source is not None:
+        material_of[id(source)] = material_of[key]
     return material_of[key]
 
 

@@ -223,11 +223,16 @@ def load_scene(path) -> Scene:
 def validation_error(err: ValidationError, source: str) -> SceneError:
     """One SceneError listing the first few failing JSON field paths."""
     errors = err.errors()
-    parts = [f"{_field_path(e['loc'])}: {e['msg'].removeprefix('Value error, ')}"
-             for e in errors[:MAX_LISTED_ERRORS]]
+    parts = [f"{_field_path(e['loc'])}: {_message(e)}" for e in errors[:MAX_LISTED_ERRORS]]
     more = len(errors) - MAX_LISTED_ERRORS
     tail = f" (and {more} more errors)" if more > 0 else ""
     return SceneError(f"{source}: invalid scene file: " + "; ".join(parts) + tail)
+
+
+def _message(e: dict) -> str:
+    if e["type"] == "missing" and e["loc"] and isinstance(e["loc"][-1], int):
+        return "missing element (too few numbers in this list)"
+    return e["msg"].removeprefix("Value error, ")
 
 
 def _field_path(loc: tuple) -> str:
@@ -247,7 +252,7 @@ _UNION_TAGS = {"str", "int", "float", "function-after", "list", "tuple", "none"}
 def _resolve(ref, names: list[str], kind: str, field: str) -> int:
     if isinstance(ref, int):
         if ref >= len(names):
-            raise SceneError(f"{field}: {kind} index {ref} out of range ({len(names)} {kind}es)")
+            raise SceneError(f"{field}: {kind} index {ref} out of range (there are {len(names)})")
         return ref
     hits = [i for i, n in enumerate(names) if n == ref]
     if not hits:

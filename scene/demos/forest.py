@@ -141,7 +141,7 @@ def _birch(rng, n_leaves: int, cfg: dict):
     clumps = np.array([[0.6, 6.0, 0.2], [-0.5, 7.2, -0.3], [0.1, 8.3, 0.4], [-0.2, 5.2, -0.6]])
     owner = rng.integers(0, len(clumps), n_leaves)
     pts = _in_ellipsoid(rng, n_leaves, (0, 0, 0), (1.2, 0.9, 1.2), shell=0.4) + clumps[owner]
-    bark = [tube((0, 0, 0), (0.1, 8.8, 0.05), 0.16, 0.05, sec)]
+    bark = [tube((0, 0, 0), (0, 8.8, 0), 0.16, 0.05, sec)]
     bark += _branches(rng, nb, (4.0, 7.5), clumps[np.arange(nb) % len(clumps)],
                       max(4, sec // 2), 0.06, 0.02)
     leaf = [_leaves(rng, pts, 0.14, 0.10)]
