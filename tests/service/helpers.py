@@ -105,3 +105,25 @@ def wait_for(predicate, timeout_s: float, interval_s: float = 0.05, what: str = 
             return value
         time.sleep(interval_s)
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
+
+
+BLOCKER = {**TINY, "width": 64, "height": 64, "spp": 1024, "spp_per_pass": 1}
+
+
+class HeldSlots:
+    """Fill every job slot with a long render so the next job stays queued until release():
+    a watcher can then subscribe before that job's first pass."""
+
+    def __init__(self, base_url: str, slots: int, token: str | None = None):
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        self.client = httpx.Client(base_url=base_url, timeout=30.0, headers=headers)
+        self.ids = [self.client.post("/v1/jobs", json={"scene": "forest:tiny", **BLOCKER}
+                                     ).json()["id"] for _ in range(slots)]
+
+    def release(self) -> None:
+        for job_id in self.ids:
+            self.client.post(f"/v1/jobs/{job_id}/cancel")
+        for job_id in self.ids:
+            wait_for(lambda j=job_id: self.client.get(f"/v1/jobs/{j}").json()["state"]
+                     == "canceled", 30, what=f"blocker {job_id} canceled")
+        self.client.close()
