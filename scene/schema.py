@@ -121,8 +121,14 @@ class CameraSpec(_Strict):
 
     @model_validator(mode="after")
     def _well_posed(self) -> CameraSpec:
-        if self.eye == self.target:
+        view = [t - e for t, e in zip(self.target, self.eye, strict=True)]
+        if not any(view):
             raise ValueError("'eye' and 'target' coincide")
+        u = self.up
+        cross = (view[1] * u[2] - view[2] * u[1], view[2] * u[0] - view[0] * u[2],
+                 view[0] * u[1] - view[1] * u[0])
+        if not any(cross):
+            raise ValueError("'up' is zero or parallel to the viewing direction")
         return self
 
 

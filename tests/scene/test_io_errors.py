@@ -98,6 +98,11 @@ def test_unknown_mesh_reference_names_the_instance_field(tmp_path):
     assert "instances[0].mesh: unknown mesh 'oak'" in str(err)
 
 
+def test_mesh_index_out_of_range_names_the_instance_field(tmp_path):
+    err = _load(tmp_path, _scene(instance={"mesh": 3}))
+    assert "instances[0].mesh: mesh index 3 out of range (there are 1)" in str(err)
+
+
 def test_unknown_material_reference_names_the_mesh_field(tmp_path):
     err = _load(tmp_path, _scene({**TRI, "material": "gold"}))
     assert "meshes[0] ('tree').material: unknown material 'gold'" in str(err)
@@ -107,6 +112,8 @@ def test_unknown_material_reference_names_the_mesh_field(tmp_path):
     ("patch", "expected"),
     [
         ({"camera": {"fov_deg": 190}}, "camera.fov_deg: Input should be less than 180"),
+        ({"camera": {"eye": [0, 5, 0], "target": [0, 0, 0]}}, "camera: 'up' is zero or parall"),
+        ({"camera": {"eye": [1, 1, 1], "target": [1, 1, 1]}}, "camera: 'eye' and 'target' coin"),
         ({"materials": [{"name": "m", "albedo": [0.5, 1.5, 0.5]}]}, "materials[0].albedo[1]"),
         ({"lights": {"points": [{"position": [0, 1], "intensity": [1, 1, 1]}]}},
          "lights.points[0].position"),
