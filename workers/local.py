@@ -79,5 +79,6 @@ class LocalGeometry:
             live = ~occluded[r]
             if live.any():
                 r = r[live]
-                occluded[r] |= self.geometry[m].intersect_occluded(lo[live], ld[live], tmax[r])
+                hit = self.geometry[m].intersect_occluded(lo[live], ld[live], tmax[r])
+                occluded[r[hit]] = True  # not |=: r repeats when a ray meets two instances
         return occluded
