@@ -1,0 +1,50 @@
+"""Two-level intersection (LocalGeometry): many instances of one base mesh along a ray."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from scene.model import Instance, Mesh, Scene
+from tests.workers.helpers import trs
+from workers.geometry import MeshGeometry
+from workers.local import LocalGeometry
+from workers.toplevel import InstanceTable
+
+# One triangle in the x = 0 plane covering y + z <= 1 of the unit square; its box is the
+# whole square, so a ray along +x crosses the box of every instance below.
+TRI = Mesh("tri", np.array([[0, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32),
+           np.array([[0, 1, 2]], np.uint32))
+LOWER = trs((3.0, 0.0, 0.0))  # covers y + z <= 1 at x = 3
+UPPER = trs((6.0, 1.0, 1.0), 1.0, (1, 0, 0), 180.0)  # covers y + z >= 1 at x = 6
+
+# Ray a (y, z) = (0.1, 0.1) is blocked by LOWER only; ray b (0.9, 0.9) by UPPER only;
+# ray c is a's line cut short before x = 3, so nothing blocks it.
+ORIGIN = np.array([[0.0, 0.1, 0.1], [0.0, 0.9, 0.9], [0.0, 0.1, 0.1]], np.float32)
+DIRECTION = np.tile(np.array([[1.0, 0.0, 0.0]], np.float32), (3, 1))
+TMAX = np.array([10.0, 10.0, 2.0], np.float32)
+
+
+def _local(transforms):
+    scene = Scene((TRI,), tuple(Instance(0, x) for x in transforms))
+    table = InstanceTable(scene)
+    return LocalGeometry({0: MeshGeometry(TRI)}, table, np.arange(len(transforms)))
+
+
+@pytest.mark.parametrize("order", ["lower_first", "upper_first"])
+def test_occlusion_by_one_instance_is_not_undone_by_another_of_the_same_mesh(order):
+    # Each ray is paired with both instances of the same mesh and blocked by exactly one.
+    # With duplicate ray indices, `occluded[r] |= hits` keeps only the last pair's answer.
+    geo = _local([LOWER, UPPER] if order == "lower_first" else [UPPER, LOWER])
+    occluded = geo.intersect_occluded(ORIGIN, DIRECTION, TMAX)
+    assert occluded.tolist() == [True, True, False], f"occluded = {occluded.tolist()}"
+
+
+@pytest.mark.parametrize("order", ["lower_first", "upper_first"])
+def test_closest_hit_picks_the_nearest_instance_of_the_same_mesh(order):
+    lower, upper = (0, 1) if order == "lower_first" else (1, 0)
+    geo = _local([LOWER, UPPER] if order == "lower_first" else [UPPER, LOWER])
+    t, inst, prim, _, _ = geo.intersect_closest(ORIGIN, DIRECTION, TMAX)
+    assert inst.tolist() == [lower, upper, -1], f"inst = {inst.tolist()}"
+    np.testing.assert_allclose(t[:2], [3.0, 6.0], rtol=1e-6)
+    assert t[2] == TMAX[2] and prim[2] == -1
