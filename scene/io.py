@@ -72,8 +72,11 @@ def build_mesh(
     vertices : (v, 3) float, faces : (f, 3) int, normals : (v, 3) or None, uvs : (v, 2) or None
     """
     where = where or f"mesh {name!r}"
-    v = np.asarray(vertices, dtype=np.float64)
-    f = np.asarray(faces)
+    try:
+        v = np.asarray(vertices, dtype=np.float64)
+        f = np.asarray(faces)
+    except (ValueError, TypeError) as e:
+        raise SceneError(f"{where}: vertices/faces are not numeric arrays: {e}") from None
     v = v.reshape(0, 3) if v.size == 0 else v
     f = f.reshape(0, 3).astype(INDEX_DTYPE) if f.size == 0 else f
     if not np.issubdtype(f.dtype, np.integer) or (f.size and f.min() < 0):
