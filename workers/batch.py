@@ -84,7 +84,13 @@ _RAY_SPEC = {
     "hit_u": (None, np.float32),
     "hit_v": (None, np.float32),
     "hops": (None, np.uint8),  # shard-to-shard transfers so far
+    "flags": (None, np.uint8),  # traversal state bits, see FLAG_*
 }
+
+# RayBatch.flags bits (proxy traversal state; exact rays keep 0).
+FLAG_EXACT = 1  # fell back to exact forwarding (uncertain prediction or a miss at the target)
+FLAG_TARGETED = 2  # sent to the shard a proxy predicted; the hit there is final
+FLAG_SHADE = 4  # closest hit is final; sent to the hit's owner only to be shaded
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,7 +100,7 @@ class RayBatch(_Batch):
     origin (n,3) f32, direction (n,3) f32, tmax (n,) f32 (closest hit so far),
     throughput (n,3) f32, pixel (n,) u32, sample (n,) u32, depth (n,) u8,
     kind (n,) u8, visited (n,) u64 shard bitmask, pdf_prev (n,) f32,
-    hit_inst/hit_prim (n,) i32, hit_u/hit_v (n,) f32, hops (n,) u8.
+    hit_inst/hit_prim (n,) i32, hit_u/hit_v (n,) f32, hops (n,) u8, flags (n,) u8 (FLAG_* bits).
     """
 
     _SPEC = _RAY_SPEC
@@ -113,6 +119,7 @@ class RayBatch(_Batch):
     hit_u: np.ndarray
     hit_v: np.ndarray
     hops: np.ndarray
+    flags: np.ndarray
 
 
 _SHADOW_SPEC = {

@@ -62,7 +62,7 @@ class MeshGeometry:
         r = self._scene.run(
             np.ascontiguousarray(origin, dtype=EMBREE_DTYPE),
             np.ascontiguousarray(direction, dtype=EMBREE_DTYPE),
-            dists=np.ascontiguousarray(tmax, dtype=EMBREE_DTYPE),
+            dists=np.array(tmax, dtype=EMBREE_DTYPE),  # copy: embreex writes tfar in place
             query="OCCLUDED",
         )
         return np.asarray(r) >= 0

@@ -51,7 +51,7 @@ def new_rays(origin, direction, throughput, pixel, sample, depth, kind, pdf_prev
         visited=np.zeros(n, np.uint64), pdf_prev=np.asarray(pdf_prev, np.float32),
         hit_inst=np.full(n, NO_HIT, np.int32), hit_prim=np.full(n, -1, np.int32),
         hit_u=np.zeros(n, np.float32), hit_v=np.zeros(n, np.float32),
-        hops=np.zeros(n, np.uint8))
+        hops=np.zeros(n, np.uint8), flags=np.zeros(n, np.uint8))
 
 
 class PathIntegrator:

@@ -9,6 +9,8 @@ import numpy as np
 from workers.geometry import MeshGeometry
 from workers.toplevel import InstanceTable
 
+_FAR = np.float32(1e30)
+
 
 class LocalGeometry:
     """geometry : {mesh index: MeshGeometry} for the meshes held here;
@@ -54,8 +56,12 @@ class LocalGeometry:
         v_best = np.zeros(n, np.float32)
         parts = []
         for m, r, i, lo, ld in self._pairs_by_mesh(origin, direction, tmax):
-            t, prim, u, v = self.geometry[m].intersect_closest(lo, ld, tmax[r])
-            hit = prim >= 0
+            # Embree always gets tfar = inf: which of two triangles tied on a shared edge
+            # it reports depends on tfar, and an exact render must not depend on the
+            # tmax a ray happened to arrive with. The tmax cut is applied here instead.
+            far = np.full(len(r), _FAR, np.float32)  # fresh: embreex writes tfar in place
+            t, prim, u, v = self.geometry[m].intersect_closest(lo, ld, far)
+            hit = (prim >= 0) & (t < tmax[r])
             parts.append((r[hit], t[hit], i[hit], prim[hit], u[hit], v[hit]))
         if parts:
             r, t, i, prim, u, v = (np.concatenate(x) for x in zip(*parts, strict=True))

@@ -1,0 +1,149 @@
+"""The Coordinator: starts K Shard actors, drives passes, routes ObjectRefs between
+shards, and sums the partial framebuffers. It reads only manifests (ray counts per
+target) and finished films: never a ray batch, which moves shard to shard through the
+object store."""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import ray
+from ray.exceptions import RayActorError
+
+from scene.model import Scene
+from scene.partition import partition
+from workers.passes import Pass
+from workers.settings import RenderSettings
+from workers.shard import Manifest, Shard, ShardConfig
+from workers.stats import RenderStats
+from workers.world import ShardWorld
+
+log = logging.getLogger(__name__)
+
+MAX_PASS_ATTEMPTS = 4
+
+
+def ensure_ray(address: str | None = None) -> bool:
+    """Join `address`, or start a local Ray. Returns True when this call started it."""
+    if ray.is_initialized():
+        return False
+    ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING,
+             log_to_driver=False)
+    return True
+
+
+class Coordinator:
+    def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
+                 proxy_dir=None, shard_options: list[dict] | None = None):
+        self.scene, self.s, self.k = scene, settings, settings.shards
+        t0 = time.perf_counter()
+        self.partition = partition(scene, self.k)
+        owner = np.asarray(self.partition.instance_shard, np.int32)
+        shard_meshes = [list(m) for m in self.partition.shard_meshes]
+        self.world = ShardWorld.build(scene, owner)
+        self.started_ray = ensure_ray(ray_address)
+        world_ref = ray.put(self.world)
+        cpus = ray.cluster_resources().get("CPU", 1.0)
+        per_shard_cpu = min(1.0, cpus / self.k)
+        self.actors = []
+        for sid in range(self.k):
+            meshes_ref = ray.put({i: scene.meshes[i] for i in shard_meshes[sid]})
+            opts = dict(max_restarts=-1, max_task_retries=0, num_cpus=per_shard_cpu,
+                        name=None)
+            opts.update((shard_options or [{}] * self.k)[sid])
+            actor = ray.remote(Shard).options(**opts).remote(
+                ShardConfig(sid, self.k, settings), world_ref, meshes_ref)
+            self.actors.append(actor)
+        self.shard_info = ray.get([a.ready.remote() for a in self.actors])
+        self.prepare_s = time.perf_counter() - t0
+        self.fetched: list[type] = []  # what this coordinator read back, for the tests
+        log.info("started %d shards in %.2f s", self.k, self.prepare_s)
+
+    def __repr__(self) -> str:
+        return f"Coordinator({self.scene.name!r}, k={self.k}, mode={self.s.mode!r})"
+
+    def _get(self, refs):
+        out = ray.get(refs)
+        self.fetched.extend(type(x) for x in (out if isinstance(refs, list) else [out]))
+        return out
+
+    def run_pass(self, p: Pass) -> tuple[np.ndarray, RenderStats]:
+        for attempt in range(1, MAX_PASS_ATTEMPTS + 1):
+            try:
+                return self._run_pass(p)
+            except RayActorError as e:
+                log.warning("pass %d attempt %d lost a shard (%s); re-running it",
+                            p.index, attempt, type(e).__name__)
+                self._abort(p)
+        raise RuntimeError(f"pass {p.index} failed {MAX_PASS_ATTEMPTS} times; giving up")
+
+    def _abort(self, p: Pass) -> None:
+        """Drop the pass's partial films everywhere; restarted actors come back empty."""
+        for _ in range(MAX_PASS_ATTEMPTS * 5):
+            try:
+                ray.get([a.abort_pass.remote(p.index) for a in self.actors])
+                return
+            except RayActorError:
+                time.sleep(0.5)
+        raise RuntimeError(f"shards did not come back while aborting pass {p.index}")
+
+    def _call(self, shard: int, method: str, *args):
+        """Start an actor call; returns (manifest ref, parcel refs (k,))."""
+        fn = getattr(self.actors[shard], method).options(num_returns=self.k + 1)
+        refs = fn.remote(*args)
+        return refs[0], refs[1:]
+
+    def _run_pass(self, p: Pass) -> tuple[np.ndarray, RenderStats]:
+        wait_s = 0.0
+        inflight: dict = {}
+        busy = [False] * self.k
+        inbox: list[list] = [[] for _ in range(self.k)]
+        first = p.index % self.k  # the shard that generates this tile's camera rays
+        m_ref, parcels = self._call(first, "generate", p)
+        inflight[m_ref] = (first, parcels)
+        busy[first] = True
+        while inflight:
+            t0 = time.perf_counter()
+            ready, _ = ray.wait(list(inflight), num_returns=1)
+            wait_s += time.perf_counter() - t0
+            manifest: Manifest = self._get(ready[0])
+            shard, parcels = inflight.pop(ready[0])
+            busy[shard] = False
+            for target, count in enumerate(manifest.counts):
+                if count:
+                    inbox[target].append(parcels[target])
+            for sid in range(self.k):
+                if inbox[sid] and not busy[sid]:
+                    m_ref, out = self._call(sid, "process", p, *inbox[sid])
+                    inflight[m_ref] = (sid, out)
+                    inbox[sid], busy[sid] = [], True
+        results = self._get([a.finish_pass.remote(p.index) for a in self.actors])
+        sums = np.zeros((p.n_pixels, 3))
+        stats = RenderStats()
+        for part, st in results:
+            if part is not None:
+                sums += part
+            stats.merge(RenderStats.from_dict(st))
+        stats.phase_s["coordinator_wait"] += wait_s
+        return sums, stats
+
+    def info(self) -> dict:
+        return {
+            "scene": self.scene.summary(),
+            "renderer": "distributed",
+            "mode": self.s.mode,
+            "shards": self.k,
+            "partition": self.partition.summary(),
+            "shard_geometry_bytes": [i["geometry_bytes"] for i in self.shard_info],
+            "max_shard_geometry_bytes": max(i["geometry_bytes"] for i in self.shard_info),
+            "prepare_s": round(self.prepare_s, 4),
+        }
+
+    def close(self) -> None:
+        for a in self.actors:
+            ray.kill(a, no_restart=True)
+        self.actors = []
+        if self.started_ray:
+            ray.shutdown()

@@ -1,0 +1,204 @@
+"""The Shard actor: one slice of the scene's geometry in Embree, the replicated
+instance table and lights, and the traversal policy. A plain class; the coordinator
+applies ray.remote where it starts it.
+
+Every call takes parcels of rays that other shards sent here and returns one parcel
+per target shard, so batches move shard to shard through the object store while the
+coordinator only routes references. Film and statistics are kept per pass and handed
+back by `finish_pass`, so a pass that fails can be dropped without counting it twice.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from scene.model import Mesh
+from workers.batch import FLAG_SHADE, KIND_NAMES, SHADOW, RayBatch, ShadowRayBatch
+from workers.geometry import MeshGeometry
+from workers.integrator import PathIntegrator
+from workers.local import LocalGeometry
+from workers.passes import Pass
+from workers.routing import DONE, route_exact, route_shadow_exact, visited_bit
+from workers.settings import RenderSettings
+from workers.stats import RenderStats
+from workers.tracer import resolve_closest
+from workers.world import ShardWorld
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ShardConfig:
+    shard_id: int
+    k: int
+    settings: RenderSettings
+
+
+@dataclass
+class Parcel:
+    """Rays travelling to one shard. Either part may be empty."""
+
+    rays: RayBatch
+    shadow: ShadowRayBatch
+
+    @property
+    def nbytes(self) -> int:
+        return self.rays.nbytes + self.shadow.nbytes
+
+    def __len__(self) -> int:
+        return len(self.rays) + len(self.shadow)
+
+
+@dataclass
+class Manifest:
+    """The small part of a call's result that the coordinator reads: rays per target."""
+
+    shard: int
+    counts: list[int]  # (k,) rays + shadow rays sent to each shard
+
+
+@dataclass
+class _PassState:
+    sums: np.ndarray  # (n_pixels, 3) float64
+    stats: RenderStats = field(default_factory=RenderStats)
+
+
+class Shard:
+    def __init__(self, config: ShardConfig, world: ShardWorld, meshes: dict[int, Mesh]):
+        self.config, self.world = config, world
+        self.id, self.k, self.s = config.shard_id, config.k, config.settings
+        self.bit = visited_bit(self.id)
+        self.meshes = meshes
+        geometry = {i: MeshGeometry(m) for i, m in meshes.items()}
+        local = world.local_instances(self.id)
+        self.local = LocalGeometry(geometry, world.table, local)
+        is_local = np.zeros(len(world.table), bool)
+        is_local[local] = True
+        self.remote = np.flatnonzero(~is_local).astype(np.int32)
+        self.integrator = PathIntegrator(self.s, world.camera, meshes, world.materials,
+                                         world.table, world.lights)
+        self.passes: dict[int, _PassState] = {}
+        log.info("%r started in pid %d", self, os.getpid())
+
+    def __repr__(self) -> str:
+        return (f"Shard({self.id}/{self.k}, {len(self.meshes)} meshes, "
+                f"{len(self.local.instances)} local instances)")
+
+    def ready(self) -> dict:
+        return {"shard": self.id, "pid": os.getpid(),
+                "geometry_bytes": int(sum(m.nbytes for m in self.meshes.values()))}
+
+    # -- calls from the coordinator -------------------------------------------------
+
+    def generate(self, p: Pass) -> list:
+        """Primary rays of a tile assigned to this shard, traced as far as they go here."""
+        st = self._state(p)
+        with st.stats.phase("generate"):
+            rays = self.integrator.primary(p)
+        return self._run(p, st, rays, ShadowRayBatch.empty())
+
+    def process(self, p: Pass, *parcels: Parcel) -> list:
+        """Rays that other shards sent here."""
+        st = self._state(p)
+        rays = RayBatch.concat([x.rays for x in parcels])
+        shadow = ShadowRayBatch.concat([x.shadow for x in parcels])
+        return self._run(p, st, rays, shadow)
+
+    def finish_pass(self, index: int) -> tuple[np.ndarray, dict]:
+        st = self.passes.pop(index, None)
+        if st is None:
+            return None, RenderStats().to_dict()
+        return st.sums, st.stats.to_dict()
+
+    def abort_pass(self, index: int) -> None:
+        self.passes.pop(index, None)
+
+    # -- the wavefront inside one call ---------------------------------------------
+
+    def _state(self, p: Pass) -> _PassState:
+        if p.index not in self.passes:
+            self.passes[p.index] = _PassState(np.zeros((p.n_pixels, 3)))
+        return self.passes[p.index]
+
+    def _run(self, p: Pass, st: _PassState, rays: RayBatch, shadow: ShadowRayBatch) -> list:
+        stats = st.stats
+        out_rays = [[] for _ in range(self.k)]
+        out_shadow = [[] for _ in range(self.k)]
+        while len(rays) or len(shadow):
+            if len(rays):
+                settled = (rays.flags & FLAG_SHADE) != 0
+                arrived, rays = rays.take(settled), rays.take(~settled)
+                stats.count_rays(rays.kind)
+                rays = rays.replace(visited=rays.visited | self.bit)
+                with stats.phase("local_intersect"):
+                    rays = resolve_closest(rays, self.local, self.world.lights)
+                with stats.phase("top_level"):
+                    target = route_exact(self.world, self.id, self.remote, rays)
+                # Rays going to their hit's owner only to be shaded are not re-intersected:
+                # a second Embree call with tmax == t may pick a different triangle on an edge.
+                final = (target != DONE) & (rays.hit_inst >= 0) & \
+                    (target == self.world.owner[np.maximum(rays.hit_inst, 0)])
+                rays = rays.replace(flags=rays.flags | (final * FLAG_SHADE).astype(np.uint8))
+                self._send(rays, target, out_rays)
+                done = RayBatch.concat([arrived, rays.take(target == DONE)])
+                done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
+                stats.count_hops(done.hops)
+                with stats.phase("shade"):
+                    shaded = self.integrator.shade(done)
+                self._splat(p, st, shaded.pixel, shaded.rgb)
+                shadow = ShadowRayBatch.concat([shadow, shaded.shadow])
+                rays = shaded.secondary
+            if len(shadow):
+                stats.count_rays(SHADOW, len(shadow))
+                shadow = shadow.replace(visited=shadow.visited | self.bit)
+                with stats.phase("local_intersect"):
+                    free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
+                                                          shadow.tmax)
+                shadow = shadow.take(free)
+                with stats.phase("top_level"):
+                    target = route_shadow_exact(self.world, self.remote, shadow)
+                self._send(shadow, target, out_shadow)
+                done = shadow.take(target == DONE)
+                stats.count_hops(done.hops)
+                self._splat(p, st, done.pixel, done.contribution.astype(np.float64))
+                shadow = ShadowRayBatch.empty()
+        parcels = []
+        for t in range(self.k):
+            parcel = Parcel(RayBatch.concat(out_rays[t]), ShadowRayBatch.concat(out_shadow[t]))
+            for kind, batch in (("rays", parcel.rays), ("shadow", parcel.shadow)):
+                if len(batch):
+                    self._count_transfer(stats, kind, batch)
+            parcels.append(parcel if len(parcel) else None)
+        manifest = Manifest(self.id, [0 if x is None else len(x) for x in parcels])
+        return [manifest, *parcels]
+
+    def _send(self, batch, target: np.ndarray, out: list) -> None:
+        away = target != DONE
+        if not away.any():
+            return
+        moving = batch.take(away)
+        moving = moving.replace(hops=moving.hops + np.uint8(1))
+        t = target[away]
+        for dest in np.unique(t):
+            out[int(dest)].append(moving.take(t == dest))
+
+    @staticmethod
+    def _count_transfer(stats: RenderStats, kind: str, batch) -> None:
+        if kind == "shadow":
+            stats.count_transfer("shadow", len(batch), batch.nbytes)
+            return
+        per_row = batch.nbytes // len(batch)
+        for k, c in enumerate(np.bincount(batch.kind, minlength=2)[:2]):
+            if c:
+                stats.count_transfer(KIND_NAMES[k], int(c), int(c) * per_row)
+
+    def _splat(self, p: Pass, st: _PassState, pixel: np.ndarray, rgb: np.ndarray) -> None:
+        if len(pixel) == 0:
+            return
+        idx = p.local_index(pixel, self.s.width)
+        for c in range(3):
+            st.sums[:, c] += np.bincount(idx, weights=rgb[:, c], minlength=p.n_pixels)
