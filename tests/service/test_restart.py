@@ -1,0 +1,98 @@
+"""kill -9 mid-job, restart on the same data dir: the job resumes from its checkpoint and
+its image equals an uninterrupted render."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from scene.io import load_any
+from tests.service.helpers import png_pixels, wait_for
+from workers.film import tonemap_srgb
+from workers.render import render
+from workers.settings import RenderSettings
+
+REPO = Path(__file__).resolve().parents[2]
+# 128 passes of one 32x32 tile-sample each: a few seconds, with many pass boundaries.
+SPP = 32
+JOB = {"scene": "forest:tiny", "width": 64, "height": 64, "spp": SPP, "bounces": 2,
+       "shadow_rays": 1, "tile_size": 32, "spp_per_pass": 1}
+PASSES = 4 * SPP
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _start(data_dir: Path, log_path: Path) -> tuple[subprocess.Popen, str]:
+    port = _free_port()
+    env = {**os.environ, "PYTHONPATH": str(REPO), "NPRT_MAX_CONCURRENT_JOBS": "1"}
+    env.pop("NPRT_API_TOKEN", None)
+    log = log_path.open("ab")
+    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--data-dir",
+                             str(data_dir), "--port", str(port), "--grpc-port", "-1"],
+                            cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    url = f"http://127.0.0.1:{port}"
+
+    def ready():
+        assert proc.poll() is None, log_path.read_text()
+        try:
+            return httpx.get(f"{url}/healthz", timeout=1).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    wait_for(ready, 60, what="service start")
+    return proc, url
+
+
+def test_killed_service_resumes_job_from_checkpoint(tmp_path):
+    data = tmp_path / "data"
+    log_path = tmp_path / "service.log"
+    proc, url = _start(data, log_path)
+    try:
+        job = httpx.post(f"{url}/v1/jobs", json=JOB, timeout=10).json()
+        job_id = job["id"]
+        assert job["passes_total"] == PASSES
+        wait_for(lambda: httpx.get(f"{url}/v1/jobs/{job_id}").json()["passes_done"] >= 3,
+                 30, interval_s=0.01, what="three finished passes")
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert (data / "jobs" / job_id / "checkpoint.json").exists(), "no checkpoint after kill"
+
+    proc, url = _start(data, log_path)
+    try:
+        listed = httpx.get(f"{url}/v1/jobs").json()
+        assert [j["id"] for j in listed["data"]] == [job_id]
+        final = wait_for(lambda: (j := httpx.get(f"{url}/v1/jobs/{job_id}").json())
+                         ["state"] in ("succeeded", "failed") and j, 120, what="job done")
+        assert final["state"] == "succeeded", final["error"]
+        png = httpx.get(f"{url}/v1/jobs/{job_id}/image.png").content
+    finally:
+        proc.terminate()
+        proc.wait(15)
+
+    job_log = (data / "jobs" / job_id / "job.log").read_text()
+    resumed = [int(n) for n in re.findall(r"resuming at pass (\d+)", job_log)]
+    assert len(resumed) == 1 and 3 <= resumed[0] < PASSES, job_log
+    assert final["pixel_samples"] == {"min": SPP, "max": SPP}
+    samples = np.load(data / "jobs" / job_id / "samples.npy")
+    assert samples.shape == (64 * 64,) and (samples == SPP).all()
+    # Stats were checkpointed with the film: no pass counted twice or lost.
+    assert final["stats"]["rays"]["primary"] == 64 * 64 * SPP
+
+    settings = RenderSettings(**{k: v for k, v in JOB.items() if k != "scene"})
+    direct = render(load_any(JOB["scene"]), settings)
+    np.testing.assert_array_equal(png_pixels(png), tonemap_srgb(direct.film.image()))
