@@ -78,6 +78,21 @@ def cmd_serve(args: argparse.Namespace) -> int:
 
 
 def cmd_submit(args: argparse.Namespace) -> int:
+    import httpx
+
+    from service.client import ApiError
+
+    try:
+        return _submit(args)
+    except ApiError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except httpx.TransportError as e:
+        print(f"error: cannot reach {args.server}: {e}", file=sys.stderr)
+        return 2
+
+
+def _submit(args: argparse.Namespace) -> int:
     from service.client import Client
 
     body = {field: getattr(args, field) for _, field, _ in _SETTING_FLAGS}

@@ -20,6 +20,9 @@ class ApiError(RuntimeError):
             detail = response.json().get("detail")
         except ValueError:
             detail = response.text
+        if isinstance(detail, list):  # FastAPI validation errors: name each field
+            detail = "; ".join(f"{'.'.join(map(str, e['loc'][1:]))}: {e['msg']} "
+                               f"(got {e.get('input')!r})" for e in detail)
         super().__init__(f"{response.request.method} {response.request.url} -> "
                          f"{response.status_code}: {detail}")
 

@@ -33,8 +33,16 @@ def demo_names() -> tuple[str, ...]:
     return tuple(demos.DEMOS)
 
 
+def demo_sizes() -> tuple[str, ...]:
+    from scene import demos
+
+    return tuple(demos.SIZES)
+
+
 def is_demo(ref: str) -> bool:
-    return ref.partition(":")[0] in demo_names()
+    """'forest', or 'forest:tiny' with a size the demos know."""
+    name, colon, size = ref.partition(":")
+    return name in demo_names() and (not colon or size in demo_sizes())
 
 
 def load_scene_ref(source: str) -> Scene:
@@ -130,7 +138,8 @@ class SceneStore:
             return
         if not is_demo(ref):
             raise UnknownScene(f"unknown scene {ref!r}: not a stored scene id nor a demo name "
-                               f"({', '.join(demo_names())}, with optional ':small'/':tiny')")
+                               f"({', '.join(demo_names())}, with an optional size suffix: "
+                               f"{', '.join(':' + s for s in demo_sizes())})")
 
     def source(self, ref: str) -> str:
         """What load_any takes for `ref`: the stored entry file, or the demo name."""

@@ -81,11 +81,13 @@ def test_create_job_rejects_proxy_mode_without_shards(client):
     assert "shards" in r.json()["detail"][0]["msg"]
 
 
-def test_create_job_rejects_unknown_scene(client):
-    r = client.post("/v1/jobs", json={"scene": "moon:tiny", **TINY})
+@pytest.mark.parametrize("scene", ["moon:tiny", "forest:huge", "0" * 64])
+def test_create_job_rejects_unknown_scene(client, scene):
+    r = client.post("/v1/jobs", json={"scene": scene, **TINY})
     assert r.status_code == 422
     detail = r.json()["detail"][0]
-    assert detail["loc"] == ["body", "scene"] and "moon:tiny" in detail["msg"]
+    assert detail["loc"] == ["body", "scene"] and detail["msg"].startswith(
+        f"unknown scene {scene!r}: not a stored scene id nor a demo name")
 
 
 @pytest.mark.parametrize("method,path", [

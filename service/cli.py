@@ -1,0 +1,147 @@
+"""The `nprt` command line: render, demo, scenes; serve/submit and proxy register their
+own subcommands."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from scene.errors import SceneError
+
+log = logging.getLogger(__name__)
+
+
+def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
+    p.add_argument("--width", type=int, default=defaults.get("width", 256))
+    p.add_argument("--height", type=int, default=defaults.get("height", 256))
+    p.add_argument("--spp", type=int, default=defaults.get("spp", 16), help="samples per pixel")
+    p.add_argument("--bounces", type=int, default=5, help="maximum bounces B")
+    p.add_argument("--shadow-rays", type=int, default=4, help="shadow rays S per hit")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--russian-roulette", action="store_true")
+    p.add_argument("--shards", type=int, default=defaults.get("shards", 0),
+                   help="K shard actors; 0 = single-process reference")
+    p.add_argument("--mode", choices=["exact", "proxy", "oracle"],
+                   default=defaults.get("mode", "exact"))
+    p.add_argument("--tile-size", type=int, default=64)
+    p.add_argument("--spp-per-pass", type=int, default=defaults.get("spp_per_pass", 4))
+    p.add_argument("--threshold", type=float, default=0.5, help="proxy visibility threshold")
+    p.add_argument("--band", type=float, default=0.1, help="proxy confidence band")
+    p.add_argument("--ray-address", default=None,
+                   help="join this Ray cluster (default: start a local Ray)")
+    p.add_argument("--size", default="default", choices=["default", "small", "tiny"],
+                   help="size of a demo scene")
+
+
+def settings_from_args(a: argparse.Namespace):
+    from workers.settings import ProxySettings, RenderSettings
+
+    return RenderSettings(
+        width=a.width, height=a.height, spp=a.spp, bounces=a.bounces,
+        shadow_rays=a.shadow_rays, seed=a.seed, russian_roulette=a.russian_roulette,
+        shards=a.shards, mode=a.mode, tile_size=a.tile_size,
+        spp_per_pass=min(a.spp_per_pass, a.spp),
+        proxy=ProxySettings(threshold=a.threshold, band=a.band))
+
+
+def render_with_progress(scene, settings, ray_address=None, label="render"):
+    from tqdm import tqdm
+
+    from workers.render import render
+
+    bar = tqdm(total=settings.width * settings.height * settings.spp, unit="path",
+               unit_scale=True, desc=label, file=sys.stderr)
+
+    def on_pass(done):
+        bar.update(done.pass_.n_paths)
+
+    try:
+        return render(scene, settings, on_pass=on_pass, ray_address=ray_address)
+    finally:
+        bar.close()
+
+
+def cmd_render(a: argparse.Namespace) -> int:
+    from scene.io import load_any
+
+    settings = settings_from_args(a)
+    scene = load_any(a.scene, size=a.size)
+    res = render_with_progress(scene, settings, a.ray_address)
+    out = res.film.save(a.output)
+    print(f"wrote {out} ({settings.width}x{settings.height}, {settings.spp} spp) "
+          f"in {res.info['wall_s']:.2f} s")
+    if a.stats:
+        Path(a.stats).write_text(json.dumps(res.stats_dict(), indent=2))
+        print(f"wrote {a.stats}")
+    return 0
+
+
+def cmd_scenes(a: argparse.Namespace) -> int:
+    from scene.demos import DEMOS, make_demo
+
+    cols = ("base_meshes", "instances", "instanced_triangles", "mesh_bytes")
+    print(f"| demo | size | {' | '.join(cols)} |")
+    print("|" + "---|" * (len(cols) + 2))
+    for name in DEMOS:
+        for size in a.sizes:
+            s = make_demo(name, size).summary()
+            print(f"| {name} | {size} | " + " | ".join(f"{s[c]:,}" for c in cols) + " |")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="nprt", description=__doc__)
+    ap.add_argument("-v", "--verbose", action="store_true")
+    sub = ap.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("render", help="render a scene file or a demo scene")
+    p.add_argument("scene", help="demo name (forest, city, sculpture[:size]) or .json/.glb path")
+    p.add_argument("-o", "--output", default="out.png", help=".png (sRGB) or .exr (linear)")
+    p.add_argument("--stats", default=None, help="write the render statistics as JSON here")
+    _add_settings_flags(p)
+    p.set_defaults(func=cmd_render)
+
+    p = sub.add_parser("demo", help="render a demo scene through the distributed path")
+    p.add_argument("--scene", default="forest")
+    p.add_argument("--out", default="out/demo", help="folder for images and statistics")
+    _add_settings_flags(p, width=320, height=240, spp=8, shards=4, spp_per_pass=8)
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("scenes", help="list the demo scenes and their statistics")
+    p.add_argument("--sizes", nargs="+", default=["default"],
+                   choices=["default", "small", "tiny"])
+    p.set_defaults(func=cmd_scenes)
+
+    from proxies.cli import add_proxy_parsers
+    from service.cli_serve import add_serve_parsers
+
+    add_serve_parsers(sub)
+    add_proxy_parsers(sub)
+    return ap
+
+
+def _cmd_demo(a):
+    from service.demo import cmd_demo
+
+    return cmd_demo(a)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
+                        format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args.func(args) or 0)
+    except SceneError as e:
+        print(f"nprt: scene error: {e}", file=sys.stderr)
+        return 2
+    except ValueError as e:  # pydantic ValidationError is a ValueError
+        print(f"nprt: invalid input: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
