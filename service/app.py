@@ -16,6 +16,7 @@ from service.config import ServiceSettings
 from service.errors import (
     BadUpload,
     Conflict,
+    InvalidJob,
     InvalidScene,
     NotFound,
     ServiceError,
@@ -30,7 +31,7 @@ log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
 _STATUS = {NotFound: 404, Conflict: 409, BadUpload: 400, TooLarge: 413, InvalidScene: 422,
-           UnknownScene: 422}
+           InvalidJob: 422, UnknownScene: 422}
 
 
 def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = None,

@@ -17,6 +17,9 @@ class ServiceSettings(BaseSettings):
     max_upload_bytes: int = Field(256 << 20, ge=1, description="largest scene upload, bytes")
     max_extracted_bytes: int = Field(1 << 30, ge=1,
                                      description="largest unpacked zip upload, bytes")
+    max_image_pixels: int = Field(4096 * 4096, ge=1,
+                                  description="largest width * height of a job; the film "
+                                              "takes 32 bytes per pixel")
     api_token: str | None = Field(None, min_length=1,
                                   description="Bearer token for writing endpoints; unset = open")
     grpc_max_message_bytes: int = Field(64 << 20, ge=1 << 20,

@@ -27,5 +27,17 @@ class InvalidScene(ServiceError):
     (422, INVALID_ARGUMENT)."""
 
 
-class UnknownScene(ServiceError):
-    """A job names a scene that is neither stored nor a demo (422, INVALID_ARGUMENT)."""
+class InvalidJob(ServiceError):
+    """Job settings the service refuses although RenderSettings accepts them, or an unknown
+    scene (422 naming `field`, INVALID_ARGUMENT)."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(message)
+        self.field = field
+
+
+class UnknownScene(InvalidJob):
+    """A job names a scene that is neither stored nor a demo."""
+
+    def __init__(self, message: str):
+        super().__init__("scene", message)

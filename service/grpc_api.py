@@ -9,7 +9,7 @@ from pydantic import ValidationError
 
 from protos import nprt_pb2 as pb
 from protos import nprt_pb2_grpc
-from service.errors import Conflict, InvalidScene, NotFound, ServiceError, UnknownScene
+from service.errors import Conflict, InvalidJob, InvalidScene, NotFound, ServiceError
 from service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
 from service.manager import JobManager
 from service.store import TERMINAL
@@ -19,13 +19,15 @@ MAX_PAGE = 500
 WATCH_POLL_S = 0.5  # how often a watcher notices its client went away
 
 _CODES = {NotFound: grpc.StatusCode.NOT_FOUND, Conflict: grpc.StatusCode.FAILED_PRECONDITION,
-          UnknownScene: grpc.StatusCode.INVALID_ARGUMENT,
+          InvalidJob: grpc.StatusCode.INVALID_ARGUMENT,
           InvalidScene: grpc.StatusCode.INVALID_ARGUMENT}
 _FORMATS = {pb.IMAGE_FORMAT_PNG: "png", pb.IMAGE_FORMAT_EXR: "exr"}
 
 
 def _abort(context: grpc.ServicerContext, exc: ServiceError):
-    context.abort(_CODES.get(type(exc), grpc.StatusCode.INVALID_ARGUMENT), str(exc))
+    code = next((c for t, c in _CODES.items() if isinstance(exc, t)),
+                grpc.StatusCode.INVALID_ARGUMENT)
+    context.abort(code, str(exc))
 
 
 def _validation_message(e: ValidationError) -> str:

@@ -17,7 +17,7 @@ import numpy as np
 from scene.errors import SceneError
 from service import checkpoint, images
 from service.config import ServiceSettings
-from service.errors import Conflict, NotFound
+from service.errors import Conflict, InvalidJob, NotFound
 from service.events import Deliver, EventBroker
 from service.joblog import job_log
 from service.scenes import SceneStore
@@ -85,6 +85,10 @@ class JobManager:
     # ------------------------------------------------------------ API
 
     def submit(self, scene: str, settings: RenderSettings) -> JobRecord:
+        pixels, limit = settings.width * settings.height, self.settings.max_image_pixels
+        if pixels > limit:
+            raise InvalidJob("width", f"{settings.width}x{settings.height} = {pixels} pixels is "
+                             f"over the service limit of {limit} (NPRT_MAX_IMAGE_PIXELS)")
         self.scenes.check(scene)
         job_id = uuid.uuid4().hex
         self.job_dir(job_id).mkdir(parents=True, exist_ok=True)

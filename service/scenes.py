@@ -61,6 +61,7 @@ class SceneStore:
         self._lock = threading.Lock()
         self.root.mkdir(parents=True, exist_ok=True)
         self.tmp.mkdir(parents=True, exist_ok=True)
+        demo_names()  # import the demos now, not inside the first request
 
     # ------------------------------------------------------------ uploads
 

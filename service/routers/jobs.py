@@ -10,7 +10,7 @@ from fastapi.concurrency import run_in_threadpool
 from sse_starlette.sse import EventSourceResponse
 
 from service.deps import ManagerDep, TokenDep
-from service.errors import UnknownScene
+from service.errors import InvalidJob
 from service.schemas import JobCreate, JobPublic, JobsPublic, JobState, TileEvent
 from service.store import TERMINAL
 
@@ -25,11 +25,11 @@ async def create_job(body: JobCreate, manager: ManagerDep, response: Response) -
     """Store the job and queue it; rendering starts when a slot is free."""
     try:
         rec = await run_in_threadpool(manager.submit, body.scene, body.render_settings())
-    except UnknownScene as e:
+    except InvalidJob as e:
         # Same shape as FastAPI's own validation errors, so clients see the field.
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, [
-            {"type": "value_error", "loc": ["body", "scene"], "msg": str(e),
-             "input": body.scene}]) from None
+            {"type": "value_error", "loc": ["body", e.field], "msg": str(e),
+             "input": getattr(body, e.field)}]) from None
     response.headers["Location"] = f"/v1/jobs/{rec.id}"
     return JobPublic.from_record(rec)
 

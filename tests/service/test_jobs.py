@@ -81,6 +81,16 @@ def test_create_job_rejects_proxy_mode_without_shards(client):
     assert "shards" in r.json()["detail"][0]["msg"]
 
 
+def test_create_job_rejects_image_over_pixel_limit(client, live):
+    limit = live.settings.max_image_pixels
+    r = client.post("/v1/jobs", json={"scene": "forest:tiny", "width": 16384, "height": 16384})
+    assert r.status_code == 422
+    detail = r.json()["detail"][0]
+    assert detail["loc"] == ["body", "width"] and detail["msg"] == (
+        f"16384x16384 = 268435456 pixels is over the service limit of {limit} "
+        "(NPRT_MAX_IMAGE_PIXELS)")
+
+
 @pytest.mark.parametrize("scene", ["moon:tiny", "forest:huge", "0" * 64])
 def test_create_job_rejects_unknown_scene(client, scene):
     r = client.post("/v1/jobs", json={"scene": scene, **TINY})
