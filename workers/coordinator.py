@@ -18,11 +18,20 @@ from workers.passes import Pass
 from workers.settings import RenderSettings
 from workers.shard import Manifest, Shard, ShardConfig
 from workers.stats import RenderStats
-from workers.world import ShardWorld
+from workers.world import EVERYWHERE, ShardWorld
 
 log = logging.getLogger(__name__)
 
 MAX_PASS_ATTEMPTS = 4
+
+
+def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None):
+    """Which meshes get a proxy, are replicated, or need nothing (proxies.policy)."""
+    from proxies.cache import ProxyCache
+    from proxies.policy import plan_proxies
+
+    return plan_proxies(scene, part, target_accuracy=settings.proxy.accuracy_target,
+                        cache=ProxyCache(proxy_dir))
 
 
 def ensure_ray(address: str | None = None) -> bool:
@@ -40,26 +49,40 @@ class Coordinator:
         self.scene, self.s, self.k = scene, settings, settings.shards
         t0 = time.perf_counter()
         self.partition = partition(scene, self.k)
-        owner = np.asarray(self.partition.instance_shard, np.int32)
-        shard_meshes = [list(m) for m in self.partition.shard_meshes]
+        owner = np.asarray(self.partition.instance_shard, np.int32).copy()
+        shard_meshes = [set(m) for m in self.partition.shard_meshes]
+        self.plan, proxies = None, {}
+        if settings.mode == "proxy":
+            self.plan = make_plan(scene, self.partition, settings, proxy_dir)
+            proxies = self.plan.proxies
+            for m in self.plan.replicated:  # cheaper to copy than to model
+                owner[self.world_mesh_instances(scene, m)] = EVERYWHERE
+                for held in shard_meshes:
+                    held.add(m)
         self.world = ShardWorld.build(scene, owner)
         self.started_ray = ensure_ray(ray_address)
         world_ref = ray.put(self.world)
+        all_ref = ray.put(dict(enumerate(scene.meshes))) if settings.mode == "oracle" else None
         cpus = ray.cluster_resources().get("CPU", 1.0)
         per_shard_cpu = min(1.0, cpus / self.k)
         self.actors = []
         for sid in range(self.k):
-            meshes_ref = ray.put({i: scene.meshes[i] for i in shard_meshes[sid]})
-            opts = dict(max_restarts=-1, max_task_retries=0, num_cpus=per_shard_cpu,
-                        name=None)
+            meshes_ref = ray.put({i: scene.meshes[i] for i in sorted(shard_meshes[sid])})
+            # Only the proxies of meshes this shard does not hold.
+            proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in shard_meshes[sid]})
+            opts = dict(max_restarts=-1, max_task_retries=0, num_cpus=per_shard_cpu)
             opts.update((shard_options or [{}] * self.k)[sid])
             actor = ray.remote(Shard).options(**opts).remote(
-                ShardConfig(sid, self.k, settings), world_ref, meshes_ref)
+                ShardConfig(sid, self.k, settings), world_ref, meshes_ref, proxies_ref, all_ref)
             self.actors.append(actor)
         self.shard_info = ray.get([a.ready.remote() for a in self.actors])
         self.prepare_s = time.perf_counter() - t0
         self.fetched: list[type] = []  # what this coordinator read back, for the tests
         log.info("started %d shards in %.2f s", self.k, self.prepare_s)
+
+    @staticmethod
+    def world_mesh_instances(scene: Scene, mesh: int) -> np.ndarray:
+        return np.array([i for i, inst in enumerate(scene.instances) if inst.mesh == mesh], int)
 
     def __repr__(self) -> str:
         return f"Coordinator({self.scene.name!r}, k={self.k}, mode={self.s.mode!r})"
@@ -139,6 +162,7 @@ class Coordinator:
             "shard_geometry_bytes": [i["geometry_bytes"] for i in self.shard_info],
             "max_shard_geometry_bytes": max(i["geometry_bytes"] for i in self.shard_info),
             "prepare_s": round(self.prepare_s, 4),
+            "proxy_plan": None if self.plan is None else self.plan.to_dict(),
         }
 
     def close(self) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import os
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,7 +23,8 @@ from workers.geometry import MeshGeometry
 from workers.integrator import PathIntegrator
 from workers.local import LocalGeometry
 from workers.passes import Pass
-from workers.routing import DONE, route_exact, route_shadow_exact, visited_bit
+from workers.policies import ExactPolicy, OraclePolicy, ProxyPolicy
+from workers.routing import DONE, visited_bit
 from workers.settings import RenderSettings
 from workers.stats import RenderStats
 from workers.tracer import resolve_closest
@@ -44,6 +46,7 @@ class Parcel:
 
     rays: RayBatch
     shadow: ShadowRayBatch
+    sent_at: float = field(default_factory=time.time)  # wall clock, for transfer wait
 
     @property
     def nbytes(self) -> int:
@@ -68,7 +71,11 @@ class _PassState:
 
 
 class Shard:
-    def __init__(self, config: ShardConfig, world: ShardWorld, meshes: dict[int, Mesh]):
+    def __init__(self, config: ShardConfig, world: ShardWorld, meshes: dict[int, Mesh],
+                 proxies: dict | None = None, all_meshes: dict[int, Mesh] | None = None):
+        """meshes: the geometry this shard owns (plus replicated meshes); proxies: mesh index
+        -> proxies.inference.Proxy for remote meshes (proxy mode); all_meshes: the whole
+        scene, for the benchmark-only oracle policy."""
         self.config, self.world = config, world
         self.id, self.k, self.s = config.shard_id, config.k, config.settings
         self.bit = visited_bit(self.id)
@@ -79,10 +86,24 @@ class Shard:
         is_local = np.zeros(len(world.table), bool)
         is_local[local] = True
         self.remote = np.flatnonzero(~is_local).astype(np.int32)
+        self.policy = self._make_policy(proxies or {}, all_meshes, geometry)
         self.integrator = PathIntegrator(self.s, world.camera, meshes, world.materials,
                                          world.table, world.lights)
         self.passes: dict[int, _PassState] = {}
         log.info("%r started in pid %d", self, os.getpid())
+
+    def _make_policy(self, proxies, all_meshes, geometry):
+        mode = self.s.mode
+        if mode == "proxy":
+            return ProxyPolicy(self.world, self.id, self.remote, proxies, self.s)
+        if mode == "oracle":
+            if all_meshes is None:
+                raise ValueError("the oracle policy needs all_meshes (the whole scene)")
+            full = {i: geometry.get(i) or MeshGeometry(m) for i, m in all_meshes.items()}
+            everything = LocalGeometry(full, self.world.table,
+                                       np.arange(len(self.world.table), dtype=np.int32))
+            return OraclePolicy(self.world, self.id, self.remote, everything)
+        return ExactPolicy(self.world, self.id, self.remote)
 
     def __repr__(self) -> str:
         return (f"Shard({self.id}/{self.k}, {len(self.meshes)} meshes, "
@@ -104,6 +125,7 @@ class Shard:
     def process(self, p: Pass, *parcels: Parcel) -> list:
         """Rays that other shards sent here."""
         st = self._state(p)
+        st.stats.phase_s["transfer_wait"] += max(0.0, time.time() - min(x.sent_at for x in parcels))
         rays = RayBatch.concat([x.rays for x in parcels])
         shadow = ShadowRayBatch.concat([x.shadow for x in parcels])
         return self._run(p, st, rays, shadow)
@@ -137,7 +159,7 @@ class Shard:
                 with stats.phase("local_intersect"):
                     rays = resolve_closest(rays, self.local, self.world.lights)
                 with stats.phase("top_level"):
-                    target = route_exact(self.world, self.id, self.remote, rays)
+                    rays, target = self.policy.route_rays(rays, stats)
                 # Rays going to their hit's owner only to be shaded are not re-intersected:
                 # a second Embree call with tmax == t may pick a different triangle on an edge.
                 final = (target != DONE) & (rays.hit_inst >= 0) & \
@@ -160,7 +182,7 @@ class Shard:
                                                           shadow.tmax)
                 shadow = shadow.take(free)
                 with stats.phase("top_level"):
-                    target = route_shadow_exact(self.world, self.remote, shadow)
+                    shadow, target = self.policy.route_shadow(shadow, stats)
                 self._send(shadow, target, out_shadow)
                 done = shadow.take(target == DONE)
                 stats.count_hops(done.hops)

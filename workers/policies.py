@@ -1,0 +1,121 @@
+"""Traversal policies: where each ray goes after this shard's local intersection.
+
+- exact: Wald-style forwarding to the nearest unvisited box (the reference).
+- proxy: the paper's method for secondary and shadow rays; primary rays stay exact.
+- oracle: benchmark-only lower bound; forwards straight to the true closest-hit shard,
+  using a full copy of the scene that only the benchmark may afford.
+Targets are shard ids, or DONE (shade here / add the shadow contribution here).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from workers.batch import FLAG_EXACT, FLAG_TARGETED, SECONDARY, RayBatch, ShadowRayBatch
+from workers.local import LocalGeometry
+from workers.proxy_query import predict
+from workers.routing import DONE, route_exact, route_shadow_exact
+from workers.settings import RenderSettings
+from workers.stats import RenderStats
+from workers.world import EVERYWHERE, ShardWorld
+
+
+class ExactPolicy:
+    def __init__(self, world: ShardWorld, shard: int, remote: np.ndarray):
+        self.world, self.shard, self.remote = world, shard, remote
+
+    def route_rays(self, rays: RayBatch, stats: RenderStats) -> tuple[RayBatch, np.ndarray]:
+        return rays, route_exact(self.world, self.shard, self.remote, rays)
+
+    def route_shadow(self, shadow: ShadowRayBatch, stats: RenderStats):
+        """Returns (shadow rays still live, their targets)."""
+        return shadow, route_shadow_exact(self.world, self.remote, shadow)
+
+    def _owner_of(self, inst: np.ndarray) -> np.ndarray:
+        """Shard owning each hit instance, DONE when it is here (or none)."""
+        owner = np.where(inst >= 0, self.world.owner[np.maximum(inst, 0)], EVERYWHERE)
+        return np.where((owner == EVERYWHERE) | (owner == self.shard), DONE, owner)
+
+
+class ProxyPolicy(ExactPolicy):
+    def __init__(self, world, shard, remote, proxies: dict, settings: RenderSettings):
+        super().__init__(world, shard, remote)
+        self.proxies = proxies
+        self.threshold, self.band = settings.proxy.threshold, settings.proxy.band
+
+    def route_rays(self, rays, stats):
+        target = np.full(len(rays), DONE, np.int32)
+        flags = rays.flags.copy()
+        secondary = rays.kind == SECONDARY
+        # Arrived where a proxy sent it: a real hit here is final, a miss is a misprediction.
+        arrived = (flags & FLAG_TARGETED) != 0
+        missed = arrived & ((rays.hit_inst < 0) | (self._owner_of(rays.hit_inst) != DONE))
+        stats.counters["proxy_mispredictions"] += int(missed.sum())
+        flags[missed] |= FLAG_EXACT
+        flags &= np.uint8(~FLAG_TARGETED & 0xFF)
+        fresh = secondary & ~arrived & ((flags & FLAG_EXACT) == 0)
+        if fresh.any():
+            f = np.flatnonzero(fresh)
+            with stats.phase("proxy"):
+                pred = predict(self.world, self.proxies, self.remote, rays.origin[f],
+                               rays.direction[f], rays.tmax[f], self.threshold, self.band)
+            stats.counters["proxy_queries"] += len(f)
+            stats.counters["proxy_uncertain"] += int(pred.uncertain.sum())
+            flags[f[pred.uncertain]] |= FLAG_EXACT
+            go = ~pred.uncertain & (pred.inst >= 0)
+            target[f[go]] = self.world.owner[pred.inst[go]]
+            flags[f[go]] |= FLAG_TARGETED
+        rays = rays.replace(flags=flags)
+        exact = ~secondary | ((flags & FLAG_EXACT) != 0)  # primary rays are always exact
+        if exact.any():
+            target[exact] = route_exact(self.world, self.shard, self.remote, rays.take(exact))
+        return rays, target
+
+    def route_shadow(self, shadow, stats):
+        """Decided here: occluded if any proxy predicts a hit before the light. Boxes of
+        meshes without a proxy fall back to exact forwarding."""
+        if not len(shadow):
+            return shadow, np.zeros(0, np.int32)
+        with stats.phase("proxy"):
+            pred = predict(self.world, self.proxies, self.remote, shadow.origin,
+                           shadow.direction, shadow.tmax, self.threshold, 0.0)
+        stats.counters["proxy_queries"] += len(shadow)
+        occluded = pred.inst >= 0
+        stats.counters["proxy_shadow_occluded"] += int(occluded.sum())
+        shadow = shadow.take(~occluded)
+        target = np.full(len(shadow), DONE, np.int32)
+        unknown = pred.uncertain[~occluded]  # crosses a box with no proxy
+        if unknown.any():
+            target[unknown] = route_shadow_exact(self.world, self.remote, shadow.take(unknown))
+        return shadow, target
+
+
+class OraclePolicy(ExactPolicy):
+    """Knows every true closest hit (full scene on every shard): the transfer floor."""
+
+    def __init__(self, world, shard, remote, everything: LocalGeometry):
+        super().__init__(world, shard, remote)
+        self.everything = everything
+
+    def route_rays(self, rays, stats):
+        target = np.full(len(rays), DONE, np.int32)
+        arrived = (rays.flags & FLAG_TARGETED) != 0
+        fresh = (rays.kind == SECONDARY) & ~arrived
+        exact = ~fresh & ~arrived
+        if fresh.any():
+            f = np.flatnonzero(fresh)
+            _, inst, _, _, _ = self.everything.intersect_closest(
+                rays.origin[f], rays.direction[f], rays.tmax[f])
+            target[f] = self._owner_of(inst)
+            rays = rays.replace(flags=rays.flags | (fresh * FLAG_TARGETED).astype(np.uint8))
+        if exact.any():
+            target[exact] = route_exact(self.world, self.shard, self.remote, rays.take(exact))
+        done_here = target == DONE
+        target[done_here] = self._owner_of(rays.hit_inst[done_here])
+        return rays, target
+
+    def route_shadow(self, shadow, stats):
+        """Sent to the shard of the nearest true occluder (which drops it), else done."""
+        _, inst, _, _, _ = self.everything.intersect_closest(
+            shadow.origin, shadow.direction, shadow.tmax)
+        return shadow, self._owner_of(inst)
