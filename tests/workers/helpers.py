@@ -47,6 +47,29 @@ def trs(translate=(0, 0, 0), scale=1.0, axis=(0, 0, 1), angle_deg=0.0) -> np.nda
     return t @ r @ s
 
 
+def down_camera(height: float, fov_deg: float) -> Camera:
+    """Camera `height` above the origin looking down -y; image right is +x, top is -z."""
+    return Camera(eye=(0.0, height, 0.0), target=(0.0, 0.0, 0.0), up=(0.0, 0.0, -1.0),
+                  fov_deg=fov_deg)
+
+
+def plane_points_seen(width: int, height: int, cam_height: float, fov_deg: float,
+                      sub: int = 8) -> np.ndarray:
+    """(height, width, sub*sub, 3) float64 points of the plane y = 0 that `down_camera` sees
+    through a sub x sub grid in each pixel. Independent pinhole geometry: NDC x =
+    (col + jx) / width * 2 - 1 along +x, NDC y = 1 - (row + jy) / height * 2 along -z,
+    and the ray reaches y = 0 after cam_height units of -y."""
+    half_h = np.tan(np.radians(fov_deg) / 2)
+    half_w = half_h * width / height
+    j = (np.arange(sub) + 0.5) / sub
+    col = np.arange(width)[None, :, None, None] + j[None, None, None, :]  # (1, w, 1, sub)
+    row = np.arange(height)[:, None, None, None] + j[None, None, :, None]  # (h, 1, sub, 1)
+    x = ((col / width) * 2 - 1) * half_w * cam_height
+    z = -(1 - (row / height) * 2) * half_h * cam_height
+    x, z = np.broadcast_arrays(x, z)  # (h, w, sub, sub)
+    return np.stack([x, np.zeros_like(x), z], axis=-1).reshape(height, width, sub * sub, 3)
+
+
 def render_image(scene: Scene, **settings) -> np.ndarray:
     """(h, w, 3) float32 mean radiance from the reference renderer."""
     return render(scene, RenderSettings(**settings)).film.image()
@@ -110,5 +133,6 @@ def assert_image_close(img, ref, tmp_path: Path, name: str, *, rtol: float,
 
 
 __all__ = ["Camera", "Environment", "Instance", "Material", "Mesh", "Scene",
-           "RenderSettings", "assert_image_close", "dump_images", "fail_with_images",
-           "mesh_from_trimesh", "plane_mesh", "render_image", "single", "trs"]
+           "RenderSettings", "assert_image_close", "down_camera", "dump_images",
+           "fail_with_images", "mesh_from_trimesh", "plane_mesh", "plane_points_seen",
+           "render_image", "single", "trs"]

@@ -8,11 +8,12 @@ import pytest
 
 from scene.model import DirectionalLight, PointLight, QuadLight
 from tests.workers.helpers import (
-    Camera,
     Material,
     assert_image_close,
+    down_camera,
     fail_with_images,
     plane_mesh,
+    plane_points_seen,
     render_image,
     single,
 )
@@ -23,9 +24,7 @@ W = H = 16
 
 
 def _camera():
-    # up = -z, so image right is +x and the top row is at -z.
-    return Camera(eye=(0.0, HEIGHT, 0.0), target=(0.0, 0.0, 0.0), up=(0.0, 0.0, -1.0),
-                  fov_deg=FOV_DEG)
+    return down_camera(HEIGHT, FOV_DEG)
 
 
 def _plane_scene(**lights):
@@ -33,25 +32,9 @@ def _plane_scene(**lights):
                   camera=_camera(), **lights)
 
 
-def _pixel_footprints(sub: int = 8) -> np.ndarray:
-    """(H, W, sub*sub, 3) float64 plane points seen through a sub x sub grid in each pixel.
-    Independent pinhole geometry: NDC x = (col + jx) / W * 2 - 1 along +x, NDC y =
-    1 - (row + jy) / H * 2 along -z, and the ray hits y = 0 after HEIGHT units of -y."""
-    half_h = np.tan(np.radians(FOV_DEG) / 2)
-    half_w = half_h * W / H
-    j = (np.arange(sub) + 0.5) / sub
-    col = np.arange(W)[None, :, None, None] + j[None, None, None, :]  # (1, W, 1, sub)
-    row = np.arange(H)[:, None, None, None] + j[None, None, :, None]  # (H, 1, sub, 1)
-    x = ((col / W) * 2 - 1) * half_w * HEIGHT
-    z = -(1 - (row / H) * 2) * half_h * HEIGHT
-    x, z = np.broadcast_arrays(x, z)  # (H, W, sub, sub)
-    pts = np.stack([x, np.zeros_like(x), z], axis=-1)
-    return pts.reshape(H, W, sub * sub, 3)
-
-
 def _radiance(irradiance_fn) -> np.ndarray:
     """(H, W, 3) pixel radiance rho / pi * E, box-filtered over each pixel's footprint."""
-    pts = _pixel_footprints()
+    pts = plane_points_seen(W, H, HEIGHT, FOV_DEG)
     e = irradiance_fn(pts.reshape(-1, 3)).reshape(H, W, -1)  # (H, W, sub^2) scalar E
     return RHO / np.pi * e.mean(axis=-1)[..., None]
 
