@@ -66,6 +66,9 @@ class Coordinator:
         cpus = ray.cluster_resources().get("CPU", 1.0)
         per_shard_cpu = min(1.0, cpus / self.k)
         self.actors = []
+        # A restarted actor re-reads its constructor arguments from the object store, so
+        # they must outlive __init__ (ray-project/ray#53727).
+        self._init_refs = [world_ref, all_ref]
         for sid in range(self.k):
             meshes_ref = ray.put({i: scene.meshes[i] for i in sorted(shard_meshes[sid])})
             # Only the proxies of meshes this shard does not hold.
@@ -75,6 +78,7 @@ class Coordinator:
             actor = ray.remote(Shard).options(**opts).remote(
                 ShardConfig(sid, self.k, settings), world_ref, meshes_ref, proxies_ref, all_ref)
             self.actors.append(actor)
+            self._init_refs += [meshes_ref, proxies_ref]
         self.shard_info = ray.get([a.ready.remote() for a in self.actors])
         self.prepare_s = time.perf_counter() - t0
         self.fetched: list[type] = []  # what this coordinator read back, for the tests
