@@ -25,6 +25,10 @@ log = logging.getLogger(__name__)
 MAX_PASS_ATTEMPTS = 4
 
 
+class ShardStateLost(RuntimeError):
+    """A shard restarted between two calls of a pass, so its partial film is gone."""
+
+
 def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None):
     """Which meshes get a proxy, are replicated, or need nothing (proxies.policy)."""
     from proxies.cache import ProxyCache
@@ -100,7 +104,7 @@ class Coordinator:
         for attempt in range(1, MAX_PASS_ATTEMPTS + 1):
             try:
                 return self._run_pass(p)
-            except RayActorError as e:
+            except (RayActorError, ShardStateLost) as e:
                 log.warning("pass %d attempt %d lost a shard (%s); re-running it",
                             p.index, attempt, type(e).__name__)
                 self._abort(p)
@@ -126,11 +130,13 @@ class Coordinator:
         wait_s = 0.0
         inflight: dict = {}
         busy = [False] * self.k
+        calls = [0] * self.k  # calls sent per shard; an idle shard can die and restart unseen
         inbox: list[list] = [[] for _ in range(self.k)]
         first = p.index % self.k  # the shard that generates this tile's camera rays
         m_ref, parcels = self._call(first, "generate", p)
         inflight[m_ref] = (first, parcels)
         busy[first] = True
+        calls[first] += 1
         while inflight:
             t0 = time.perf_counter()
             ready, _ = ray.wait(list(inflight), num_returns=1)
@@ -146,10 +152,14 @@ class Coordinator:
                     m_ref, out = self._call(sid, "process", p, *inbox[sid])
                     inflight[m_ref] = (sid, out)
                     inbox[sid], busy[sid] = [], True
+                    calls[sid] += 1
         results = self._get([a.finish_pass.remote(p.index) for a in self.actors])
         sums = np.zeros((p.n_pixels, 3))
         stats = RenderStats()
-        for part, st in results:
+        for sid, (part, st, ran) in enumerate(results):
+            if ran != calls[sid]:
+                raise ShardStateLost(f"shard {sid} ran {ran} of {calls[sid]} calls of pass "
+                                     f"{p.index}: it restarted mid-pass")
             if part is not None:
                 sums += part
             stats.merge(RenderStats.from_dict(st))

@@ -68,6 +68,7 @@ class Manifest:
 class _PassState:
     sums: np.ndarray  # (n_pixels, 3) float64
     stats: RenderStats = field(default_factory=RenderStats)
+    calls: int = 0  # generate/process calls seen; fewer than sent means a restart lost state
 
 
 class Shard:
@@ -130,11 +131,12 @@ class Shard:
         shadow = ShadowRayBatch.concat([x.shadow for x in parcels])
         return self._run(p, st, rays, shadow)
 
-    def finish_pass(self, index: int) -> tuple[np.ndarray, dict]:
+    def finish_pass(self, index: int) -> tuple[np.ndarray | None, dict, int]:
+        """(film sums, stats, calls this incarnation ran for the pass)."""
         st = self.passes.pop(index, None)
         if st is None:
-            return None, RenderStats().to_dict()
-        return st.sums, st.stats.to_dict()
+            return None, RenderStats().to_dict(), 0
+        return st.sums, st.stats.to_dict(), st.calls
 
     def abort_pass(self, index: int) -> None:
         self.passes.pop(index, None)
@@ -144,6 +146,7 @@ class Shard:
     def _state(self, p: Pass) -> _PassState:
         if p.index not in self.passes:
             self.passes[p.index] = _PassState(np.zeros((p.n_pixels, 3)))
+        self.passes[p.index].calls += 1
         return self.passes[p.index]
 
     def _run(self, p: Pass, st: _PassState, rays: RayBatch, shadow: ShadowRayBatch) -> list:
