@@ -107,7 +107,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="render a demo scene through the distributed path")
     p.add_argument("--scene", default="forest")
     p.add_argument("--out", default="out/demo", help="folder for images and statistics")
-    _add_settings_flags(p, width=320, height=240, spp=8, shards=4, spp_per_pass=8)
+    _add_settings_flags(p, width=192, height=144, spp=8, shards=4, spp_per_pass=8)
     p.set_defaults(func=_cmd_demo)
 
     p = sub.add_parser("scenes", help="list the demo scenes and their statistics")
