@@ -72,12 +72,17 @@ class InstanceTable:
 
     def _slab(self, o, inv, tmax, instances, offset):
         b = self.world_bounds[instances]  # (k, 2, 3)
+        t_enter = t_exit = None
         with np.errstate(invalid="ignore"):
-            t0 = (b[None, :, 0, :] - o[:, None, :]) * inv[:, None, :]  # (c, k, 3)
-            t1 = (b[None, :, 1, :] - o[:, None, :]) * inv[:, None, :]
-            # fmin/fmax drop the NaN of 0 * inf (origin on a slab plane, zero direction).
-            t_enter = np.fmax.reduce(np.fmin(t0, t1), axis=2)
-            t_exit = np.fmin.reduce(np.fmax(t0, t1), axis=2)
+            # One axis at a time on (c, k) arrays: a ufunc reduce over a trailing axis of
+            # length 3 is ~10x slower than these elementwise calls, with identical results.
+            for a in range(3):
+                t0 = (b[None, :, 0, a] - o[:, a, None]) * inv[:, a, None]  # (c, k)
+                t1 = (b[None, :, 1, a] - o[:, a, None]) * inv[:, a, None]
+                # fmin/fmax drop the NaN of 0 * inf (origin on a slab plane, zero direction).
+                lo, hi = np.fmin(t0, t1), np.fmax(t0, t1)
+                t_enter = lo if t_enter is None else np.fmax(t_enter, lo)
+                t_exit = hi if t_exit is None else np.fmin(t_exit, hi)
         ok = (t_exit >= np.maximum(t_enter, 0.0)) & (t_enter < tmax[:, None])
         ray, col = np.nonzero(ok)
         return (ray.astype(np.int64) + offset, instances[col].astype(np.int32),
