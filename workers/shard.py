@@ -183,6 +183,7 @@ class Shard:
                 with stats.phase("local_intersect"):
                     free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
                                                           shadow.tmax)
+                stats.count_hops(shadow.hops[~free])  # occluded here: these rays finish too
                 shadow = shadow.take(free)
                 with stats.phase("top_level"):
                     shadow, target = self.policy.route_shadow(shadow, stats)
