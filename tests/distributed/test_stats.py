@@ -1,0 +1,68 @@
+"""Render statistics of the distributed renderer add up: transfers, hops and bytes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tests.distributed.helpers import RAY_ROW_BYTES, SHADOW_ROW_BYTES, settings
+from workers.batch import KIND_NAMES
+from workers.render import render
+
+SCENE = "city"  # the most secondary rays of the three demos
+
+
+@pytest.fixture(scope="module")
+def stats_by_k(ray_local_module, scenes) -> dict:
+    return {k: render(scenes[SCENE], settings(k)).stats.to_dict() for k in (1, 2, 4)}
+
+
+@pytest.fixture(scope="module")
+def ray_local_module(_ray_session):
+    import ray
+
+    from tests.distributed.conftest import start_local_ray
+
+    if not ray.is_initialized():
+        start_local_ray()
+
+
+def test_transfers_are_zero_for_one_shard_and_positive_for_more(stats_by_k):
+    one = stats_by_k[1]
+    assert one["total_transfers"] == 0 and one["total_bytes"] == 0, one
+    assert one["hops_histogram"] == one["hops_histogram"][:1], "hops > 0 with one shard"
+    for k in (2, 4):
+        st = stats_by_k[k]
+        assert st["total_transfers"] > 0 and st["total_bytes"] > 0, (k, st)
+        assert all(st["transfers"][kind] > 0 for kind in KIND_NAMES), (k, st["transfers"])
+        assert len(st["hops_histogram"]) > 1, (k, st["hops_histogram"])
+
+
+@pytest.mark.parametrize("k", (1, 2, 4), ids=lambda k: f"k{k}")
+def test_hops_histogram_counts_every_finished_ray_once(stats_by_k, references, k):
+    """Every ray the reference traced (camera, BSDF and shadow rays, occluded or not)
+    finishes exactly once somewhere, whatever the number of shards."""
+    ref_rays = references[SCENE].stats.to_dict()["rays"]
+    hist = np.asarray(stats_by_k[k]["hops_histogram"])
+    assert hist.sum() == sum(ref_rays.values()), (k, hist.tolist(), ref_rays)
+    # And its transfers are the hops that rays made (a ray moves once per hop).
+    hops = int((hist * np.arange(len(hist))).sum())
+    assert hops == stats_by_k[k]["total_transfers"], (k, hops, stats_by_k[k]["transfers"])
+
+
+@pytest.mark.parametrize("k", (1, 2, 4), ids=lambda k: f"k{k}")
+def test_bytes_by_kind_equal_transfers_times_row_bytes(stats_by_k, k):
+    st = stats_by_k[k]
+    per_row = {"primary": RAY_ROW_BYTES, "secondary": RAY_ROW_BYTES, "shadow": SHADOW_ROW_BYTES}
+    for kind in KIND_NAMES:
+        assert st["bytes"][kind] == st["transfers"][kind] * per_row[kind], (kind, st)
+    assert st["total_bytes"] == sum(st["bytes"].values())
+    assert st["total_transfers"] == sum(st["transfers"].values())
+
+
+def test_row_bytes_match_the_declared_layout():
+    # origin, direction, throughput 3 x f32; tmax, pdf_prev, hit_u, hit_v f32; pixel, sample
+    # u32; hit_inst, hit_prim i32; visited u64; depth, kind, hops, flags u8.
+    assert RAY_ROW_BYTES == 3 * 12 + 4 * 4 + 2 * 4 + 2 * 4 + 8 + 4 * 1
+    # origin, direction, contribution 3 x f32; tmax f32; pixel u32; visited u64; hops u8.
+    assert SHADOW_ROW_BYTES == 3 * 12 + 4 + 4 + 8 + 1
