@@ -131,3 +131,35 @@ def test_quad_light_on_plane_matches_polygon_irradiance(tmp_path, shadow_rays, s
     ref = _quad_reference()
     _assert_mean_close(img, ref, mean_rtol, tmp_path, f"quad_plane_s{shadow_rays}")
     assert_image_close(img, ref, tmp_path, f"quad_plane_s{shadow_rays}", rtol=rtol)
+
+
+QUAD2 = dict(corner=(0.3, 0.7, 0.2), edge_u=(0.4, -0.1, 0.0), edge_v=(0.0, 0.0, 0.5))
+QUAD2_L = 6.0  # edge_u x edge_v = (-0.05, -0.2, 0): tilted, emitting down and to -x
+POINT2 = (np.array([-0.8, 1.5, 0.6]), 3.0)
+
+
+def test_several_lights_sum_on_plane(tmp_path):
+    # Three lights: NEE picks one uniformly per shadow ray (pdf 1/3), and a bounce ray that
+    # hits a quad is MIS-weighted with that same 1/3 pick, so both the pick and its use in
+    # the weights show up in the mean. Worst-pixel sigma is 1.8% at 2048 spp (measured
+    # over 8 seeds), so 8% per pixel is > 4 sigma; the mean is held to 0.3%.
+    def verts(q):
+        c, u, v = (np.array(q[k]) for k in ("corner", "edge_u", "edge_v"))
+        return np.stack([c, c + u, c + u + v, c + v])
+
+    pos, intensity = POINT2
+
+    def irradiance(x):
+        v = pos - x
+        r2 = (v * v).sum(axis=1)
+        return (polygon_irradiance(x, verts(QUAD), QUAD_L)
+                + polygon_irradiance(x, verts(QUAD2), QUAD2_L)
+                + intensity * v[:, 1] / np.sqrt(r2) / r2)
+
+    scene = _plane_scene(quad_lights=(QuadLight(**QUAD, radiance=(QUAD_L,) * 3),
+                                      QuadLight(**QUAD2, radiance=(QUAD2_L,) * 3)),
+                         point_lights=(PointLight(tuple(pos), (intensity,) * 3),))
+    img = render_image(scene, width=W, height=H, spp=2048, bounces=1, shadow_rays=4, seed=5)
+    ref = _radiance(irradiance)
+    _assert_mean_close(img, ref, 0.003, tmp_path, "three_lights")
+    assert_image_close(img, ref, tmp_path, "three_lights", rtol=0.08)
