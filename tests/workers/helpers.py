@@ -124,7 +124,8 @@ def assert_image_close(img, ref, tmp_path: Path, name: str, *, rtol: float,
         err = np.where(mask[..., None] if mask.ndim == 2 else mask, err, 0.0)
     bad = ~(err <= 1.0)  # NaN counts as bad
     if bad.any():
-        worst = np.unravel_index(np.nanargmax(np.where(bad, err, -1)), err.shape)
+        worst = tuple(int(i) for i in np.unravel_index(np.nanargmax(np.where(bad, err, -1)),
+                                                       err.shape))
         fail_with_images(
             tmp_path, name, img, ref, err,
             f"{name}: {int(bad.any(axis=-1).sum())} of {bad.shape[0] * bad.shape[1]} pixels "
