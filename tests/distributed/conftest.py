@@ -26,7 +26,7 @@ def _ray_session():
         ray.shutdown()
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def ray_local(_ray_session):
     """The shared local Ray instance, started on first use (again after the cluster test)."""
     if not ray.is_initialized():

@@ -13,18 +13,8 @@ SCENE = "city"  # the most secondary rays of the three demos
 
 
 @pytest.fixture(scope="module")
-def stats_by_k(ray_local_module, scenes) -> dict:
+def stats_by_k(ray_local, scenes) -> dict:
     return {k: render(scenes[SCENE], settings(k)).stats.to_dict() for k in (1, 2, 4)}
-
-
-@pytest.fixture(scope="module")
-def ray_local_module(_ray_session):
-    import ray
-
-    from tests.distributed.conftest import start_local_ray
-
-    if not ray.is_initialized():
-        start_local_ray()
 
 
 def test_transfers_are_zero_for_one_shard_and_positive_for_more(stats_by_k):
