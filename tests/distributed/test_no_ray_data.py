@@ -1,0 +1,86 @@
+"""The coordinator routes ObjectRefs only: it never reads a ray batch back. Checked twice,
+through its own `fetched` record and by recording every ray.get made in its module."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import ray
+
+import workers.coordinator as coordinator_module
+from tests.distributed.helpers import assert_matches, settings
+from workers.batch import RayBatch, ShadowRayBatch
+from workers.coordinator import Coordinator
+from workers.render import render
+from workers.shard import Manifest, Parcel
+
+RAY_DATA = (RayBatch, ShadowRayBatch, Parcel)
+
+
+def _types(x, out: set) -> set:
+    """Every type inside x, looking into tuples, lists, dicts and dataclass-like objects."""
+    out.add(type(x))
+    if isinstance(x, list | tuple):
+        for v in x:
+            _types(v, out)
+    elif isinstance(x, dict):
+        for v in x.values():
+            _types(v, out)
+    elif hasattr(x, "__dict__") and not isinstance(x, type):
+        for v in vars(x).values():
+            _types(v, out)
+    return out
+
+
+class RecordingRay:
+    """Stands in for the `ray` module inside workers.coordinator; records what get returns."""
+
+    def __init__(self):
+        self.got: set[type] = set()
+        self.calls = 0
+
+    def get(self, refs, *args, **kwargs):
+        out = ray.get(refs, *args, **kwargs)
+        self.calls += 1
+        _types(out, self.got)
+        return out
+
+    def __getattr__(self, name):
+        return getattr(ray, name)
+
+
+@pytest.fixture
+def recorder(monkeypatch) -> RecordingRay:
+    rec = RecordingRay()
+    monkeypatch.setattr(coordinator_module, "ray", rec)
+    return rec
+
+
+def test_recorder_sees_a_parcel_read_back(ray_local, recorder):
+    """The check below can fail: a Parcel fetched through the module's ray.get is caught."""
+    parcel = Parcel(RayBatch.empty(), ShadowRayBatch.empty())
+    coordinator_module.ray.get(ray.put(parcel))
+    assert {Parcel, RayBatch, ShadowRayBatch} <= recorder.got
+
+
+@pytest.mark.parametrize("k", (2, 4), ids=lambda k: f"k{k}")
+def test_coordinator_never_reads_ray_batches(ray_local, recorder, scenes, references, tmp_path,
+                                             k):
+    coord = Coordinator(scenes["forest"], settings(k, tile_size=32))
+    try:
+        result = render(scenes["forest"], coord.s, renderer=coord)
+    finally:
+        coord.close()
+    # It did render, through the recorded module, and rays did move between shards.
+    assert_matches(tmp_path, f"forest_k{k}", result.film.image(),
+                   references["forest"].film.image())
+    assert result.stats.to_dict()["total_transfers"] > 0
+    assert recorder.calls > 0
+    # Its own record: manifests and (film sums, stats, calls) tuples, nothing else.
+    fetched = set(coord.fetched)
+    assert Manifest in fetched and tuple in fetched, fetched
+    assert fetched <= {Manifest, tuple}, fetched
+    # Everything any ray.get in the module returned, looked into: no ray data anywhere.
+    leaked = {t for t in recorder.got if issubclass(t, RAY_DATA)}
+    assert not leaked, f"the coordinator read back {sorted(t.__name__ for t in leaked)}"
+    assert np.ndarray in recorder.got  # the film sums did come through the recorder
