@@ -1,0 +1,79 @@
+"""Proxy configuration: everything that changes a trained proxy, and the cache key it gives."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, replace
+
+# Bump when sampling, encoding, architecture or container semantics change, so old
+# cache files stop matching instead of being misread.
+ENCODING_VERSION = 1
+ENCODINGS = ("paper", "xyz")
+WIDTHS = (16, 32, 64, 128, 256)
+
+
+@dataclass(frozen=True)
+class ProxyConfig:
+    """Hyperparameters of one proxy (both nets).
+
+    width      : N, hidden width of both residual MLPs
+    blocks     : residual blocks per net
+    encoding   : "paper" = (p01, theta/pi, phi/2pi); "xyz" = (p01, (d+1)/2)
+    n_samples  : training rays traced with Embree (the sample budget)
+    grid       : cells per box-face side (DESIGN: 128)
+    budget_s   : wall-clock training budget for both nets together, seconds
+    max_steps  : optional cap on optimiser steps per net (deterministic runs, tests)
+    batch_size : rays per optimiser step
+    seed       : seeds sampling and initialisation; held-out rays use seed + EVAL_SEED_OFFSET
+    eval_samples : held-out rays for the accuracy report
+    threshold  : default visibility threshold recorded in the proxy
+    lr         : Adam learning rate at the start of the cosine decay (paper: 5e-4)
+    """
+
+    width: int = 32
+    blocks: int = 2
+    encoding: str = "paper"
+    n_samples: int = 1 << 19
+    grid: int = 128
+    budget_s: float = 90.0
+    max_steps: int | None = None
+    batch_size: int = 4096
+    seed: int = 0
+    eval_samples: int = 1 << 16
+    threshold: float = 0.5
+    lr: float = 5e-4
+
+    def __post_init__(self):
+        if self.width < 1 or self.blocks < 0:
+            raise ValueError(f"width must be >= 1 and blocks >= 0, got {self.width}, {self.blocks}")
+        if self.encoding not in ENCODINGS:
+            raise ValueError(f"encoding must be one of {ENCODINGS}, got {self.encoding!r}")
+        if self.n_samples < 16 or self.grid < 1:
+            raise ValueError(f"n_samples must be >= 16 and grid >= 1, got {self.n_samples}, "
+                             f"{self.grid}")
+
+    def with_width(self, width: int) -> ProxyConfig:
+        return replace(self, width=int(width))
+
+    def to_dict(self) -> dict:
+        return {"version": ENCODING_VERSION, **asdict(self)}
+
+    @property
+    def key(self) -> str:
+        """Short digest of every field; with the mesh content hash it names a cache file."""
+        blob = json.dumps(self.to_dict(), sort_keys=True).encode()
+        return hashlib.sha256(blob).hexdigest()[:16]
+
+
+EVAL_SEED_OFFSET = 1_000_003
+
+
+def param_count(width: int, blocks: int, n_in: int = 5) -> int:
+    """Parameters of one residual MLP: input layer, `blocks` x (2 linear), output layer."""
+    return (n_in + 1) * width + blocks * 2 * (width + 1) * width + (width + 1)
+
+
+def estimate_proxy_bytes(width: int, blocks: int = 2) -> int:
+    """float32 weights of both nets; ONNX framing adds a few kB on top."""
+    return 2 * 4 * param_count(width, blocks)

@@ -1,0 +1,162 @@
+"""A trained proxy at render time: the two ONNX nets in one self-checking blob, run by
+onnxruntime (this module never imports torch)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import struct
+
+import numpy as np
+import onnxruntime as ort
+
+from proxies.encoding import encode, to_proxy_box
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"NPRTPRX\x01"
+FORMAT_VERSION = 1
+_LEN = struct.Struct("<I")
+NETS = ("visibility", "depth")
+# Rows per onnxruntime call: bounds the (rows, width) activations of huge queries.
+QUERY_CHUNK = 1 << 17
+
+
+class ProxyFormatError(ValueError):
+    """A proxy blob that is truncated, corrupted or of an unknown format."""
+
+
+class Proxy:
+    """Visibility and depth nets of one base mesh, with their metadata.
+
+    meta : dict with content_hash, width, blocks, encoding, bounds (2, 3) mesh AABB,
+    box (2, 3) proxy box, diag (of the proxy box), threshold, config, report
+    threads : onnxruntime intra-op threads per session (1: shards run side by side)
+    """
+
+    def __init__(self, meta: dict, models: dict[str, bytes], threads: int = 1):
+        missing = [k for k in NETS if k not in models]
+        if missing:
+            raise ValueError(f"proxy needs models {NETS}, missing {missing}")
+        self.meta = dict(meta)
+        self.models = {k: bytes(models[k]) for k in NETS}
+        self.threads = int(threads)
+        self.box = np.asarray(self.meta["box"], np.float64).reshape(2, 3)
+        self.diag = np.float32(self.meta["diag"])
+        self._sessions: dict[str, ort.InferenceSession] = {}
+        self._blob: bytes | None = None
+
+    def __repr__(self) -> str:
+        m = self.meta
+        return (f"Proxy(mesh={m.get('content_hash', '?')[:12]}, width={m.get('width')}, "
+                f"{self.nbytes} bytes)")
+
+    def __reduce__(self):  # sessions do not pickle; the blob rebuilds them (ray.put)
+        return (Proxy.from_bytes, (self.to_bytes(), self.threads))
+
+    # ------------------------------------------------------------ container
+    def to_bytes(self) -> bytes:
+        """MAGIC, u32 header length, JSON header (with the payload's sha256), payload."""
+        if self._blob is None:
+            payload = b"".join(self.models[k] for k in NETS)
+            header = {
+                "format": FORMAT_VERSION,
+                "sizes": {k: len(self.models[k]) for k in NETS},
+                "payload_sha256": hashlib.sha256(payload).hexdigest(),
+                "meta": self.meta,
+            }
+            hb = json.dumps(header, sort_keys=True).encode()
+            self._blob = MAGIC + _LEN.pack(len(hb)) + hb + payload
+        return self._blob
+
+    @classmethod
+    def from_bytes(cls, blob: bytes, threads: int = 1) -> Proxy:
+        """Parse and verify a blob; raises ProxyFormatError naming what is wrong."""
+        blob = bytes(blob)
+        if blob[: len(MAGIC)] != MAGIC:
+            raise ProxyFormatError(f"not a proxy blob (magic {blob[:len(MAGIC)]!r})")
+        start = len(MAGIC) + _LEN.size
+        if len(blob) < start:
+            raise ProxyFormatError(f"truncated proxy blob ({len(blob)} bytes)")
+        (hlen,) = _LEN.unpack_from(blob, len(MAGIC))
+        try:
+            header = json.loads(blob[start:start + hlen])
+            sizes = {k: int(header["sizes"][k]) for k in NETS}
+            digest, meta = header["payload_sha256"], header["meta"]
+        except (ValueError, KeyError, TypeError) as e:
+            raise ProxyFormatError(f"bad proxy header: {e}") from None
+        if header.get("format") != FORMAT_VERSION:
+            raise ProxyFormatError(f"proxy format {header.get('format')}, "
+                                   f"expected {FORMAT_VERSION}")
+        payload = blob[start + hlen:]
+        if len(payload) != sum(sizes.values()):
+            raise ProxyFormatError(f"proxy payload is {len(payload)} bytes, header says "
+                                   f"{sum(sizes.values())} (truncated?)")
+        if hashlib.sha256(payload).hexdigest() != digest:
+            raise ProxyFormatError("proxy payload sha256 does not match its header (corrupted)")
+        models, off = {}, 0
+        for k in NETS:
+            models[k] = payload[off:off + sizes[k]]
+            off += sizes[k]
+        proxy = cls(meta, models, threads)
+        proxy._blob = blob
+        return proxy
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes a shard receives for this proxy (the whole blob)."""
+        return len(self.to_bytes())
+
+    # ------------------------------------------------------------ inference
+    def session(self, net: str) -> ort.InferenceSession:
+        if net not in self._sessions:
+            opts = ort.SessionOptions()
+            opts.intra_op_num_threads = self.threads
+            opts.inter_op_num_threads = 1
+            opts.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+            opts.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+            self._sessions[net] = ort.InferenceSession(
+                self.models[net], opts, providers=["CPUExecutionProvider"])
+        return self._sessions[net]
+
+    def run(self, net: str, x: np.ndarray) -> np.ndarray:
+        """Raw net output y (n,) float32 for encoded inputs x (n, k) float32."""
+        if len(x) == 0:
+            return np.zeros(0, np.float32)
+        sess = self.session(net)
+        name = sess.get_inputs()[0].name
+        out = [sess.run(None, {name: x[s:s + QUERY_CHUNK]})[0]
+               for s in range(0, len(x), QUERY_CHUNK)]
+        return np.concatenate(out).reshape(-1).astype(np.float32, copy=False)
+
+    def query(self, points: np.ndarray, directions: np.ndarray,
+              min_visibility: float | None = None):
+        """Predict the first hit of rays entering the box.
+
+        points     : (n, 3) float32, local points on the mesh's box surface
+        directions : (n, 3) float32, local unit directions pointing into the box
+        min_visibility : evaluate depth only where visibility >= this (t = inf elsewhere)
+        returns visibility (n,) float32 in [0, 1], t (n,) float32 distance from each point
+        along its direction (meaningful where visibility >= threshold)
+        """
+        points = np.asarray(points, np.float32)
+        directions = np.asarray(directions, np.float32)
+        if points.ndim != 2 or points.shape[1] != 3 or directions.shape != points.shape:
+            raise ValueError(f"points and directions must both be (n, 3), got "
+                             f"{points.shape} and {directions.shape}")
+        n = len(points)
+        if n == 0:
+            return np.zeros(0, np.float32), np.zeros(0, np.float32)
+        p, shift = to_proxy_box(self.box, points, directions)
+        x = encode(self.box, p, directions, self.meta["encoding"])
+        vis = self.run("visibility", x)
+        if min_visibility is None:
+            rows = slice(None)
+            t = np.empty(n, np.float32)
+        else:
+            rows = np.flatnonzero(vis >= min_visibility)
+            t = np.full(n, np.inf, np.float32)
+        depth = self.run("depth", x[rows])
+        t[rows] = np.maximum(depth * self.diag + shift[rows], 0.0)
+        return vis, t

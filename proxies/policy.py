@@ -1,0 +1,148 @@
+"""Model only what a scene requires: per base mesh, no proxy, exact replication, the
+narrowest proxy that meets the accuracy target, or an exact fallback with the reason."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict, dataclass, field
+
+from proxies.cache import ProxyCache, ProxyUnavailable
+from proxies.config import WIDTHS, ProxyConfig, estimate_proxy_bytes
+from proxies.inference import Proxy
+
+log = logging.getLogger(__name__)
+
+DECISIONS = ("none", "replicate", "proxy", "fallback")
+
+
+@dataclass
+class ProxyDecision:
+    """What one base mesh gets. tried : width -> held-out accuracy of each proxy looked at."""
+
+    mesh: int
+    name: str
+    content_hash: str
+    decision: str
+    reason: str
+    mesh_bytes: int
+    width: int | None = None
+    accuracy: float | None = None
+    proxy_bytes: int | None = None
+    train_s: float | None = None
+    tried: dict[int, float] = field(default_factory=dict)
+
+
+@dataclass
+class ProxyPlan:
+    """decisions : one per base mesh, in mesh order; proxies : mesh index -> Proxy for every
+    `proxy` decision; replicated : mesh indices every shard holds exactly."""
+
+    decisions: list[ProxyDecision]
+    proxies: dict[int, Proxy]
+    replicated: set[int]
+    target_accuracy: float
+
+    def decision(self, mesh: int) -> ProxyDecision:
+        return self.decisions[mesh]
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary for job statistics."""
+        counts = {d: sum(x.decision == d for x in self.decisions) for d in DECISIONS}
+        return {
+            "target_accuracy": self.target_accuracy,
+            "counts": counts,
+            "proxy_bytes": int(sum(p.nbytes for p in self.proxies.values())),
+            "replicated": sorted(self.replicated),
+            "decisions": [{**asdict(d), "tried": {str(k): v for k, v in d.tried.items()}}
+                          for d in self.decisions],
+        }
+
+
+def _accuracy(proxy: Proxy) -> float:
+    return float(proxy.meta.get("report", {}).get("accuracy", 0.0))
+
+
+def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: ProxyCache,
+                    train: bool, progress: bool):
+    """Narrowest width whose proxy meets `target`, else the most accurate one found.
+
+    returns (proxy or None, tried {width: accuracy}, why-unavailable or None)
+    """
+    tried, found, unavailable = {}, {}, None
+    for w in sorted(widths):
+        cfg = config.with_width(w)
+        proxy = cache.get(mesh, cfg)
+        if proxy is None and train:
+            try:
+                proxy = cache.get_or_train(mesh, cfg, progress=progress)
+            except ProxyUnavailable as e:
+                unavailable = str(e)
+                continue  # a wider proxy may still be cached
+        if proxy is None:
+            continue
+        tried[w], found[w] = _accuracy(proxy), proxy
+        if tried[w] >= target:
+            return proxy, tried, None
+    if not found:
+        return None, tried, unavailable or "no cached proxy and training is disabled"
+    best = max(found, key=lambda w: (tried[w], -w))
+    return found[best], tried, None
+
+
+def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCache | None = None,
+                 train: bool = True, config: ProxyConfig | None = None,
+                 widths: tuple[int, ...] = WIDTHS, progress: bool = False) -> ProxyPlan:
+    """Decide, for every base mesh of `scene` split by `partition` (its shard_meshes: per
+    shard, the mesh indices it holds), whether shards need a proxy of it, and get them."""
+    cache = cache or ProxyCache()
+    config = config or ProxyConfig()
+    k = len(partition.shard_meshes)
+    holders = [0] * len(scene.meshes)
+    for held in partition.shard_meshes:
+        for m in set(held):
+            holders[m] += 1
+    used = {inst.mesh for inst in scene.instances}
+    decisions, proxies, replicated = [], {}, set()
+    smallest = estimate_proxy_bytes(min(widths), config.blocks)
+    for i, mesh in enumerate(scene.meshes):
+        d = ProxyDecision(i, mesh.name, mesh.content_hash, "none", "", int(mesh.nbytes))
+        decisions.append(d)
+        if i not in used:
+            d.reason = "no instances"
+        elif holders[i] >= k:
+            d.reason = "local to the only shard" if k == 1 else f"held by all {k} shards"
+        elif mesh.nbytes < smallest:
+            d.decision, d.proxy_bytes = "replicate", smallest
+            d.reason = (f"mesh {mesh.nbytes} B < proxy estimate {smallest} B at width "
+                        f"{min(widths)}: replicated exactly on every shard")
+        else:
+            proxy, d.tried, why = narrowest_proxy(mesh, config, widths, target_accuracy,
+                                                  cache, train, progress)
+            if proxy is None:
+                d.decision, d.reason = "fallback", f"traced exactly: {why}"
+            else:
+                _choose(d, proxy, target_accuracy)
+        if d.decision == "replicate":
+            replicated.add(i)
+        elif d.decision == "proxy":
+            proxies[i] = proxy
+        log.info("mesh %d %r: %s (%s)", i, mesh.name, d.decision, d.reason)
+    return ProxyPlan(decisions, proxies, replicated, target_accuracy)
+
+
+def _choose(d: ProxyDecision, proxy: Proxy, target: float) -> None:
+    """Fill a `proxy` decision, or `replicate` when even the chosen proxy outweighs the mesh."""
+    rep = proxy.meta.get("report", {})
+    d.width, d.accuracy = int(proxy.meta["width"]), _accuracy(proxy)
+    d.proxy_bytes, d.train_s = proxy.nbytes, rep.get("train_s")
+    if proxy.nbytes >= d.mesh_bytes:
+        d.decision = "replicate"
+        d.reason = (f"proxy at width {d.width} is {proxy.nbytes} B >= mesh {d.mesh_bytes} B: "
+                    f"replicated exactly on every shard")
+    elif d.accuracy >= target:
+        d.decision = "proxy"
+        d.reason = f"width {d.width} is the narrowest meeting accuracy {target:.3f}"
+    else:
+        d.decision = "proxy"
+        d.reason = (f"no width met accuracy {target:.3f}; best held-out accuracy "
+                    f"{d.accuracy:.4f} at width {d.width}")
