@@ -14,6 +14,9 @@ class ServiceSettings(BaseSettings):
     data_dir: Path = Field(Path("nprt-data"), description="jobs, scenes, proxies and the SQLite db")
     ray_address: str | None = Field(None, description="Ray cluster address; unset = local Ray")
     max_concurrent_jobs: int = Field(1, ge=1, le=64, description="jobs rendering at once")
+    max_sharded_jobs: int = Field(1, ge=1, le=64,
+                                  description="sharded (Ray) jobs rendering at once; each "
+                                              "Coordinator sizes its actors to the whole cluster")
     max_upload_bytes: int = Field(256 << 20, ge=1, description="largest scene upload, bytes")
     max_extracted_bytes: int = Field(1 << 30, ge=1,
                                      description="largest unpacked zip upload, bytes")

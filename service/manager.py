@@ -51,6 +51,11 @@ class JobManager:
         self._lock = threading.Lock()
         self._stopping = threading.Event()
         self._threads: list[threading.Thread] = []
+        self._ray_lock = threading.Lock()
+        self._started_ray = False
+        # Without placement groups, two Coordinators that each ask for the whole cluster can
+        # each get part of their actors and then wait on each other for ever.
+        self._sharded_slots = threading.BoundedSemaphore(settings.max_sharded_jobs)
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------ lifecycle
@@ -80,6 +85,10 @@ class JobManager:
         deadline = time.monotonic() + timeout_s
         for t in self._threads:
             t.join(max(0.0, deadline - time.monotonic()))
+        if self._started_ray:
+            import ray
+
+            ray.shutdown()
         self.store.close()
 
     # ------------------------------------------------------------ API
@@ -172,19 +181,29 @@ class JobManager:
             return
         job_dir = self.job_dir(job_id)
         job_dir.mkdir(parents=True, exist_ok=True)
-        with job_log(job_dir / "job.log"):
-            self._render(rec, job_dir)
-
-    def _render(self, rec: JobRecord, job_dir: Path) -> None:
-        job_id = rec.id
-        live = self._live[job_id]
         settings = RenderSettings.model_validate(rec.settings)
+        with job_log(job_dir / "job.log"):
+            if settings.shards == 0:
+                self._render(rec, job_dir, settings)
+                return
+            log.info("job %s: waiting for a sharded-job slot", job_id)
+            with self._sharded_slots:  # the job stays queued (and cancellable) meanwhile
+                rec = self.store.get(job_id)
+                if rec.state not in TERMINAL and not self._stopping.is_set():
+                    self._render(rec, job_dir, settings)
+
+    def _render(self, rec: JobRecord, job_dir: Path, settings: RenderSettings) -> None:
+        job_id = rec.id
+        with self._lock:
+            live = self._live[job_id]
         resume = checkpoint.load_checkpoint(job_dir)
         self._set_state(job_id, "preparing", started_at=rec.started_at or time.time())
         log.info("job %s: preparing scene %r%s", job_id, rec.scene,
                  f" (resuming at pass {resume.next_pass})" if resume else "")
         try:
             scene = self.scenes.load(rec.scene)
+            if settings.shards > 0:
+                self._ensure_ray()
             renderer = make_renderer(scene, settings, ray_address=self.settings.ray_address,
                                      proxy_dir=self.settings.proxies_dir)
             try:
@@ -210,6 +229,19 @@ class JobManager:
             log.exception("job %s failed", job_id)
             self._set_state(job_id, "failed", error=f"{type(e).__name__}: {e}",
                             finished_at=time.time())
+
+    def _ensure_ray(self) -> None:
+        """Start or join Ray once for the whole service. A Coordinator that started Ray
+        itself would shut it down when its job ends, under any other sharded job, and every
+        job would pay the start-up again."""
+        from workers.coordinator import ensure_ray
+
+        with self._ray_lock:
+            if ensure_ray(self.settings.ray_address):
+                self._started_ray = True
+                log.info("started a local Ray for this service" if not
+                         self.settings.ray_address else "joined Ray at %s",
+                         self.settings.ray_address)
 
     def _on_pass(self, job_id: str, job_dir: Path, live: _Live, p: PassDone) -> None:
         sums, samples = p.film.sums.copy(), p.film.samples.copy()
