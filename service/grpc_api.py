@@ -36,8 +36,9 @@ def _validation_message(e: ValidationError) -> str:
 
 
 class RenderServicer(nprt_pb2_grpc.RenderServiceServicer):
-    def __init__(self, manager: JobManager):
+    def __init__(self, manager: JobManager, max_message_bytes: int):
         self.manager = manager
+        self.max_message_bytes = max_message_bytes
 
     def SubmitJob(self, request, context):
         try:
@@ -82,6 +83,10 @@ class RenderServicer(nprt_pb2_grpc.RenderServiceServicer):
             rec = self.manager.get(request.job_id)
         except ServiceError as e:
             _abort(context, e)
+        if len(data) > self.max_message_bytes - 1024:
+            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
+                          f"the {fmt} image is {len(data)} bytes, over the gRPC message limit "
+                          f"of {self.max_message_bytes}; fetch /v1/jobs/{rec.id}/image.{fmt}")
         return pb.Image(job_id=rec.id, format=request.format, data=data, partial=partial,
                         width=rec.settings["width"], height=rec.settings["height"])
 
@@ -101,7 +106,8 @@ class RenderServicer(nprt_pb2_grpc.RenderServiceServicer):
                 except queue.Empty:
                     continue
                 if ev["type"] == "tile":
-                    yield pb.JobEvent(tile=tile_to_pb(ev, request.tile_format))
+                    yield pb.JobEvent(tile=tile_to_pb(ev, request.tile_format,
+                                                          self.max_message_bytes))
                 else:
                     rec = ev["job"]
                     yield pb.JobEvent(job=job_to_pb(rec))

@@ -46,7 +46,12 @@ def job_to_pb(r: JobRecord) -> pb.Job:
                   finished_at_unix_s=r.finished_at or 0.0, stats=stats)
 
 
-def tile_to_pb(ev: dict, fmt: int) -> pb.Tile:
+# Room for the Tile's other fields inside the message limit.
+_TILE_OVERHEAD_BYTES = 1024
+
+
+def tile_to_pb(ev: dict, fmt: int, max_bytes: int) -> pb.Tile:
+    """A Tile message; pixels are dropped (format NONE) when they would not fit max_bytes."""
     x0, y0, x1, y1 = ev["rect"]
     rgb: np.ndarray = ev["rgb"]  # (th, tw, 3) float32 linear
     if fmt == pb.TILE_FORMAT_PNG:
@@ -55,6 +60,8 @@ def tile_to_pb(ev: dict, fmt: int) -> pb.Tile:
         pixels = np.ascontiguousarray(rgb, dtype="<f4").tobytes()
     else:
         pixels = b""
+    if len(pixels) > max_bytes - _TILE_OVERHEAD_BYTES:
+        fmt, pixels = pb.TILE_FORMAT_NONE, b""
     return pb.Tile(pass_index=ev["pass_index"], passes_total=ev["passes_total"],
                    rect=pb.Rect(x0=x0, y0=y0, x1=x1, y1=y1), sample0=ev["sample0"],
                    sample1=ev["sample1"], progress=ev["progress"], format=fmt, pixels=pixels)

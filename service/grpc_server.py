@@ -53,7 +53,7 @@ def start_grpc_server(manager: JobManager, settings: ServiceSettings, host: str,
                          interceptors=interceptors,
                          options=[("grpc.max_send_message_length", limit),
                                   ("grpc.max_receive_message_length", limit)])
-    nprt_pb2_grpc.add_RenderServiceServicer_to_server(RenderServicer(manager), server)
+    nprt_pb2_grpc.add_RenderServiceServicer_to_server(RenderServicer(manager, limit), server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     bound = server.add_insecure_port(f"{host}:{port}")

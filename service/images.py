@@ -9,14 +9,15 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from workers.film import tonemap_srgb, write_exr
+from workers.film import Film, tonemap_srgb, write_exr
 
 
 def film_image(sums: np.ndarray, samples: np.ndarray, width: int, height: int) -> np.ndarray:
-    """sums : (h * w, 3) float64, samples : (h * w,) int64 -> (h, w, 3) float32 linear.
-    Same arithmetic as workers.film.Film.image(), so PNGs match a direct render bit for bit."""
-    div = np.maximum(samples, 1)[:, None]
-    return (sums / div).astype(np.float32).reshape(height, width, 3)
+    """sums : (h * w, 3) float64, samples : (h * w,) int64 -> (h, w, 3) float32 linear,
+    through Film.image() itself so PNGs match a direct render bit for bit."""
+    film = Film(width, height)
+    film.sums, film.samples = sums, samples
+    return film.image()
 
 
 def png_bytes(img: np.ndarray) -> bytes:

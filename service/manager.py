@@ -250,6 +250,8 @@ class JobManager:
         with self._lock:
             live.sums, live.samples = sums, samples
         self.store.update(job_id, passes_done=p.index + 1, stats=stats)
+        if not self.broker.subscribers(job_id):
+            return
         t = p.pass_
         w = p.film.width
         pix = t.pixels(w)

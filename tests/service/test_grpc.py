@@ -108,3 +108,15 @@ def test_unknown_job_is_not_found(stub, rpc, request_type):
         list(result) if rpc == "WatchJob" else result
     assert e.value.code() == grpc.StatusCode.NOT_FOUND
     assert e.value.details() == "no job with id 'feedbeef'"
+
+
+def test_tile_over_message_limit_is_sent_without_pixels():
+    from service.grpc_convert import tile_to_pb
+
+    ev = {"rect": (0, 0, 64, 32), "rgb": np.ones((32, 64, 3), np.float32), "pass_index": 0,
+          "passes_total": 1, "sample0": 0, "sample1": 1, "progress": 1.0}
+    fits = tile_to_pb(ev, pb.TILE_FORMAT_RGB_F32, max_bytes=1 << 20)
+    assert fits.format == pb.TILE_FORMAT_RGB_F32 and len(fits.pixels) == 64 * 32 * 3 * 4
+    dropped = tile_to_pb(ev, pb.TILE_FORMAT_RGB_F32, max_bytes=16 * 1024)
+    assert dropped.format == pb.TILE_FORMAT_NONE and dropped.pixels == b""
+    assert (dropped.rect.x1, dropped.rect.y1, dropped.progress) == (64, 32, 1.0)
