@@ -1,9 +1,10 @@
 """One local Ray for the whole directory (starting one takes seconds). The multi-node test
-shuts it down to build its own cluster; `ray_local` brings it back for whatever runs next."""
+runs last and shuts it down to build its own cluster; `ray_local` would bring it back."""
 
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import pytest
 import ray
@@ -12,6 +13,17 @@ from scene.demos import make_demo
 from tests.distributed.helpers import SCENES, SIZE, reference, settings
 
 RAY_CPUS = 4
+
+
+def pytest_collection_modifyitems(items):
+    """Run this directory's tests that build their own cluster last (a stable sort, and
+    nothing outside this directory moves), so the shared Ray starts only once."""
+    here = Path(__file__).parent
+
+    def last(item) -> bool:
+        return here in Path(item.path).parents and "cluster" in getattr(item, "fixturenames", ())
+
+    items.sort(key=last)
 
 
 def start_local_ray() -> None:
