@@ -18,5 +18,3 @@ def test_exact_matches_reference_for_any_shard_count(ray_local, scenes, referenc
     assert result.info["renderer"] == "distributed" and result.info["shards"] == k
     ref = references[name].film.image()
     assert_matches(tmp_path, f"{name}_k{k}", result.film.image(), ref)
-    # The same rays were traced: every camera ray reached the film exactly once.
-    assert int(result.film.samples.sum()) == int(references[name].film.samples.sum())
