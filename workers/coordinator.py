@@ -6,11 +6,14 @@ object store."""
 from __future__ import annotations
 
 import logging
+import threading
 import time
 
 import numpy as np
 import ray
 from ray.exceptions import RayActorError
+from ray.util.placement_group import placement_group, remove_placement_group
+from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
 from scene.model import Scene
 from scene.partition import partition
@@ -38,13 +41,40 @@ def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None):
                         cache=ProxyCache(proxy_dir))
 
 
+_RAY_LOCK = threading.Lock()
+_RAY_USERS = 0  # live coordinators on a Ray that this module started
+_RAY_OWNED = False
+
+
 def ensure_ray(address: str | None = None) -> bool:
     """Join `address`, or start a local Ray. Returns True when this call started it."""
-    if ray.is_initialized():
-        return False
-    ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING,
-             log_to_driver=False)
-    return True
+    with _RAY_LOCK:
+        if ray.is_initialized():
+            return False
+        ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING,
+                 log_to_driver=False)
+        return True
+
+
+def _acquire_ray(address: str | None) -> None:
+    """Coordinators in several threads (the service runs jobs concurrently) share one
+    Ray; the last one out shuts down a Ray that a coordinator started."""
+    global _RAY_USERS, _RAY_OWNED
+    with _RAY_LOCK:
+        if not ray.is_initialized():
+            ray.init(address=address, include_dashboard=False,
+                     logging_level=logging.WARNING, log_to_driver=False)
+            _RAY_OWNED = True
+        _RAY_USERS += 1
+
+
+def _release_ray() -> None:
+    global _RAY_USERS, _RAY_OWNED
+    with _RAY_LOCK:
+        _RAY_USERS -= 1
+        if _RAY_USERS == 0 and _RAY_OWNED:
+            ray.shutdown()
+            _RAY_OWNED = False
 
 
 class Coordinator:
@@ -64,11 +94,17 @@ class Coordinator:
                 for held in shard_meshes:
                     held.add(m)
         self.world = ShardWorld.build(scene, owner)
-        self.started_ray = ensure_ray(ray_address)
+        _acquire_ray(ray_address)
         world_ref = ray.put(self.world)
         all_ref = ray.put(dict(enumerate(scene.meshes))) if settings.mode == "oracle" else None
         cpus = ray.cluster_resources().get("CPU", 1.0)
         per_shard_cpu = min(1.0, cpus / self.k)
+        # Gang-schedule the K shards: with several jobs at once, partial placements of
+        # two jobs would otherwise wait on each other forever.
+        self.pg = None
+        if shard_options is None:
+            self.pg = placement_group([{"CPU": per_shard_cpu}] * self.k, strategy="SPREAD")
+            ray.get(self.pg.ready())
         self.actors = []
         # A restarted actor re-reads its constructor arguments from the object store, so
         # they must outlive __init__ (ray-project/ray#53727).
@@ -78,6 +114,9 @@ class Coordinator:
             # Only the proxies of meshes this shard does not hold.
             proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in shard_meshes[sid]})
             opts = dict(max_restarts=-1, max_task_retries=0, num_cpus=per_shard_cpu)
+            if self.pg is not None:
+                opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
+                    self.pg, placement_group_bundle_index=sid)
             opts.update((shard_options or [{}] * self.k)[sid])
             actor = ray.remote(Shard).options(**opts).remote(
                 ShardConfig(sid, self.k, settings), world_ref, meshes_ref, proxies_ref, all_ref)
@@ -180,8 +219,11 @@ class Coordinator:
         }
 
     def close(self) -> None:
+        if self.actors is None:
+            return
         for a in self.actors:
             ray.kill(a, no_restart=True)
-        self.actors = []
-        if self.started_ray:
-            ray.shutdown()
+        self.actors = None
+        if self.pg is not None:
+            remove_placement_group(self.pg)
+        _release_ray()
