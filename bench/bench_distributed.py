@@ -62,10 +62,13 @@ def _rel_error(img: np.ndarray, ref: np.ndarray) -> float:
     return float(np.abs(img.astype(np.float64) - ref).max() / max(np.abs(ref).max(), 1e-30))
 
 
-def bench_reference(scene: Scene, s: RenderSettings, on_pass) -> tuple[dict, np.ndarray]:
-    t0 = time.perf_counter()
-    result = render(scene, s.model_copy(update={"shards": 0}), on_pass=on_pass)
-    wall_s = time.perf_counter() - t0
+def bench_reference(scene: Scene, s: RenderSettings, on_pass,
+                    repeat: int) -> tuple[dict, np.ndarray]:
+    wall_s = float("inf")
+    for _ in range(repeat):  # the fastest is kept, as for the shards
+        t0 = time.perf_counter()
+        result = render(scene, s.model_copy(update={"shards": 0}), on_pass=on_pass)
+        wall_s = min(wall_s, time.perf_counter() - t0)
     st = result.stats.to_dict()
     return {"k": 0, "render_s": round(wall_s, 4), "rays": st["rays"],
             "phase_s": st["phase_s"]}, result.film.image()
@@ -121,9 +124,10 @@ def run(args) -> dict:
              logging_level=logging.WARNING)
     n_passes = len(range(0, s.spp, s.spp_per_pass)) * -(-s.width // s.tile_size) \
         * -(-s.height // s.tile_size)
-    out = {"size": args.size, "settings": s.model_dump(), "shards": ks,
+    out = {"size": args.size, "settings": s.model_dump(), "shards": ks, "repeat": args.repeat,
            "machine": {"platform": platform.platform(), "python": platform.python_version(),
                        "cpus": os.cpu_count(), "ray": ray.__version__,
+                       "load_average_before": os.getloadavg(),
                        "ray_cpus": args.ray_cpus or max(ks)},
            "paper_baseline_s": PAPER_BASELINE_S, "scenes": {}}
     columns = (TextColumn("{task.description:<26}"), BarColumn(), MofNCompleteColumn(),
@@ -140,7 +144,9 @@ def run(args) -> dict:
                     bar.reset(passes, total=total, description=f"  {name} {label}")
                     return lambda done: bar.advance(passes)
 
-                ref_row, ref = bench_reference(scene, s, start("reference", n_passes))
+                ref_row, ref = bench_reference(scene, s, start("reference",
+                                                               n_passes * args.repeat),
+                                               args.repeat)
                 bar.advance(overall)
                 rows = [ref_row]
                 for k in ks:
@@ -149,6 +155,7 @@ def run(args) -> dict:
                                                   args.repeat))
                     bar.advance(overall)
                 out["scenes"][name] = {"summary": scene.summary(), "rows": rows}
+        out["machine"]["load_average_after"] = os.getloadavg()
     finally:
         ray.shutdown()
     return out
@@ -166,7 +173,10 @@ def markdown(res: dict) -> str:
     head = (f"Size `{res['size']}`, {s['width']}x{s['height']}, {s['spp']} spp, "
             f"{s['bounces']} bounces, {s['shadow_rays']} shadow rays, {s['tile_size']}px tiles; "
             f"{res['machine']['cpus']} cores, Ray {res['machine']['ray']} with "
-            f"{res['machine']['ray_cpus']} logical CPUs. Transfers are rays sent shard to shard "
+            f"{res['machine']['ray_cpus']} logical CPUs; fastest of {res.get('repeat', 1)} "
+            "renders, "
+            f"load average {res['machine']['load_average_before'][0]:.1f} before the run. "
+            "Transfers are rays sent shard to shard "
             "(primary / secondary / shadow); MB = 10^6 bytes of ray batches; hops = transfers "
             "a ray made before it finished (every ray, occluded shadow rays included); phases "
             "are seconds summed over the shards.")
@@ -253,7 +263,8 @@ def plot(res: dict, path: Path) -> None:
 def update_readme(paths: list[Path]) -> None:
     """Replace this bench's section of bench/README.md (or append it); other sections stay."""
     tables = []
-    for path in sorted(paths):
+    order = ("small", "default", "tiny")
+    for path in sorted(paths, key=lambda p: (order.index(json.loads(p.read_text())["size"]), p)):
         res = json.loads(path.read_text())
         tables.append(f"`{path.relative_to(README.parent)}` "
                       f"(plot: `{path.with_suffix('.png').relative_to(README.parent)}`):\n\n"
@@ -262,7 +273,16 @@ def update_readme(paths: list[Path]) -> None:
                "`python -m bench.bench_distributed --size small` renders each demo with the "
                "single-process reference and then with K = 2, 4 and 8 `Shard` actors in exact "
                "mode (one Ray instance for the whole run), and checks every image against the "
-               "reference. See the module docstring for what each column measures.\n\n"
+               "reference. See the module docstring for what each column measures. "
+               "`--size default` gives the `default` table.\n\n"
+               "How to read it: the counts (transfers, bytes, hops) are deterministic; the "
+               "times are not. All K shards share the cores of one machine (2 here, shared "
+               "with other jobs: see the load average), so wall time here measures what "
+               "forwarding costs (more shard visits per ray, more actor calls, parcels "
+               "waiting for a busy shard: *transfer wait*), not a cluster's parallel "
+               "speed-up. The paper's 7.0 s to 15.1 s is its exact baseline on a real "
+               "cluster and its own scenes: compare the growth with K (the bracketed "
+               "ratios), not the seconds.\n\n"
                + "\n\n".join(tables) + f"\n{README_END}")
     text = README.read_text() if README.exists() else "# Benchmarks\n"
     pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
@@ -282,7 +302,8 @@ def main(argv=None) -> int:
     ap.add_argument("--bounces", type=int, default=5)
     ap.add_argument("--shadow-rays", type=int, default=4)
     ap.add_argument("--tile-size", type=int, default=64)
-    ap.add_argument("--repeat", type=int, default=1, help="renders per K; the fastest is kept")
+    ap.add_argument("--repeat", type=int, default=3,
+                    help="renders per K (and of the reference); the fastest is kept")
     ap.add_argument("--ray-cpus", type=int, default=None,
                     help="logical CPUs of the local Ray (default: the largest K)")
     ap.add_argument("--scenes", default=",".join(DEMOS), help="comma-separated demo names")
