@@ -31,8 +31,9 @@ def start_local_ray() -> None:
              logging_level=logging.WARNING)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def _ray_session():
+    """Ray is shut down when this directory is done, so later tests start from a clean slate."""
     yield
     if ray.is_initialized():
         ray.shutdown()
