@@ -1,5 +1,6 @@
-"""`nprt demo`: the one command that shows what nprt does. Renders a demo scene through
-the distributed path in `exact` (the Wald-style baseline) and `proxy` mode with the same
+"""`nprt demo`: the one command that shows what nprt does. Renders a demo scene with the
+single-process reference and through the distributed path in each requested mode
+(default `exact`, the Wald-style baseline; add `proxy` and `oracle` with --modes), same
 seed, then prints and saves the comparison: transfers, bytes, time and image error."""
 
 from __future__ import annotations
@@ -10,12 +11,6 @@ from pathlib import Path
 import numpy as np
 
 from workers.film import save_image
-
-
-def _row(name: str, stats: dict) -> dict:
-    return {"mode": name, "wall_s": stats["wall_s"], "transfers": stats["transfers"],
-            "bytes": stats["bytes"], "total_bytes": stats["total_bytes"],
-            "phase_s": stats["phase_s"], "counters": stats.get("counters", {})}
 
 
 def cmd_demo(a) -> int:
@@ -32,47 +27,54 @@ def cmd_demo(a) -> int:
     print(f"scene {scene.name}: " + ", ".join(f"{k}={v:,}" for k, v in scene.summary().items()
                                               if isinstance(v, int)))
     started = ensure_ray(a.ray_address)
-    results = {}
+    runs = {}
+    shards = a.shards
     try:
-        for mode in ("exact", "proxy"):
-            a.mode = mode
+        for mode in ["reference", *a.modes]:
+            a.mode, a.shards = ("exact", 0) if mode == "reference" else (mode, shards)
             settings = settings_from_args(a)
             res = render_with_progress(scene, settings, label=f"{mode} K={settings.shards}")
             res.film.save(out / f"{mode}.png")
             res.film.save(out / f"{mode}.exr")
             stats = res.stats_dict()
             (out / f"stats_{mode}.json").write_text(json.dumps(stats, indent=2, default=str))
-            results[mode] = (res.film.image(), stats)
+            runs[mode] = (res.film.image(), stats)
     finally:
         if started:
             ray.shutdown()
-    ref, ex = results["exact"]
-    img, px = results["proxy"]
-    quality = compare(ref, img)
-    err = np.abs(img - ref).mean(axis=2)
-    save_image(np.concatenate([ref, img, np.repeat(err[..., None], 3, 2) * 4], axis=1),
-               out / "exact_proxy_error.png")
-    summary = {"scene": scene.summary(), "exact": _row("exact", ex),
-               "proxy": _row("proxy", px), "quality_vs_exact": quality,
-               "proxy_plan": px.get("proxy_plan")}
-    (out / "comparison.json").write_text(json.dumps(summary, indent=2, default=str))
-    print(_table(ex, px, quality))
+    base_mode = "exact" if "exact" in runs else "reference"
+    base = runs[base_mode][0]
+    rows = {}
+    for mode, (img, stats) in runs.items():
+        rows[mode] = {"wall_s": stats["wall_s"], "transfers": stats["transfers"],
+                      "bytes": stats["bytes"], "total_bytes": stats["total_bytes"],
+                      "hops_histogram": stats["hops_histogram"], "phase_s": stats["phase_s"],
+                      "counters": stats.get("counters", {}),
+                      "proxy_plan": stats.get("proxy_plan"),
+                      f"quality_vs_{base_mode}": compare(base, img)}
+        if mode != base_mode:
+            err = np.abs(img - base).mean(axis=2, keepdims=True).repeat(3, axis=2)
+            save_image(np.concatenate([base, img, err * 4], axis=1),
+                       out / f"{base_mode}_vs_{mode}_error.png")
+    (out / "comparison.json").write_text(json.dumps({"scene": scene.summary(), "runs": rows},
+                                                    indent=2, default=str))
+    print(_table(rows, base_mode, shards))
     print(f"images, statistics and comparison in {out}/")
     return 0
 
 
-def _table(ex: dict, px: dict, q: dict) -> str:
-    def ratio(a, b):
-        return f"{a / b:.2f}x" if b else "n/a"
-
-    lines = ["| | exact | proxy | exact / proxy |", "|---|---|---|---|"]
+def _table(rows: dict, base_mode: str, k: int) -> str:
+    modes = list(rows)
+    head = " | ".join(m if m == "reference" else f"{m} (K={k})" for m in modes)
+    lines = [f"| | {head} |", "|---" * (len(modes) + 1) + "|"]
     for kind in ("primary", "secondary", "shadow"):
-        e, p = ex["transfers"][kind], px["transfers"][kind]
-        lines.append(f"| {kind} transfers | {e:,} | {p:,} | {ratio(e, p)} |")
-    e, p = ex["total_bytes"], px["total_bytes"]
-    lines.append(f"| ray bytes moved | {e:,} | {p:,} | {ratio(e, p)} |")
-    lines.append(f"| wall time (s) | {ex['wall_s']:.2f} | {px['wall_s']:.2f} | "
-                 f"{ratio(ex['wall_s'], px['wall_s'])} |")
-    lines.append(f"| PSNR / SSIM / FLIP vs exact | | {q['psnr_db']:.2f} dB / {q['ssim']:.4f} / "
-                 f"{q['flip']:.4f} | |")
+        lines.append(f"| {kind} transfers | " +
+                     " | ".join(f"{r['transfers'][kind]:,}" for r in rows.values()) + " |")
+    lines.append("| ray bytes moved | " +
+                 " | ".join(f"{r['total_bytes']:,}" for r in rows.values()) + " |")
+    lines.append("| wall time (s) | " +
+                 " | ".join(f"{r['wall_s']:.2f}" for r in rows.values()) + " |")
+    q = [r[f"quality_vs_{base_mode}"] for r in rows.values()]
+    lines.append(f"| PSNR dB / FLIP vs {base_mode} | " +
+                 " | ".join(f"{x['psnr_db']:.2f} / {x['flip']:.4f}" for x in q) + " |")
     return "\n".join(lines)
