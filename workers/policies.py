@@ -82,6 +82,7 @@ class ProxyPolicy(ExactPolicy):
         stats.counters["proxy_queries"] += len(shadow)
         occluded = pred.inst >= 0
         stats.counters["proxy_shadow_occluded"] += int(occluded.sum())
+        stats.count_hops(shadow.hops[occluded])  # they finish here
         shadow = shadow.take(~occluded)
         target = np.full(len(shadow), DONE, np.int32)
         unknown = pred.uncertain[~occluded]  # crosses a box with no proxy
