@@ -117,15 +117,11 @@ def build_parser() -> argparse.ArgumentParser:
                    choices=["default", "small", "tiny"])
     p.set_defaults(func=cmd_scenes)
 
+    from proxies.cli import add_proxy_parsers
     from service.cli_serve import add_serve_parsers
 
     add_serve_parsers(sub)
-    try:
-        from proxies.cli import add_proxy_parsers
-    except ImportError:  # TODO(lead): remove once proxies/cli.py lands
-        pass
-    else:
-        add_proxy_parsers(sub)
+    add_proxy_parsers(sub)
     return ap
 
 
