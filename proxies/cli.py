@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from proxies.config import WIDTHS, ProxyConfig
+from proxies.config import DEFAULT_WIDTHS, ProxyConfig
 
 COLUMNS = ("mesh", "tris", "width", "accuracy", "FP", "FN", "depth err", "internal acc",
            "bytes", "train s", "queries/s")
@@ -20,7 +20,8 @@ def add_proxy_parsers(subparsers) -> None:
     t.add_argument("source", metavar="MESH_OR_SCENE",
                    help="mesh file (OBJ/PLY/GLB...), scene file, or demo name (forest, city:small)")
     t.add_argument("--width", default="auto",
-                   help=f"hidden width N, or 'auto': narrowest of {WIDTHS} meeting --target")
+                   help=f"hidden width N, or 'auto': narrowest of {DEFAULT_WIDTHS} "
+                        "meeting --target")
     t.add_argument("--target", type=float, default=0.97, help="held-out accuracy for 'auto'")
     t.add_argument("--budget-s", type=float, default=ProxyConfig.budget_s,
                    help="training seconds per proxy (both nets)")
@@ -59,7 +60,7 @@ def _proxy_for(mesh, config, args, cache):
         return cache.get_or_train(mesh, config, progress=True)
     if args.force:
         raise SystemExit("--force needs an explicit --width")
-    proxy, _, why = narrowest_proxy(mesh, config, WIDTHS, args.target, cache, True, True)
+    proxy, _, why = narrowest_proxy(mesh, config, DEFAULT_WIDTHS, args.target, cache, True, True)
     if proxy is None:
         raise SystemExit(f"{mesh.name}: {why}")
     return proxy

@@ -11,7 +11,7 @@ import struct
 import numpy as np
 import onnxruntime as ort
 
-from proxies.encoding import encode, to_proxy_box
+from proxies.encoding import depth_decode, encode, to_proxy_box
 
 log = logging.getLogger(__name__)
 
@@ -149,7 +149,8 @@ class Proxy:
         if n == 0:
             return np.zeros(0, np.float32), np.zeros(0, np.float32)
         p, shift = to_proxy_box(self.box, points, directions)
-        x = encode(self.box, p, directions, self.meta["encoding"])
+        enc = self.meta["encoding"]
+        x = encode(self.box, p, directions, enc)
         vis = self.run("visibility", x)
         if min_visibility is None:
             rows = slice(None)
@@ -157,6 +158,7 @@ class Proxy:
         else:
             rows = np.flatnonzero(vis >= min_visibility)
             t = np.full(n, np.inf, np.float32)
-        depth = self.run("depth", x[rows])
-        t[rows] = np.maximum(depth * self.diag + shift[rows], 0.0)
+        y = self.run("depth", x[rows])
+        t_box = depth_decode(self.box, p[rows], directions[rows], y, enc)
+        t[rows] = np.maximum(t_box + shift[rows], 0.0)
         return vis, t

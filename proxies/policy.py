@@ -7,7 +7,7 @@ import logging
 from dataclasses import asdict, dataclass, field
 
 from proxies.cache import ProxyCache, ProxyUnavailable
-from proxies.config import WIDTHS, ProxyConfig, estimate_proxy_bytes
+from proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
 from proxies.inference import Proxy
 
 log = logging.getLogger(__name__)
@@ -91,7 +91,7 @@ def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: Pro
 
 def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCache | None = None,
                  train: bool = True, config: ProxyConfig | None = None,
-                 widths: tuple[int, ...] = WIDTHS, progress: bool = False) -> ProxyPlan:
+                 widths: tuple[int, ...] = DEFAULT_WIDTHS, progress: bool = False) -> ProxyPlan:
     """Decide, for every base mesh of `scene` split by `partition` (its shard_meshes: per
     shard, the mesh indices it holds), whether shards need a proxy of it, and get them."""
     cache = cache or ProxyCache()
@@ -103,7 +103,7 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
             holders[m] += 1
     used = {inst.mesh for inst in scene.instances}
     decisions, proxies, replicated = [], {}, set()
-    smallest = estimate_proxy_bytes(min(widths), config.blocks)
+    smallest = estimate_proxy_bytes(config.with_width(min(widths)))
     for i, mesh in enumerate(scene.meshes):
         d = ProxyDecision(i, mesh.name, mesh.content_hash, "none", "", int(mesh.nbytes))
         decisions.append(d)

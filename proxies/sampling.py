@@ -12,7 +12,7 @@ from scene.model import Mesh
 SAMPLE_DTYPE = np.float32
 # The proxy box is the mesh AABB grown by this fraction of its diagonal, so training rays
 # start strictly outside the geometry (a box mesh's faces lie exactly on its AABB).
-BOX_PAD_REL = 1e-3
+BOX_PAD_REL = 1e-4
 # Share of rays spread evenly over faces; the rest follows face area (how often an
 # isotropic ray field crosses each face), so thin faces are still learned.
 FACE_UNIFORM_SHARE = 0.25

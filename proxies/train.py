@@ -11,57 +11,75 @@ import torch
 from tqdm.auto import tqdm
 
 from proxies.config import EVAL_SEED_OFFSET, ProxyConfig
-from proxies.encoding import N_INPUTS, encode
+from proxies.encoding import N_INPUTS, depth_target, encode
 from proxies.evaluate import evaluate
 from proxies.export import export_onnx
 from proxies.inference import Proxy
 from proxies.model import ResidualMLP
-from proxies.sampling import proxy_box, sample_rays
+from proxies.sampling import RaySamples, proxy_box, sample_rays
 from scene.model import Mesh
 
 log = logging.getLogger(__name__)
 
 TRAIN_THREADS = 2
-# Cosine decay to this fraction of LR over the budget: the last steps refine boundaries.
+# Cosine decay to this fraction of the learning rate over the budget.
 LR_FLOOR = 0.05
 # Share of the time budget given to the visibility net (it decides hit or miss).
 VIS_SHARE = 0.6
+# Calibration rays (neither training nor held-out) pick the visibility threshold.
+CALIB_SEED_OFFSET = 2_000_003
+THRESHOLDS = np.linspace(0.01, 0.99, 99)
 
 
-def _fit(net, x, y, pools, loss_fn, lr, budget_s, max_steps, batch, gen, bar_desc, progress):
-    """Adam on mini-batches drawn equally from each index pool (the class ratio).
+def _fit(net, x, y, pools, loss_fn, config: ProxyConfig, budget_s: float, gen, desc: str,
+         progress: bool) -> int:
+    """Adam with cosine decay on mini-batches drawn from index pools at fixed shares.
 
-    x : (n, k) float32 tensor; y : (n,) float32 tensor; pools : list of (m,) int64 tensors
+    x : (n, k) float32 tensor; y : (n,) float32 tensor
+    pools : list of ((m,) int64 tensor, share) -- the class ratio of every batch
     returns the number of steps taken
     """
-    opt = torch.optim.Adam(net.parameters(), lr=lr)
-    pools = [p for p in pools if len(p)]
+    pools = [(p, sh) for p, sh in pools if len(p) and sh > 0]
     if not pools:
         return 0
-    per = [batch // len(pools)] * len(pools)
-    per[0] += batch - sum(per)
+    total = sum(sh for _, sh in pools)
+    per = [int(round(config.batch_size * sh / total)) for _, sh in pools]
+    opt = torch.optim.Adam(net.parameters(), lr=config.lr)
     t0, step = time.perf_counter(), 0
-    bar = tqdm(total=100, desc=bar_desc, unit="%", disable=not progress, leave=False)
+    bar = tqdm(total=100, desc=desc, unit="%", disable=not progress, leave=False)
     while True:
         frac = (time.perf_counter() - t0) / budget_s if budget_s > 0 else 0.0
-        if max_steps is not None:
-            frac = max(frac, step / max_steps) if budget_s > 0 else step / max_steps
+        if config.max_steps is not None:
+            frac = max(frac, step / max(1, config.max_steps))
         if frac >= 1.0:
             break
         for g in opt.param_groups:
-            g["lr"] = lr * (LR_FLOOR + (1 - LR_FLOOR) * 0.5 * (1 + math.cos(math.pi * frac)))
+            g["lr"] = config.lr * (LR_FLOOR + (1 - LR_FLOOR) * 0.5 * (1 + math.cos(math.pi * frac)))
         idx = torch.cat([p[torch.randint(len(p), (k,), generator=gen)]
-                         for p, k in zip(pools, per, strict=True)])
+                         for (p, _), k in zip(pools, per, strict=True) if k > 0])
         loss = loss_fn(net(x[idx]), y[idx])
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         step += 1
-        if step % 50 == 0:
+        if step % 25 == 0:
             bar.update(int(100 * min(frac, 1.0)) - bar.n)
             bar.set_postfix(loss=f"{loss.item():.4f}", step=step)
     bar.close()
     return step
+
+
+def _calibrated_threshold(net, box, calib: RaySamples, config: ProxyConfig) -> float:
+    """The visibility threshold with the best accuracy on calibration rays; a batch ratio
+    other than the natural one shifts the net's outputs, and this shifts them back."""
+    if not config.calibrate:
+        return config.threshold
+    with torch.no_grad():
+        x = torch.from_numpy(encode(box, calib.points, calib.directions, config.encoding))
+        vis = net(x).numpy()
+    acc = [((vis >= thr) == calib.hit).mean() for thr in THRESHOLDS]
+    best = np.flatnonzero(acc == np.max(acc))  # ties: the one nearest 0.5
+    return float(THRESHOLDS[best[np.argmin(np.abs(THRESHOLDS[best] - 0.5))]])
 
 
 def train_proxy(mesh: Mesh, config: ProxyConfig | None = None, progress: bool = True,
@@ -82,37 +100,40 @@ def train_proxy(mesh: Mesh, config: ProxyConfig | None = None, progress: bool = 
     s = sample_rays(mesh, config.n_samples, config.seed, config.grid, geometry)
     sample_s = time.perf_counter() - t_start
     box = proxy_box(mesh.bounds)
-    diag = float(np.linalg.norm(box[1] - box[0]))
     n_in = N_INPUTS[config.encoding]
     x = torch.from_numpy(encode(box, s.points, s.directions, config.encoding))
     hit = torch.from_numpy(s.hit)
     hits, misses = torch.nonzero(hit).squeeze(1), torch.nonzero(~hit).squeeze(1)
-    name = mesh.name[:20]
+    share = float(s.hit.mean()) if config.hit_share is None else config.hit_share
+    name, w = mesh.name[:20], config.width
 
     t_train = time.perf_counter()
-    vis_net = ResidualMLP(n_in, config.width, config.blocks, sigmoid=True)
-    vis_steps = _fit(vis_net, x, hit.float(), [hits, misses], torch.nn.functional.mse_loss,
-                     config.lr,
-                     VIS_SHARE * config.budget_s, config.max_steps, config.batch_size, gen,
-                     f"{name} visibility N={config.width}", progress)
-    depth_net = ResidualMLP(n_in, config.width, config.blocks, sigmoid=False)
-    depth_y = torch.from_numpy(np.where(s.hit, s.t / np.float32(diag), 0).astype(np.float32))
-    depth_steps = _fit(depth_net, x, depth_y, [hits], torch.nn.functional.l1_loss, config.lr,
-                       (1 - VIS_SHARE) * config.budget_s, config.max_steps, config.batch_size,
-                       gen, f"{name} depth N={config.width}", progress)
+    vis_net = ResidualMLP(n_in, w, config.blocks, sigmoid=True, fourier=config.fourier)
+    vis_steps = _fit(vis_net, x, hit.float(), [(hits, share), (misses, 1 - share)],
+                     torch.nn.functional.mse_loss, config, VIS_SHARE * config.budget_s, gen,
+                     f"{name} visibility N={w}", progress)
+    depth_net = ResidualMLP(n_in, w, config.blocks, sigmoid=False, fourier=config.fourier)
+    t_hit = np.where(s.hit, s.t, 0).astype(np.float32)
+    depth_y = torch.from_numpy(depth_target(box, s.points, s.directions, t_hit, config.encoding))
+    depth_steps = _fit(depth_net, x, depth_y, [(hits, 1.0)], torch.nn.functional.l1_loss,
+                       config, (1 - VIS_SHARE) * config.budget_s, gen, f"{name} depth N={w}",
+                       progress)
     train_s = time.perf_counter() - t_train
+    calib = sample_rays(mesh, config.eval_samples, config.seed + CALIB_SEED_OFFSET,
+                        config.grid, geometry)
+    threshold = _calibrated_threshold(vis_net, box, calib, config)
 
     models = {"visibility": export_onnx(vis_net, n_in), "depth": export_onnx(depth_net, n_in)}
     meta = {
         "content_hash": mesh.content_hash,
         "mesh_name": mesh.name,
-        "width": config.width,
+        "width": w,
         "blocks": config.blocks,
         "encoding": config.encoding,
         "bounds": np.asarray(mesh.bounds).tolist(),
         "box": box.tolist(),
-        "diag": diag,
-        "threshold": config.threshold,
+        "diag": float(np.linalg.norm(box[1] - box[0])),
+        "threshold": threshold,
         "config": config.to_dict(),
         "config_key": config.key,
     }
@@ -123,6 +144,6 @@ def train_proxy(mesh: Mesh, config: ProxyConfig | None = None, progress: bool = 
                   train_hit_fraction=float(s.hit.mean()), vis_steps=vis_steps,
                   depth_steps=depth_steps)
     meta["report"] = report
-    log.info("trained proxy for %s: width %d, accuracy %.4f, %.1f s", mesh.name,
-             config.width, report["accuracy"], train_s)
+    log.info("trained proxy for %s: width %d, accuracy %.4f, %.1f s", mesh.name, w,
+             report["accuracy"], train_s)
     return Proxy(meta, models)

@@ -1,0 +1,65 @@
+"""`python -m proxies.ship`: train the proxies the demo scenes need (default config and
+policy) into proxies/shipped/, so rendering the demos needs no torch. Needs torch itself."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+import time
+
+from proxies.cache import SHIPPED_DIR, SUFFIX, ProxyCache, file_name
+from proxies.config import DEFAULT_WIDTHS, ProxyConfig
+from proxies.policy import plan_proxies
+
+log = logging.getLogger(__name__)
+
+SIZES = ("default", "small", "tiny")
+SHARDS = 2  # with 2 or more shards every demo mesh is non-local somewhere
+TARGET_ACCURACY = 0.97  # the render path's default in plan_proxies
+
+
+def main(argv=None) -> int:
+    from scene.demos import DEMOS, make_demo
+    from scene.partition import partition
+
+    ap = argparse.ArgumentParser(prog="python -m proxies.ship", description=__doc__)
+    ap.add_argument("--demos", nargs="*", default=list(DEMOS))
+    ap.add_argument("--sizes", nargs="*", default=list(SIZES))
+    ap.add_argument("--out", default=str(SHIPPED_DIR))
+    ap.add_argument("--budget-s", type=float, default=ProxyConfig.budget_s,
+                    help="smoke runs only: a non-default budget gives files the render "
+                         "path's default config does not look up")
+    ap.add_argument("--prune", action="store_true",
+                    help="delete files in --out that no demo mesh uses any more")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    cache = ProxyCache(args.out, shipped_dir=None)
+    config = ProxyConfig(budget_s=args.budget_s)
+    keep, t0 = set(), time.perf_counter()
+    for name in args.demos:
+        for size in args.sizes:
+            scene = make_demo(name, size=size)
+            plan = plan_proxies(scene, partition(scene, SHARDS), TARGET_ACCURACY, cache,
+                                train=True, config=config, widths=DEFAULT_WIDTHS,
+                                progress=sys.stderr.isatty())
+            for d in plan.decisions:
+                mesh = scene.meshes[d.mesh]
+                keep.update(file_name(mesh, config.with_width(w)) for w in d.tried)
+                print(f"{name:9s} {size:7s} {d.name:10s} {d.decision:9s} w={d.width} "
+                      f"acc={d.accuracy} bytes={d.proxy_bytes} {d.reason}", flush=True)
+    files = sorted(cache.dir.glob(f"*{SUFFIX}"))
+    if args.prune:
+        for f in files:
+            if f.name not in keep:
+                f.unlink()
+                print(f"pruned {f.name}")
+        files = [f for f in files if f.name in keep]
+    total = sum(f.stat().st_size for f in files)
+    print(f"{len(files)} proxy files, {total / 1e6:.2f} MB in {cache.dir} "
+          f"({time.perf_counter() - t0:.0f} s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,62 @@
+"""Analytic meshes and a torch-free stand-in proxy for the proxy tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import trimesh
+from onnx import TensorProto, helper
+
+from proxies.inference import NETS, Proxy
+from proxies.sampling import proxy_box
+from scene.model import Mesh
+
+
+def from_trimesh(name: str, tm: trimesh.Trimesh) -> Mesh:
+    return Mesh(name, np.asarray(tm.vertices, np.float32), np.asarray(tm.faces, np.uint32))
+
+
+def sphere() -> Mesh:
+    return from_trimesh("sphere", trimesh.creation.icosphere(subdivisions=3))
+
+
+def box() -> Mesh:
+    return from_trimesh("box", trimesh.creation.box(extents=(1.0, 0.6, 0.8)))
+
+
+def torus() -> Mesh:
+    return from_trimesh("torus", trimesh.creation.torus(major_radius=1.0, minor_radius=0.3))
+
+
+def triangle() -> Mesh:
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    return Mesh("triangle", v, np.array([[0, 1, 2]], np.uint32))
+
+
+def _mean_model(n_in: int, scale: float) -> bytes:
+    """ONNX y = scale * mean(x, axis=1): a fixed function of the encoded input, no torch."""
+    x = helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", n_in])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n"])
+    axes = helper.make_tensor("axes", TensorProto.INT64, [1], [1])
+    s = helper.make_tensor("s", TensorProto.FLOAT, [], [scale])
+    nodes = [helper.make_node("ReduceMean", ["x", "axes"], ["m"], keepdims=0),
+             helper.make_node("Mul", ["m", "s"], ["y"])]
+    graph = helper.make_graph(nodes, "mean", [x], [y], initializer=[axes, s])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 18)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+def stand_in_proxy(mesh: Mesh, config) -> Proxy:
+    """A Proxy in the real container, keyed like a trained one, with fixed ONNX nets."""
+    box_ = proxy_box(mesh.bounds)
+    meta = {
+        "content_hash": mesh.content_hash, "mesh_name": mesh.name, "width": config.width,
+        "blocks": config.blocks, "encoding": "paper", "bounds": mesh.bounds.tolist(),
+        "box": box_.tolist(), "diag": float(np.linalg.norm(box_[1] - box_[0])),
+        "threshold": 0.5, "config": config.to_dict(), "config_key": config.key,
+        "report": {"accuracy": 0.5},
+    }
+    models = {k: _mean_model(5, s) for k, s in zip(NETS, (1.0, 0.5), strict=True)}
+    onnx.checker.check_model(onnx.load_from_string(models["depth"]))
+    return Proxy(meta, models)
