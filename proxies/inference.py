@@ -80,6 +80,9 @@ class Proxy:
         if len(blob) < start:
             raise ProxyFormatError(f"truncated proxy blob ({len(blob)} bytes)")
         (hlen,) = _LEN.unpack_from(blob, len(MAGIC))
+        if len(blob) < start + hlen:
+            raise ProxyFormatError(f"truncated proxy blob ({len(blob)} bytes, header alone "
+                                   f"needs {start + hlen})")
         try:
             header = json.loads(blob[start:start + hlen])
             sizes = {k: int(header["sizes"][k]) for k in NETS}

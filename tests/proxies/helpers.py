@@ -24,8 +24,10 @@ def box() -> Mesh:
     return from_trimesh("box", trimesh.creation.box(extents=(1.0, 0.6, 0.8)))
 
 
-def torus() -> Mesh:
-    return from_trimesh("torus", trimesh.creation.torus(major_radius=1.0, minor_radius=0.3))
+def torus(major_sections: int = 32, minor_sections: int = 32) -> Mesh:
+    return from_trimesh("torus", trimesh.creation.torus(
+        major_radius=1.0, minor_radius=0.3, major_sections=major_sections,
+        minor_sections=minor_sections))
 
 
 def triangle() -> Mesh:
@@ -60,3 +62,16 @@ def stand_in_proxy(mesh: Mesh, config) -> Proxy:
     models = {k: _mean_model(5, s) for k, s in zip(NETS, (1.0, 0.5), strict=True)}
     onnx.checker.check_model(onnx.load_from_string(models["depth"]))
     return Proxy(meta, models)
+
+
+def scene_of(*meshes: Mesh, copies: int = 1):
+    """A scene with `copies` instances of every mesh, spread along x."""
+    from scene.model import Instance, Scene
+
+    insts = []
+    for i, _ in enumerate(meshes):
+        for c in range(copies):
+            t = np.eye(4)
+            t[0, 3] = 4.0 * (i * copies + c)
+            insts.append(Instance(i, t))
+    return Scene(tuple(meshes), tuple(insts), name="proxy-test")

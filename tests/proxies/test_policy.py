@@ -1,0 +1,75 @@
+"""Model only what a scene requires: no proxy where every shard is local, exact replication
+for meshes lighter than a proxy, and the narrowest width meeting the accuracy target."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from proxies.cache import ProxyCache
+from proxies.config import ProxyConfig
+from proxies.policy import plan_proxies
+from scene.partition import partition
+from tests.proxies.helpers import scene_of, sphere, torus, triangle
+
+QUICK = ProxyConfig(budget_s=0, max_steps=600, n_samples=1 << 17, grid=32,
+                    eval_samples=1 << 14)
+
+
+@pytest.fixture
+def cache(tmp_path):
+    return ProxyCache(tmp_path, shipped_dir=None)
+
+
+def test_one_shard_needs_no_proxies(cache):
+    scene = scene_of(sphere(), torus(), triangle())
+    plan = plan_proxies(scene, partition(scene, 1), cache=cache, train=False)
+    assert [d.decision for d in plan.decisions] == ["none"] * 3
+    assert plan.proxies == {} and plan.replicated == set()
+    assert "only shard" in plan.decisions[0].reason
+
+
+def test_a_mesh_held_by_every_shard_needs_no_proxy(cache):
+    scene = scene_of(torus(), copies=4)  # one mesh, more shards than meshes: it is split
+    part = partition(scene, 2)
+    assert all(0 in held for held in part.shard_meshes)
+    plan = plan_proxies(scene, part, cache=cache, train=False)
+    assert plan.decisions[0].decision == "none" and "all 2 shards" in plan.decisions[0].reason
+
+
+def test_a_mesh_lighter_than_its_proxy_is_replicated(cache):
+    scene = scene_of(triangle(), torus())
+    plan = plan_proxies(scene, partition(scene, 2), cache=cache, train=False)
+    tri, tor = plan.decisions
+    assert tri.decision == "replicate" and plan.replicated == {0}
+    assert tri.mesh_bytes < tri.proxy_bytes
+    # Nothing cached and training off: the torus is traced exactly, and the plan says why.
+    assert tor.decision == "fallback" and "training is disabled" in tor.reason
+    json.dumps(plan.to_dict())
+
+
+def test_an_easy_mesh_gets_the_narrowest_width(cache):
+    pytest.importorskip("torch", reason="training needs PyTorch")
+    scene = scene_of(sphere(), torus())
+    plan = plan_proxies(scene, partition(scene, 2), target_accuracy=0.8, cache=cache,
+                        config=QUICK, widths=(16, 32, 64))
+    d = plan.decisions[0]
+    assert d.decision == "proxy" and d.width == 16 and list(d.tried) == [16]
+    assert d.accuracy >= 0.8 and d.proxy_bytes == plan.proxies[0].nbytes
+    assert plan.proxies[0].meta["content_hash"] == scene.meshes[0].content_hash
+
+
+def test_a_harder_target_needs_a_wider_proxy_and_the_narrowest_that_meets_it_wins(cache):
+    pytest.importorskip("torch", reason="training needs PyTorch")
+    m = torus(128, 64)  # heavy enough (393 kB) that even a width-64 proxy is lighter
+    acc = {w: cache.get_or_train(m, QUICK.with_width(w), progress=False)
+           .meta["report"]["accuracy"] for w in (16, 64)}
+    assert acc[64] > acc[16], acc  # the torus is hard enough that width pays off
+    target = 0.5 * (acc[16] + acc[64])
+    scene = scene_of(sphere(), m)
+    plan = plan_proxies(scene, partition(scene, 2), target_accuracy=target, cache=cache,
+                        config=QUICK, widths=(16, 64), train=False)
+    d = plan.decisions[1]
+    assert d.decision == "proxy" and d.width == 64
+    assert d.tried == {16: acc[16], 64: acc[64]} and d.tried[16] < target <= d.accuracy
