@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import pickle
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +13,8 @@ import pytest
 from proxies.config import ProxyConfig
 from proxies.inference import Proxy, ProxyFormatError
 from tests.proxies.helpers import sphere, stand_in_proxy
+
+ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture
@@ -79,3 +84,10 @@ def test_points_on_the_mesh_box_give_distances_from_those_points(proxy):
     _, t_mesh = proxy.query(p_mesh, d)
     _, t_box = proxy.query(p_box.astype(np.float32), d)
     np.testing.assert_allclose(t_mesh, np.maximum(t_box - s, 0), rtol=1e-4, atol=1e-6)
+
+
+def test_the_render_path_never_imports_torch():
+    code = ("import sys; import proxies.inference, proxies.cache, proxies.policy, "
+            "proxies.evaluate, proxies.sampling, proxies.cli; "
+            "assert 'torch' not in sys.modules, 'torch imported'")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
