@@ -3,6 +3,7 @@ accuracy / false positives / false negatives / depth error, and onnxruntime quer
 for every width the policy tried (the chosen one marked).
 
     python -m bench.bench_proxy_train [--size default] [--target 0.97]
+    python -m bench.bench_proxy_train --analytic   # encodings x widths on sphere/box/torus
 
 Proxies come from the cache (user dir, then proxies/shipped/; missing ones are trained), so
 training numbers are those recorded at training time; queries/s is re-measured on a batch of
@@ -62,6 +63,54 @@ def measure(size: str, target: float, train: bool) -> list[dict]:
     return rows
 
 
+ANALYTIC_BUDGET = dict(budget_s=0, max_steps=2000, n_samples=1 << 19, grid=64,
+                       eval_samples=1 << 15)
+ENCODINGS = {"line+fourier3 (default)": dict(encoding="line", fourier=3),
+             "paper (theta/pi, phi/2pi)": dict(encoding="paper", fourier=0),
+             "paper+fourier3": dict(encoding="paper", fourier=3)}
+
+
+def measure_analytic(widths=(16, 32, 64)) -> list[dict]:
+    """Sphere, box, torus at a fixed step budget: encodings x widths, same seeds."""
+    import trimesh
+
+    from proxies.config import ProxyConfig
+    from proxies.evaluate import throughput
+    from proxies.train import train_proxy
+    from scene.model import Mesh
+
+    shapes = {"sphere": trimesh.creation.icosphere(subdivisions=3),
+              "box": trimesh.creation.box(extents=(1.0, 0.6, 0.8)),
+              "torus": trimesh.creation.torus(1.0, 0.3)}
+    rows = []
+    for name, tm in shapes.items():
+        mesh = Mesh(name, tm.vertices.astype("float32"), tm.faces.astype("uint32"))
+        for enc, kw in ENCODINGS.items():
+            for w in widths:
+                p = train_proxy(mesh, ProxyConfig(width=w, **kw, **ANALYTIC_BUDGET),
+                                progress=False)
+                r = p.meta["report"]
+                rows.append({"mesh": name, "encoding": enc, "width": w, "bytes": p.nbytes,
+                             **{k: r[k] for k in ("accuracy", "fp_rate", "fn_rate",
+                                                  "depth_err_rel", "train_s",
+                                                  "internal_occlusion_accuracy")},
+                             "qps_1thread": throughput(p, threads=1),
+                             "qps_2threads": throughput(p, threads=2)})
+                print(rows[-1], flush=True)
+    return rows
+
+
+def markdown_analytic(rows: list[dict]) -> str:
+    out = ["| mesh | encoding | width | acc | FP | FN | depth err | internal acc | bytes | "
+           "Mq/s 1t | Mq/s 2t |", "|" + "---|" * 11]
+    for r in rows:
+        out.append(f"| {r['mesh']} | {r['encoding']} | {r['width']} | {r['accuracy']:.4f} | "
+                   f"{r['fp_rate']:.4f} | {r['fn_rate']:.4f} | {100 * r['depth_err_rel']:.2f}% "
+                   f"| {r['internal_occlusion_accuracy']:.4f} | {r['bytes']} | "
+                   f"{r['qps_1thread'] / 1e6:.2f} | {r['qps_2threads'] / 1e6:.2f} |")
+    return "\n".join(out)
+
+
 def markdown(rows: list[dict]) -> str:
     head = ("| scene | mesh | tris | width | acc | FP | FN | depth err | internal acc | bytes | "
             "train s | Mq/s 1t | Mq/s 2t |")
@@ -109,8 +158,20 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="default")
     ap.add_argument("--target", type=float, default=0.97)
     ap.add_argument("--no-train", action="store_true", help="only use cached proxies")
+    ap.add_argument("--analytic", action="store_true",
+                    help="instead: sphere/box/torus, encodings x widths at a fixed step budget")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
+    RESULTS.mkdir(exist_ok=True)
+    if args.analytic:
+        rows = measure_analytic()
+        stem = RESULTS / "proxy_train_analytic"
+        stem.with_suffix(".json").write_text(json.dumps(
+            {"budget": ANALYTIC_BUDGET, "rows": rows}, indent=1))
+        table = markdown_analytic(rows)
+        stem.with_suffix(".md").write_text(table + "\n")
+        print(table)
+        return 0
     rows = measure(args.size, args.target, not args.no_train)
     RESULTS.mkdir(exist_ok=True)
     stem = RESULTS / f"proxy_train_{args.size}"

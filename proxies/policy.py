@@ -78,6 +78,10 @@ def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: Pro
             except ProxyUnavailable as e:
                 unavailable = str(e)
                 continue  # a wider proxy may still be cached
+            except Exception as e:  # a failed training must not fail the render
+                log.exception("training a width-%d proxy for %r failed", w, mesh.name)
+                unavailable = f"training failed at width {w}: {e!r}"
+                continue
         if proxy is None:
             continue
         tried[w], found[w] = _accuracy(proxy), proxy
