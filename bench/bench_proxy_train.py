@@ -143,9 +143,11 @@ def plot(rows: list[dict], path: Path) -> None:
     widths = sorted({r["width"] for r in rows})
     qps = [max(r["qps_1thread"] for r in rows if r["width"] == w) / 1e6 for w in widths]
     b.bar([str(w) for w in widths], qps)
-    a.set(xscale="log", xlabel="width N", ylabel="held-out visibility accuracy",
+    a.set_xscale("log", base=2)
+    a.set(xlabel="width N", ylabel="held-out visibility accuracy",
           title="accuracy by width (default CPU budget)")
     a.set_xticks(widths, [str(w) for w in widths])
+    a.minorticks_off()
     a.legend(fontsize=6, ncol=2)
     b.set(xlabel="width N", ylabel="M queries/s (1 thread, best mesh)",
           title="onnxruntime proxy queries/s")

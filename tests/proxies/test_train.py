@@ -15,16 +15,16 @@ from proxies.model import ResidualMLP  # noqa: E402
 from proxies.train import train_proxy  # noqa: E402
 from tests.proxies.helpers import box, sphere, torus  # noqa: E402
 
-# Step-capped so the result does not depend on how busy the machine is.
-SMALL = dict(width=32, budget_s=0, max_steps=2000, n_samples=1 << 19, grid=64,
-             eval_samples=1 << 15)
-MESHES = {"sphere": sphere, "box": box, "torus": torus}
+# Step-capped so the result does not depend on how busy the machine is. The torus gets
+# width 64: at 32 it measured 99.2%, too near the bar for run-to-run float differences.
+SMALL = dict(budget_s=0, max_steps=2000, n_samples=1 << 19, grid=64, eval_samples=1 << 15)
+MESHES = {"sphere": (sphere, 32), "box": (box, 32), "torus": (torus, 64)}
 
 
 @pytest.fixture(scope="module")
 def trained():
-    return {name: train_proxy(make(), ProxyConfig(**SMALL), progress=False)
-            for name, make in MESHES.items()}
+    return {name: train_proxy(make(), ProxyConfig(width=w, **SMALL), progress=False)
+            for name, (make, w) in MESHES.items()}
 
 
 @pytest.mark.parametrize("name", list(MESHES))
