@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from proxies.config import DEFAULT_WIDTHS, ProxyConfig
+from proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
 
 COLUMNS = ("mesh", "tris", "width", "accuracy", "FP", "FN", "depth err", "internal acc",
            "bytes", "train s", "queries/s")
@@ -80,6 +80,11 @@ def run(args: argparse.Namespace) -> int:
         if mesh.content_hash in seen:
             continue
         seen.add(mesh.content_hash)
+        lightest = estimate_proxy_bytes(config.with_width(min(DEFAULT_WIDTHS)))
+        if mesh.nbytes < lightest and not args.force:
+            print(f"{mesh.name}: skipped, {mesh.nbytes} B of triangles is less than a proxy "
+                  f"(~{lightest} B): the policy replicates it (--force to train anyway)")
+            continue
         try:
             rows.append(_row(mesh, _proxy_for(mesh, config, args, cache)))
         except ProxyUnavailable as e:
