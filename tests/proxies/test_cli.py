@@ -11,7 +11,8 @@ from proxies.cli import main
 def test_proxy_train_on_a_mesh_file_prints_the_report_and_caches(tmp_path, capsys):
     pytest.importorskip("torch", reason="training needs PyTorch")
     path = tmp_path / "ball.ply"
-    trimesh.creation.icosphere(subdivisions=2).export(path)
+    # subdivisions=3: 38 kB of triangles, more than a width-16 proxy (~14 kB), so not skipped
+    trimesh.creation.icosphere(subdivisions=3).export(path)
     args = ["proxy", "train", str(path), "--width", "16", "--budget-s", "2",
             "--samples", "8192", "--out", str(tmp_path / "cache")]
     assert main(args) == 0
@@ -21,3 +22,11 @@ def test_proxy_train_on_a_mesh_file_prints_the_report_and_caches(tmp_path, capsy
     assert cells[2] == "16" and 0.5 < float(cells[3]) <= 1.0
     assert len(list((tmp_path / "cache").glob("*.nprx"))) == 1
     assert main(args) == 0  # second run: served from the cache
+
+
+def test_proxy_train_skips_a_mesh_lighter_than_its_proxy(tmp_path, capsys):
+    path = tmp_path / "pebble.ply"
+    trimesh.creation.icosphere(subdivisions=1).export(path)  # 2.4 kB of triangles
+    assert main(["proxy", "train", str(path), "--width", "16", "--out", str(tmp_path)]) == 0
+    assert "pebble: skipped" in capsys.readouterr().out
+    assert not list(tmp_path.glob("*.nprx"))
