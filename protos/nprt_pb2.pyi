@@ -44,14 +44,16 @@ IMAGE_FORMAT_PNG: ImageFormat
 IMAGE_FORMAT_EXR: ImageFormat
 
 class ProxySettings(_message.Message):
-    __slots__ = ("threshold", "band", "accuracy_target")
+    __slots__ = ("threshold", "band", "accuracy_target", "shadow_band")
     THRESHOLD_FIELD_NUMBER: _ClassVar[int]
     BAND_FIELD_NUMBER: _ClassVar[int]
     ACCURACY_TARGET_FIELD_NUMBER: _ClassVar[int]
+    SHADOW_BAND_FIELD_NUMBER: _ClassVar[int]
     threshold: float
     band: float
     accuracy_target: float
-    def __init__(self, threshold: _Optional[float] = ..., band: _Optional[float] = ..., accuracy_target: _Optional[float] = ...) -> None: ...
+    shadow_band: float
+    def __init__(self, threshold: _Optional[float] = ..., band: _Optional[float] = ..., accuracy_target: _Optional[float] = ..., shadow_band: _Optional[float] = ...) -> None: ...
 
 class RenderSettings(_message.Message):
     __slots__ = ("width", "height", "spp", "bounces", "shadow_rays", "seed", "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass", "proxy")

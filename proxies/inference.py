@@ -53,7 +53,7 @@ class Proxy:
                 f"{self.nbytes} bytes)")
 
     def __reduce__(self):  # sessions do not pickle; the blob rebuilds them (ray.put)
-        return (Proxy.from_bytes, (self.to_bytes(), self.threads))
+        return (_from_bytes, (self.to_bytes(), self.threads))
 
     # ------------------------------------------------------------ container
     def to_bytes(self) -> bytes:
@@ -165,3 +165,9 @@ class Proxy:
         t_box = depth_decode(self.box, p[rows], directions[rows], y, enc)
         t[rows] = np.maximum(t_box + shift[rows], 0.0)
         return vis, t
+
+
+def _from_bytes(blob: bytes, threads: int) -> Proxy:
+    """Unpickling hook. A plain module function: cloudpickle (ray.put) would pickle the
+    bound classmethod by value, module globals and all."""
+    return Proxy.from_bytes(blob, threads)

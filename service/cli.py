@@ -28,8 +28,12 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
                    default=defaults.get("mode", "exact"))
     p.add_argument("--tile-size", type=int, default=64)
     p.add_argument("--spp-per-pass", type=int, default=defaults.get("spp_per_pass", 4))
-    p.add_argument("--threshold", type=float, default=0.5, help="proxy visibility threshold")
-    p.add_argument("--band", type=float, default=0.1, help="proxy confidence band")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="proxy visibility threshold (default: each proxy's calibrated one)")
+    p.add_argument("--band", type=float, default=0.1,
+                   help="proxy confidence band for secondary rays (wider: more exact fallback)")
+    p.add_argument("--shadow-band", type=float, default=0.0,
+                   help="proxy confidence band for shadow rays (0: shadow rays never move)")
     p.add_argument("--ray-address", default=None,
                    help="join this Ray cluster (default: start a local Ray)")
     p.add_argument("--size", default="default", choices=["default", "small", "tiny"],
@@ -44,7 +48,7 @@ def settings_from_args(a: argparse.Namespace):
         shadow_rays=a.shadow_rays, seed=a.seed, russian_roulette=a.russian_roulette,
         shards=a.shards, mode=a.mode, tile_size=a.tile_size,
         spp_per_pass=min(a.spp_per_pass, a.spp),
-        proxy=ProxySettings(threshold=a.threshold, band=a.band))
+        proxy=ProxySettings(threshold=a.threshold, band=a.band, shadow_band=a.shadow_band))
 
 
 def render_with_progress(scene, settings, ray_address=None, label="render"):

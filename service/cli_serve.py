@@ -49,7 +49,8 @@ def add_serve_parsers(subparsers) -> None:
     s.add_argument("--mode", choices=("exact", "proxy", "oracle"))
     s.add_argument("--russian-roulette", action="store_true", default=None)
     s.add_argument("--threshold", type=float, help="proxy visibility threshold")
-    s.add_argument("--band", type=float, help="proxy confidence band")
+    s.add_argument("--band", type=float, help="proxy confidence band, secondary rays")
+    s.add_argument("--shadow-band", type=float, help="proxy confidence band, shadow rays")
     s.add_argument("--wait", action="store_true", help="follow progress until the job ends")
     s.add_argument("-o", "--output", type=Path,
                    help="save the final image here (.png or .exr); implies --wait")
@@ -98,7 +99,8 @@ def _submit(args: argparse.Namespace) -> int:
     body = {field: getattr(args, field) for _, field, _ in _SETTING_FLAGS}
     body |= {"mode": args.mode, "russian_roulette": args.russian_roulette}
     body = {k: v for k, v in body.items() if v is not None}
-    proxy = {k: v for k, v in (("threshold", args.threshold), ("band", args.band))
+    proxy = {k: v for k, v in (("threshold", args.threshold), ("band", args.band),
+                                              ("shadow_band", args.shadow_band))
              if v is not None}
     if proxy:
         body["proxy"] = proxy

@@ -32,13 +32,13 @@ class ShardStateLost(RuntimeError):
     """A shard restarted between two calls of a pass, so its partial film is gone."""
 
 
-def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None):
+def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None, train=True):
     """Which meshes get a proxy, are replicated, or need nothing (proxies.policy)."""
     from proxies.cache import ProxyCache
     from proxies.policy import plan_proxies
 
     return plan_proxies(scene, part, target_accuracy=settings.proxy.accuracy_target,
-                        cache=ProxyCache(proxy_dir))
+                        cache=ProxyCache(proxy_dir), train=train)
 
 
 _RAY_LOCK = threading.Lock()
@@ -86,9 +86,12 @@ class Coordinator:
         owner = np.asarray(self.partition.instance_shard, np.int32).copy()
         shard_meshes = [set(m) for m in self.partition.shard_meshes]
         self.plan, proxies = None, {}
-        if settings.mode == "proxy":
-            self.plan = make_plan(scene, self.partition, settings, proxy_dir)
-            proxies = self.plan.proxies
+        if settings.mode in ("proxy", "oracle"):
+            # The oracle bounds the proxy mode, so it gets the same placement: meshes
+            # lighter than their proxy are replicated (it trains nothing to learn that).
+            self.plan = make_plan(scene, self.partition, settings, proxy_dir,
+                                  train=settings.mode == "proxy")
+            proxies = self.plan.proxies if settings.mode == "proxy" else {}
             for m in self.plan.replicated:  # cheaper to copy than to model
                 owner[self.world_mesh_instances(scene, m)] = EVERYWHERE
                 for held in shard_meshes:

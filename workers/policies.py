@@ -41,7 +41,8 @@ class ProxyPolicy(ExactPolicy):
     def __init__(self, world, shard, remote, proxies: dict, settings: RenderSettings):
         super().__init__(world, shard, remote)
         self.proxies = proxies
-        self.threshold, self.band = settings.proxy.threshold, settings.proxy.band
+        knobs = settings.proxy
+        self.threshold, self.band, self.shadow_band = knobs.threshold, knobs.band, knobs.shadow_band
 
     def route_rays(self, rays, stats):
         target = np.full(len(rays), DONE, np.int32)
@@ -72,20 +73,22 @@ class ProxyPolicy(ExactPolicy):
         return rays, target
 
     def route_shadow(self, shadow, stats):
-        """Decided here: occluded if any proxy predicts a hit before the light. Boxes of
-        meshes without a proxy fall back to exact forwarding."""
+        """Decided here: occluded if any proxy confidently predicts a hit before the light.
+        Rays that cross a box of a mesh without a proxy, or (shadow_band > 0) a prediction
+        inside the band, and have no confident occluder, fall back to exact forwarding."""
         if not len(shadow):
             return shadow, np.zeros(0, np.int32)
         with stats.phase("proxy"):
             pred = predict(self.world, self.proxies, self.remote, shadow.origin,
-                           shadow.direction, shadow.tmax, self.threshold, 0.0)
+                           shadow.direction, shadow.tmax, self.threshold, self.shadow_band)
         stats.counters["proxy_queries"] += len(shadow)
         occluded = pred.inst >= 0
         stats.counters["proxy_shadow_occluded"] += int(occluded.sum())
         stats.count_hops(shadow.hops[occluded])  # they finish here
         shadow = shadow.take(~occluded)
         target = np.full(len(shadow), DONE, np.int32)
-        unknown = pred.uncertain[~occluded]  # crosses a box with no proxy
+        unknown = pred.uncertain[~occluded]
+        stats.counters["proxy_shadow_uncertain"] += int(unknown.sum())
         if unknown.any():
             target[unknown] = route_shadow_exact(self.world, self.remote, shadow.take(unknown))
         return shadow, target

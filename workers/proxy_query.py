@@ -14,8 +14,9 @@ from workers.world import ShardWorld
 
 @dataclass(frozen=True)
 class Prediction:
-    """Per ray: t (n,) float32 closest predicted hit (inf if none), inst (n,) int32
-    (-1), uncertain (n,) bool (some visibility within the band, or a box with no proxy)."""
+    """Per ray: t (n,) float32 closest confident predicted hit (inf if none), inst (n,)
+    int32 (-1), uncertain (n,) bool (some visibility within the band, or a box with no
+    proxy). A prediction inside the band is never a hit: only exact forwarding decides it."""
 
     t: np.ndarray
     inst: np.ndarray
@@ -23,9 +24,10 @@ class Prediction:
 
 
 def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.ndarray,
-            direction: np.ndarray, tmax: np.ndarray, threshold: float,
+            direction: np.ndarray, tmax: np.ndarray, threshold: float | None,
             band: float) -> Prediction:
-    """origin, direction (n, 3) float32 world; tmax (n,) float32; remote (m,) int32."""
+    """origin, direction (n, 3) float32 world; tmax (n,) float32; remote (m,) int32;
+    threshold None: each proxy's own (calibrated at training)."""
     n = len(origin)
     best_t = np.full(n, np.inf, np.float32)
     best_i = np.full(n, -1, np.int32)
@@ -42,10 +44,11 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
         if proxy is None:  # no proxy for this mesh: only exact forwarding can tell
             uncertain[r] = True
             continue
-        t_hit, vis = _query(table, proxy, i, origin[r], direction[r], tmax[r], threshold)
-        if band > 0:
-            uncertain[r[np.abs(vis - threshold) < band]] = True
-        ok = t_hit < tmax[r]
+        thr = proxy.meta["threshold"] if threshold is None else threshold
+        t_hit, vis = _query(table, proxy, i, origin[r], direction[r], tmax[r], thr)
+        unsure = np.abs(vis - thr) < band if band > 0 else np.zeros(len(r), bool)
+        uncertain[r[unsure]] = True
+        ok = (t_hit < tmax[r]) & ~unsure
         r, t_hit, i = r[ok], t_hit[ok], i[ok]
         order = np.lexsort((i, t_hit, r))
         r, t_hit, i = r[order], t_hit[order], i[order]

@@ -13,9 +13,17 @@ class ProxySettings(BaseModel):
     """The speed/accuracy knobs of the proxy traversal (DESIGN.md, "Traversal policies")."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    threshold: float = Field(0.5, ge=0.0, le=1.0, description="visibility above this is a hit")
+    threshold: float | None = Field(
+        None, ge=0.0, le=1.0,
+        description="visibility at or above this is a hit; unset: each proxy's own threshold, "
+                    "calibrated on held-out rays when it was trained")
     band: float = Field(0.1, ge=0.0, le=1.0,
-                        description="|visibility - threshold| < band: fall back to exact")
+                        description="secondary rays: |visibility - threshold| < band falls back "
+                                    "to exact forwarding")
+    shadow_band: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="shadow rays: |visibility - threshold| < shadow_band falls back to exact "
+                    "forwarding; 0 (the paper): every shadow ray is decided where it was made")
     accuracy_target: float = Field(0.97, gt=0.5, le=1.0,
                                    description="held-out visibility accuracy a width must reach")
 

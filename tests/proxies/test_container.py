@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from ray import cloudpickle
 
 from proxies.config import ProxyConfig
 from proxies.inference import Proxy, ProxyFormatError
@@ -31,8 +32,11 @@ def test_blob_round_trip_keeps_meta_models_and_answers(proxy):
     d = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0]], np.float32)
     for a, b in zip(proxy.query(p, d), back.query(p, d), strict=True):
         np.testing.assert_array_equal(a, b)
-    again = pickle.loads(pickle.dumps(back))  # how a Proxy travels through ray.put
-    np.testing.assert_array_equal(again.query(p, d)[0], back.query(p, d)[0])
+    # ray.put uses cloudpickle, which once pickled the class's module by value and failed.
+    for dumps in (pickle.dumps, cloudpickle.dumps):
+        again = pickle.loads(dumps(back))
+        assert len(dumps(back)) < len(blob) + 1024  # the blob, not a module
+        np.testing.assert_array_equal(again.query(p, d)[0], back.query(p, d)[0])
 
 
 @pytest.mark.parametrize("damage", ["flip_payload", "truncate", "bad_magic", "bad_header"])
