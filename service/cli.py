@@ -34,6 +34,10 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
                    help="proxy confidence band for secondary rays (wider: more exact fallback)")
     p.add_argument("--shadow-band", type=float, default=0.0,
                    help="proxy confidence band for shadow rays (0: shadow rays never move)")
+    p.add_argument("--proxy-width", type=int, default=None, choices=(16, 32, 64, 128, 256),
+                   help="one proxy width for every mesh (default: narrowest meeting 97%%)")
+    p.add_argument("--proxy-budget-s", type=float, default=45.0,
+                   help="training budget per proxy, seconds (shipped proxies: 45)")
     p.add_argument("--ray-address", default=None,
                    help="join this Ray cluster (default: start a local Ray)")
     p.add_argument("--size", default="default", choices=["default", "small", "tiny"],
@@ -48,7 +52,8 @@ def settings_from_args(a: argparse.Namespace):
         shadow_rays=a.shadow_rays, seed=a.seed, russian_roulette=a.russian_roulette,
         shards=a.shards, mode=a.mode, tile_size=a.tile_size,
         spp_per_pass=min(a.spp_per_pass, a.spp),
-        proxy=ProxySettings(threshold=a.threshold, band=a.band, shadow_band=a.shadow_band))
+        proxy=ProxySettings(threshold=a.threshold, band=a.band, shadow_band=a.shadow_band,
+                            width=a.proxy_width, budget_s=a.proxy_budget_s))
 
 
 def render_with_progress(scene, settings, ray_address=None, label="render"):

@@ -51,6 +51,9 @@ def add_serve_parsers(subparsers) -> None:
     s.add_argument("--threshold", type=float, help="proxy visibility threshold")
     s.add_argument("--band", type=float, help="proxy confidence band, secondary rays")
     s.add_argument("--shadow-band", type=float, help="proxy confidence band, shadow rays")
+    s.add_argument("--proxy-width", type=int, choices=(16, 32, 64, 128, 256),
+                   help="one proxy width for every mesh")
+    s.add_argument("--proxy-budget-s", type=float, help="training budget per proxy, seconds")
     s.add_argument("--wait", action="store_true", help="follow progress until the job ends")
     s.add_argument("-o", "--output", type=Path,
                    help="save the final image here (.png or .exr); implies --wait")
@@ -99,9 +102,10 @@ def _submit(args: argparse.Namespace) -> int:
     body = {field: getattr(args, field) for _, field, _ in _SETTING_FLAGS}
     body |= {"mode": args.mode, "russian_roulette": args.russian_roulette}
     body = {k: v for k, v in body.items() if v is not None}
-    proxy = {k: v for k, v in (("threshold", args.threshold), ("band", args.band),
-                                              ("shadow_band", args.shadow_band))
-             if v is not None}
+    knobs = (("threshold", args.threshold), ("band", args.band),
+             ("shadow_band", args.shadow_band), ("width", args.proxy_width),
+             ("budget_s", args.proxy_budget_s))
+    proxy = {k: v for k, v in knobs if v is not None}
     if proxy:
         body["proxy"] = proxy
     with Client(args.server, token=args.token, timeout_s=args.timeout_s) as client:

@@ -35,10 +35,14 @@ class ShardStateLost(RuntimeError):
 def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None, train=True):
     """Which meshes get a proxy, are replicated, or need nothing (proxies.policy)."""
     from proxies.cache import ProxyCache
+    from proxies.config import DEFAULT_WIDTHS, ProxyConfig
     from proxies.policy import plan_proxies
 
-    return plan_proxies(scene, part, target_accuracy=settings.proxy.accuracy_target,
-                        cache=ProxyCache(proxy_dir), train=train)
+    knobs = settings.proxy
+    return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,
+                        cache=ProxyCache(proxy_dir), train=train,
+                        config=ProxyConfig(budget_s=knobs.budget_s),
+                        widths=DEFAULT_WIDTHS if knobs.width is None else (knobs.width,))
 
 
 _RAY_LOCK = threading.Lock()

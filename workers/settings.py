@@ -26,6 +26,12 @@ class ProxySettings(BaseModel):
                     "forwarding; 0 (the paper): every shadow ray is decided where it was made")
     accuracy_target: float = Field(0.97, gt=0.5, le=1.0,
                                    description="held-out visibility accuracy a width must reach")
+    width: Literal[16, 32, 64, 128, 256] | None = Field(
+        None, description="proxy width N for every mesh; unset: the narrowest of 16/32/64 "
+                          "that reaches accuracy_target")
+    budget_s: float = Field(45.0, gt=0.0, le=3600.0,
+                            description="training budget per proxy (both nets), seconds; the "
+                                        "shipped proxies are trained at the default")
 
 
 class RenderSettings(BaseModel):
