@@ -1,0 +1,68 @@
+"""Helpers shared by the render benchmarks: one timed distributed render, the machine
+record, and replacing a marked section of bench/README.md (or the top-level README)."""
+
+from __future__ import annotations
+
+import os
+import platform
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import ray
+
+from scene.model import Scene
+from workers.coordinator import Coordinator
+from workers.metrics import compare
+from workers.render import render
+from workers.settings import RenderSettings
+
+BENCH_README = Path(__file__).resolve().parent / "README.md"
+
+
+def machine(ray_cpus: int) -> dict:
+    return {"platform": platform.platform(), "python": platform.python_version(),
+            "cpus": os.cpu_count(), "ray": ray.__version__, "ray_cpus": ray_cpus,
+            "load_average_before": os.getloadavg()}
+
+
+def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1):
+    """Start a Coordinator (timed as prepare: plan, proxies, actors), render `repeat`
+    times and keep the fastest. Returns (row, image (h, w, 3) float32, coordinator info)."""
+    t0 = time.perf_counter()
+    coord = Coordinator(scene, s)
+    prepare_s = time.perf_counter() - t0
+    try:
+        best = None
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            result = render(scene, s, renderer=coord, on_pass=on_pass)
+            wall = time.perf_counter() - t0
+            if best is None or wall < best[0]:
+                best = (wall, result)
+        info = coord.info()
+    finally:
+        coord.close()
+    wall, result = best
+    st = result.stats.to_dict()
+    row = {"mode": s.mode, "k": s.shards, "prepare_s": round(prepare_s, 3),
+           "render_s": round(wall, 3), "transfers": st["transfers"], "bytes": st["bytes"],
+           "total_transfers": st["total_transfers"], "total_bytes": st["total_bytes"],
+           "phase_s": st["phase_s"], "counters": st["counters"]}
+    return row, result.film.image(), info
+
+
+def quality(base: np.ndarray, img: np.ndarray) -> dict:
+    """PSNR (dB, inf when identical), SSIM and mean FLIP of img against base."""
+    return {k: round(v, 5) for k, v in compare(base, img).items()}
+
+
+def replace_section(readme: Path, begin: str, end: str, section: str) -> None:
+    """Replace the text between the markers (inclusive) with section, or append it."""
+    text = readme.read_text() if readme.exists() else "# Benchmarks\n"
+    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
+    block = f"{begin}\n{section}\n{end}"
+    text = pattern.sub(lambda _: block, text) if pattern.search(text) \
+        else text.rstrip("\n") + "\n\n" + block + "\n"
+    readme.write_text(text)
