@@ -14,7 +14,6 @@ Counts are deterministic; times are not (K shards share the machine's cores).
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 import sys
@@ -23,7 +22,16 @@ from pathlib import Path
 import ray
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-from bench.common import BENCH_README, machine, quality, replace_section, timed_render
+from bench.common import (
+    BENCH_README,
+    add_render_flags,
+    machine,
+    quality,
+    render_settings,
+    replace_section,
+    save,
+    timed_render,
+)
 from proxies.evaluate import throughput
 from scene.demos import DEMOS, make_demo
 from scene.partition import partition
@@ -57,9 +65,7 @@ def proxy_table(scene, s: RenderSettings, k: int) -> list[dict]:
 
 
 def run(args) -> dict:
-    s = RenderSettings(width=args.width, height=args.height or args.width * 3 // 4,
-                       spp=args.spp, bounces=args.bounces, shadow_rays=args.shadow_rays,
-                       spp_per_pass=args.spp_per_pass, seed=args.seed, shards=1)
+    s = render_settings(args, shards=1)
     names = [n for n in args.scenes.split(",") if n]
     ks = sorted(int(k) for k in args.shards.split(","))
     ray_cpus = args.ray_cpus or max(ks)
@@ -240,30 +246,16 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--size", choices=["tiny", "small", "default"], default="default")
     ap.add_argument("--shards", default="2,4,8", help="comma-separated shard counts K")
-    ap.add_argument("--width", type=int, default=160)
-    ap.add_argument("--height", type=int, default=None, help="default: 3/4 of the width")
-    ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--spp-per-pass", type=int, default=4)
-    ap.add_argument("--bounces", type=int, default=5)
-    ap.add_argument("--shadow-rays", type=int, default=4)
-    ap.add_argument("--seed", type=int, default=0)
+    add_render_flags(ap, RESULTS)
     ap.add_argument("--repeat", type=int, default=1, help="renders per row; fastest kept")
     ap.add_argument("--ray-cpus", type=int, default=None,
                     help="logical CPUs of the local Ray (default: the largest K)")
     ap.add_argument("--scenes", default=",".join(DEMOS), help="comma-separated demo names")
-    ap.add_argument("--out", type=Path, default=RESULTS)
-    ap.add_argument("--no-readme", action="store_true", help="do not update bench/README.md")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
-    res = run(args)
     path = args.out / f"bench_proxies_{args.size}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(res, indent=1))
-    plot(res, path.with_suffix(".png"))
-    table = markdown(res)
-    print(table)
-    print(f"\nwrote {path} and {path.with_suffix('.png')}")
+    table = save(run(args), path, plot, markdown)
     if not args.no_readme and args.out.resolve() == RESULTS.resolve():
         rel = path.relative_to(BENCH_README.parent)
         replace_section(BENCH_README, BEGIN, END,

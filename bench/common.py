@@ -3,6 +3,7 @@ record, and replacing a marked section of bench/README.md (or the top-level READ
 
 from __future__ import annotations
 
+import json
 import os
 import platform
 import re
@@ -66,3 +67,32 @@ def replace_section(readme: Path, begin: str, end: str, section: str) -> None:
     text = pattern.sub(lambda _: block, text) if pattern.search(text) \
         else text.rstrip("\n") + "\n\n" + block + "\n"
     readme.write_text(text)
+
+
+def add_render_flags(ap, results: Path) -> None:
+    """Image, sampling and output flags every render benchmark takes."""
+    ap.add_argument("--width", type=int, default=160)
+    ap.add_argument("--height", type=int, default=None, help="default: 3/4 of the width")
+    ap.add_argument("--spp", type=int, default=4)
+    ap.add_argument("--bounces", type=int, default=5)
+    ap.add_argument("--shadow-rays", type=int, default=4)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=results)
+    ap.add_argument("--no-readme", action="store_true", help="do not update the README")
+
+
+def render_settings(args, **kw) -> RenderSettings:
+    return RenderSettings(width=args.width, height=args.height or args.width * 3 // 4,
+                          spp=args.spp, spp_per_pass=args.spp, bounces=args.bounces,
+                          shadow_rays=args.shadow_rays, seed=args.seed, **kw)
+
+
+def save(res: dict, path: Path, plot, markdown) -> str:
+    """Write res as JSON and its plot (same stem, .png); print and return the table."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(res, indent=1))
+    plot(res, path.with_suffix(".png"))
+    table = markdown(res)
+    print(table)
+    print(f"\nwrote {path} and {path.with_suffix('.png')}")
+    return table

@@ -116,7 +116,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("demo", help="render a demo scene through the distributed path")
     p.add_argument("--scene", default="forest")
     p.add_argument("--out", default="out/demo", help="folder for images and statistics")
-    p.add_argument("--modes", nargs="+", default=["exact"], choices=["exact", "proxy", "oracle"],
+    p.add_argument("--modes", nargs="+", default=["exact", "proxy"],
+                   choices=["exact", "proxy", "oracle"],
                    help="distributed modes to render next to the single-process reference")
     _add_settings_flags(p, width=192, height=144, spp=8, shards=4, spp_per_pass=8)
     p.set_defaults(func=_cmd_demo)

@@ -1,7 +1,9 @@
 """`nprt demo`: the one command that shows what nprt does. Renders a demo scene with the
 single-process reference and through the distributed path in each requested mode
-(default `exact`, the Wald-style baseline; add `proxy` and `oracle` with --modes), same
-seed, then prints and saves the comparison: transfers, bytes, time and image error."""
+(default `exact`, the Wald-style baseline, and `proxy`, the paper's method with the
+shipped proxies; add `oracle` with --modes), same seed, then prints and saves the
+comparison: transfers and bytes by kind, time, image quality against exact, and what the
+proxy policy chose for each base mesh."""
 
 from __future__ import annotations
 
@@ -59,6 +61,9 @@ def cmd_demo(a) -> int:
     (out / "comparison.json").write_text(json.dumps({"scene": scene.summary(), "runs": rows},
                                                     indent=2, default=str))
     print(_table(rows, base_mode, shards))
+    for mode, r in rows.items():
+        if r["proxy_plan"]:
+            print(f"\n{mode}: per base mesh\n" + _plan_table(r["proxy_plan"]))
     print(f"images, statistics and comparison in {out}/")
     return 0
 
@@ -70,11 +75,29 @@ def _table(rows: dict, base_mode: str, k: int) -> str:
     for kind in ("primary", "secondary", "shadow"):
         lines.append(f"| {kind} transfers | " +
                      " | ".join(f"{r['transfers'][kind]:,}" for r in rows.values()) + " |")
-    lines.append("| ray bytes moved | " +
-                 " | ".join(f"{r['total_bytes']:,}" for r in rows.values()) + " |")
+    base_bytes = rows[base_mode]["total_bytes"]
+    lines.append("| ray MB moved | " + " | ".join(
+        f"{r['total_bytes'] / 1e6:.2f}" + (f" ({base_bytes / r['total_bytes']:.2f}x less)"
+                                           if r["total_bytes"] and base_bytes else "")
+        for r in rows.values()) + " |")
     lines.append("| wall time (s) | " +
                  " | ".join(f"{r['wall_s']:.2f}" for r in rows.values()) + " |")
     q = [r[f"quality_vs_{base_mode}"] for r in rows.values()]
-    lines.append(f"| PSNR dB / FLIP vs {base_mode} | " +
-                 " | ".join(f"{x['psnr_db']:.2f} / {x['flip']:.4f}" for x in q) + " |")
+    lines.append(f"| PSNR dB / SSIM / FLIP vs {base_mode} | " + " | ".join(
+        f"{x['psnr_db']:.2f} / {x['ssim']:.4f} / {x['flip']:.4f}" for x in q) + " |")
+    lines.append("| mispredicted / uncertain secondary rays | " + " | ".join(
+        f"{r['counters'].get('proxy_mispredictions', 0):,} / "
+        f"{r['counters'].get('proxy_uncertain', 0):,}" if r["proxy_plan"] else ""
+        for r in rows.values()) + " |")
+    return "\n".join(lines)
+
+
+def _plan_table(plan: dict) -> str:
+    lines = ["| mesh | decision | width | held-out accuracy | proxy kB | why |",
+             "|---|---|---:|---:|---:|---|"]
+    for d in plan["decisions"]:
+        acc = "" if d["accuracy"] is None else f"{d['accuracy']:.4f}"
+        kb = "" if d["proxy_bytes"] is None else f"{d['proxy_bytes'] / 1e3:.1f}"
+        lines.append(f"| {d['name']} | {d['decision']} | {d['width'] or ''} | {acc} | {kb} | "
+                     f"{d['reason']} |")
     return "\n".join(lines)

@@ -38,9 +38,14 @@ class ExactPolicy:
 
 
 class ProxyPolicy(ExactPolicy):
-    def __init__(self, world, shard, remote, proxies: dict, settings: RenderSettings):
-        super().__init__(world, shard, remote)
-        self.proxies = proxies
+    """modeled : (m,) int32 remote instances answered by proxies; known : the remote
+    instances whose base mesh this shard holds, answered exactly. Exact fallback forwarding
+    covers both (all remote instances)."""
+
+    def __init__(self, world, shard, modeled, proxies: dict, settings: RenderSettings,
+                 known: LocalGeometry):
+        super().__init__(world, shard, np.union1d(modeled, known.instances).astype(np.int32))
+        self.modeled, self.known, self.proxies = modeled, known, proxies
         knobs = settings.proxy
         self.threshold, self.band, self.shadow_band = knobs.threshold, knobs.band, knobs.shadow_band
 
@@ -58,8 +63,9 @@ class ProxyPolicy(ExactPolicy):
         if fresh.any():
             f = np.flatnonzero(fresh)
             with stats.phase("proxy"):
-                pred = predict(self.world, self.proxies, self.remote, rays.origin[f],
-                               rays.direction[f], rays.tmax[f], self.threshold, self.band)
+                pred = predict(self.world, self.proxies, self.modeled, rays.origin[f],
+                               rays.direction[f], rays.tmax[f], self.threshold, self.band,
+                               self.known)
             stats.counters["proxy_queries"] += len(f)
             stats.counters["proxy_uncertain"] += int(pred.uncertain.sum())
             flags[f[pred.uncertain]] |= FLAG_EXACT
@@ -79,8 +85,9 @@ class ProxyPolicy(ExactPolicy):
         if not len(shadow):
             return shadow, np.zeros(0, np.int32)
         with stats.phase("proxy"):
-            pred = predict(self.world, self.proxies, self.remote, shadow.origin,
-                           shadow.direction, shadow.tmax, self.threshold, self.shadow_band)
+            pred = predict(self.world, self.proxies, self.modeled, shadow.origin,
+                           shadow.direction, shadow.tmax, self.threshold, self.shadow_band,
+                           self.known)
         stats.counters["proxy_queries"] += len(shadow)
         occluded = pred.inst >= 0
         stats.counters["proxy_shadow_occluded"] += int(occluded.sum())

@@ -25,13 +25,18 @@ class Prediction:
 
 def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.ndarray,
             direction: np.ndarray, tmax: np.ndarray, threshold: float | None,
-            band: float) -> Prediction:
-    """origin, direction (n, 3) float32 world; tmax (n,) float32; remote (m,) int32;
-    threshold None: each proxy's own (calibrated at training)."""
+            band: float, known=None) -> Prediction:
+    """origin, direction (n, 3) float32 world; tmax (n,) float32; remote (m,) int32: the
+    instances to ask proxies about; threshold None: each proxy's own (calibrated at
+    training); known: LocalGeometry of other remote instances, intersected exactly."""
     n = len(origin)
     best_t = np.full(n, np.inf, np.float32)
     best_i = np.full(n, -1, np.int32)
     uncertain = np.zeros(n, bool)
+    if known is not None and len(known.instances) and n:
+        t, inst, _, _, _ = known.intersect_closest(origin, direction, tmax)
+        hit = inst >= 0
+        best_t[hit], best_i[hit] = t[hit], inst[hit]
     table = world.table
     ray, inst, _, _ = table.box_entries(origin, direction, tmax, remote)
     if len(ray) == 0:

@@ -96,7 +96,11 @@ class Shard:
     def _make_policy(self, proxies, all_meshes, geometry):
         mode = self.s.mode
         if mode == "proxy":
-            return ProxyPolicy(self.world, self.id, self.remote, proxies, self.s)
+            # Remote instances of a base mesh held here (a mesh split across shards) are
+            # intersected exactly with it, not through a proxy.
+            held = np.isin(self.world.table.mesh[self.remote], list(geometry))
+            known = LocalGeometry(geometry, self.world.table, self.remote[held])
+            return ProxyPolicy(self.world, self.id, self.remote[~held], proxies, self.s, known)
         if mode == "oracle":
             if all_meshes is None:
                 raise ValueError("the oracle policy needs all_meshes (the whole scene)")

@@ -80,6 +80,7 @@ $("#submit-form").addEventListener("submit", async (ev) => {
   for (const k of ["width", "height", "spp", "bounces", "shadow_rays", "shards", "tile_size", "spp_per_pass", "seed"]) {
     body[k] = Number(f.get(k));
   }
+  if (body.mode === "proxy") body.proxy = { band: Number(f.get("band")), shadow_band: Number(f.get("shadow_band")) };
   $("#submit-error").textContent = "";
   try {
     const job = await api("/v1/jobs", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });

@@ -62,3 +62,13 @@ def test_proxy_mode_keeps_shadow_rays_home_and_cuts_secondary_transfers(exact_k4
     assert st["transfers"]["primary"] <= ex["transfers"]["primary"]  # fewer: replication
     q = compare(exact_k4[name].film.image(), result.film.image())
     assert q["psnr_db"] >= PSNR_FLOOR_DB, q
+
+
+def test_a_mesh_split_across_shards_is_intersected_exactly_not_sent(ray_local, scenes):
+    """With K=8 > 5 meshes, shards hold some instances of a mesh whose other instances
+    live elsewhere: those are answered with the real mesh here, so shadow rays still
+    never move (they once fell back to forwarding for want of a proxy)."""
+    result = render(scenes["sculpture"], settings(8, mode="proxy"))
+    st = _stats(result)
+    assert st["transfers"]["shadow"] == 0, st["transfers"]
+    assert st["counters"].get("proxy_shadow_uncertain", 0) == 0, st["counters"]
