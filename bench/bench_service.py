@@ -170,6 +170,17 @@ def main(argv: list[str] | None = None) -> int:
         "cpus": os.cpu_count(), "python": platform.python_version(),
         "platform": platform.platform()}, "markdown": table}, indent=1))
     print(f"\nwrote {args.out}")
+    if args.out.resolve() == (RESULTS / "bench_service.json").resolve():
+        sys.path.insert(0, str(REPO))  # run as a script: make bench.common importable
+        from bench.common import BENCH_README, replace_section
+
+        replace_section(BENCH_README, "<!-- bench_service:begin -->",
+                        "<!-- bench_service:end -->",
+                        "## Service under load (`bench_service.py`)\n\n`python "
+                        "bench/bench_service.py` (`results/bench_service.json`): starts the "
+                        "service on loopback, starts warm-up jobs, fires the submissions at "
+                        "once while pollers list and read jobs, and waits for every job. "
+                        f"{os.cpu_count()} cores.\n\n{table}")
     ok = result["succeeded"] == result["accepted_202"] == args.jobs and result["lost"] == 0
     return 0 if ok else 1
 
