@@ -78,8 +78,8 @@ def _table(rows: dict, base_mode: str, k: int) -> str:
     base_bytes = rows[base_mode]["total_bytes"]
     lines.append("| ray MB moved | " + " | ".join(
         f"{r['total_bytes'] / 1e6:.2f}" + (f" ({base_bytes / r['total_bytes']:.2f}x less)"
-                                           if r["total_bytes"] and base_bytes else "")
-        for r in rows.values()) + " |")
+                                           if m != base_mode and r["total_bytes"] else "")
+        for m, r in rows.items()) + " |")
     lines.append("| wall time (s) | " +
                  " | ".join(f"{r['wall_s']:.2f}" for r in rows.values()) + " |")
     q = [r[f"quality_vs_{base_mode}"] for r in rows.values()]

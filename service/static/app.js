@@ -143,6 +143,11 @@ async function showStats(job) {
     rows.push(["transfers total", `${fmtInt(s.total_transfers || 0)} (${fmtBytes(s.total_bytes || 0)})`]);
     if (s.hops_histogram?.length) rows.push(["hops histogram", s.hops_histogram.join(" / ")]);
     for (const [k, v] of Object.entries(s.counters || {})) rows.push([k.replaceAll("_", " "), fmtInt(v)]);
+    // What the proxy policy chose for each base mesh, and why (proxy and oracle jobs).
+    for (const d of s.proxy_plan?.decisions || []) {
+      const what = d.decision === "proxy" ? `proxy, width ${d.width}, ${(100 * d.accuracy).toFixed(2)}% held-out, ${fmtBytes(d.proxy_bytes)}` : d.decision;
+      rows.push([`mesh ${d.name}`, `${what}: ${d.reason}`]);
+    }
     if (TERMINAL.has(job.state)) {
       const base = await exactBaseline(job).catch(() => null);
       if (base?.stats) {
