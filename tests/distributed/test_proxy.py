@@ -5,6 +5,7 @@ image cost bounded by a PSNR floor."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from tests.distributed.helpers import assert_matches, settings
@@ -72,3 +73,20 @@ def test_a_mesh_split_across_shards_is_intersected_exactly_not_sent(ray_local, s
     st = _stats(result)
     assert st["transfers"]["shadow"] == 0, st["transfers"]
     assert st["counters"].get("proxy_shadow_uncertain", 0) == 0, st["counters"]
+
+
+def test_extreme_thresholds_render_finite_images(ray_local, scenes):
+    """threshold 0 predicts a hit in every box crossed (mispredictions everywhere, each
+    recovered by exact forwarding); 1 predicts almost none (only saturated visibilities:
+    hits behind remote boxes are lost). Both must finish with a finite image."""
+    counters = {}
+    for threshold in (0.0, 1.0):
+        knobs = ProxySettings(threshold=threshold, band=0.0)
+        result = render(scenes["city"], settings(2, mode="proxy", proxy=knobs))
+        img = result.film.image()
+        assert np.isfinite(img).all() and img.max() > 0, threshold
+        counters[threshold] = _stats(result)["counters"]
+    low, high = counters[0.0], counters[1.0]
+    assert low["proxy_mispredictions"] > 0, low
+    assert high.get("proxy_mispredictions", 0) < low["proxy_mispredictions"], (low, high)
+    assert high.get("proxy_shadow_occluded", 0) < low["proxy_shadow_occluded"], (low, high)
