@@ -41,33 +41,57 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     ray, inst, _, _ = table.box_entries(origin, direction, tmax, remote)
     if len(ray) == 0:
         return Prediction(best_t, best_i, uncertain)
+    # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
+    q = _box_queries(table, inst, origin[ray], direction[ray], tmax[ray])
     mesh = table.mesh[inst]
-    for m in np.unique(mesh):
-        sel = mesh == m
-        r, i = ray[sel], inst[sel]
+    vis = np.zeros(len(ray), np.float32)
+    t_proxy = np.full(len(ray), np.inf)
+    thr = np.zeros(len(ray), np.float32)
+    for m in np.unique(mesh[q.crosses]):
+        rows = np.flatnonzero(q.crosses & (mesh == m))
         proxy = proxies.get(int(m))
         if proxy is None:  # no proxy for this mesh: only exact forwarding can tell
-            uncertain[r] = True
+            uncertain[ray[rows]] = True
             continue
-        thr = proxy.meta["threshold"] if threshold is None else threshold
-        t_hit, vis = _query(table, proxy, i, origin[r], direction[r], tmax[r], thr)
-        unsure = np.abs(vis - thr) < band if band > 0 else np.zeros(len(r), bool)
-        uncertain[r[unsure]] = True
-        ok = (t_hit < tmax[r]) & ~unsure
-        r, t_hit, i = r[ok], t_hit[ok], i[ok]
-        order = np.lexsort((i, t_hit, r))
-        r, t_hit, i = r[order], t_hit[order], i[order]
-        first = np.ones(len(r), bool)
-        first[1:] = r[1:] != r[:-1]
-        r, t_hit, i = r[first], t_hit[first], i[first]
-        better = t_hit < best_t[r]
-        best_t[r[better]] = t_hit[better]
-        best_i[r[better]] = i[better]
+        thr[rows] = proxy.meta["threshold"] if threshold is None else threshold
+        v, tp = proxy.query(q.point[rows], q.qdir[rows], min_visibility=float(thr[rows[0]]))
+        vis[rows], t_proxy[rows] = v, tp / q.length[rows]
+    has_proxy = q.crosses & np.isin(mesh, np.fromiter(proxies, np.int64, len(proxies)))
+    unsure = has_proxy & (np.abs(vis - thr) < band)
+    uncertain[ray[unsure]] = True
+    hit = has_proxy & ~unsure & (vis >= thr)
+    hit &= ~q.internal | (t_proxy <= q.t_box)  # internal: the surface lies behind the origin
+    t = np.where(q.internal, q.t_box - t_proxy, q.t_box + t_proxy).astype(np.float32)
+    hit &= t < tmax[ray]
+    r, t, i = ray[hit], t[hit], inst[hit]
+    # Closest per ray; ties go to the lowest instance.
+    order = np.lexsort((i, t, r))
+    r, t, i = r[order], t[order], i[order]
+    first = np.ones(len(r), bool)
+    first[1:] = r[1:] != r[:-1]
+    r, t, i = r[first], t[first], i[first]
+    better = t < best_t[r]
+    best_t[r[better]], best_i[r[better]] = t[better], i[better]
     return Prediction(best_t, best_i, uncertain)
 
 
-def _query(table, proxy, inst, origin, direction, tmax, threshold):
-    """Predicted hit distance (p,) float32 (inf for a predicted miss) and visibility (p,)."""
+@dataclass(frozen=True)
+class _BoxQueries:
+    """Per (ray, instance) pair: crosses (p,) bool (the ray meets the local mesh box before
+    tmax); internal (p,) bool (origin inside it); t_box (p,) float64 world-t of the query
+    point; point, qdir (p, 3) float32 local query point and unit direction; length (p,)
+    float64 local units per unit of world t."""
+
+    crosses: np.ndarray
+    internal: np.ndarray
+    t_box: np.ndarray
+    point: np.ndarray
+    qdir: np.ndarray
+    length: np.ndarray
+
+
+def _box_queries(table, inst, origin, direction, tmax) -> _BoxQueries:
+    """inst (p,) int32; origin, direction (p, 3) float32 world; tmax (p,) float32."""
     m = table.world_to_local[inst]  # (p, 3, 4) float64
     o = np.einsum("pij,pj->pi", m[:, :, :3], origin.astype(np.float64)) + m[:, :, 3]
     d = np.einsum("pij,pj->pi", m[:, :, :3], direction.astype(np.float64))
@@ -78,22 +102,10 @@ def _query(table, proxy, inst, origin, direction, tmax, threshold):
         t_enter = np.fmax.reduce(np.fmin(t0, t1), axis=1)
         t_exit = np.fmin.reduce(np.fmax(t0, t1), axis=1)
     crosses = (t_exit >= np.maximum(t_enter, 0.0)) & (t_enter < tmax)
-    length = np.linalg.norm(d, axis=1)  # local units per unit of t
-    unit = normalize(d)
     internal = t_enter <= 0.0
     # External rays query at the entry point; internal ones at the exit, reversed.
     t_box = np.where(internal, t_exit, t_enter)
-    point = o + t_box[:, None] * d
-    qdir = np.where(internal[:, None], -unit, unit)
-    vis = np.zeros(len(inst), np.float32)
-    t_proxy = np.full(len(inst), np.inf)
-    rows = np.flatnonzero(crosses)
-    if len(rows):
-        v, tp = proxy.query(point[rows].astype(np.float32), qdir[rows].astype(np.float32),
-                            min_visibility=threshold)
-        vis[rows] = v
-        t_proxy[rows] = tp / length[rows]
-    hit = crosses & (vis >= threshold)
-    hit &= ~internal | (t_proxy <= t_box)  # internal: the surface must lie behind the origin
-    t = np.where(internal, t_box - t_proxy, t_box + t_proxy)
-    return np.where(hit, t, np.inf).astype(np.float32), vis
+    unit = normalize(d)
+    point = (o + t_box[:, None] * d).astype(np.float32)
+    qdir = np.where(internal[:, None], -unit, unit).astype(np.float32)
+    return _BoxQueries(crosses, internal, t_box, point, qdir, np.linalg.norm(d, axis=1))
