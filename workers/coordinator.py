@@ -178,11 +178,11 @@ class Coordinator:
         busy = [False] * self.k
         calls = [0] * self.k  # calls sent per shard; an idle shard can die and restart unseen
         inbox: list[list] = [[] for _ in range(self.k)]
-        first = p.index % self.k  # the shard that generates this tile's camera rays
-        m_ref, parcels = self._call(first, "generate", p)
-        inflight[m_ref] = (first, parcels)
-        busy[first] = True
-        calls[first] += 1
+        for sid in range(self.k):  # each keeps the camera rays whose first box it owns
+            m_ref, parcels = self._call(sid, "generate", p)
+            inflight[m_ref] = (sid, parcels)
+            busy[sid] = True
+            calls[sid] += 1
         while inflight:
             t0 = time.perf_counter()
             ready, _ = ray.wait(list(inflight), num_returns=1)

@@ -24,11 +24,11 @@ from workers.integrator import PathIntegrator
 from workers.local import LocalGeometry
 from workers.passes import Pass
 from workers.policies import ExactPolicy, OraclePolicy, ProxyPolicy
-from workers.routing import DONE, visited_bit
+from workers.routing import DONE, nearest_unvisited, visited_bit
 from workers.settings import RenderSettings
 from workers.stats import RenderStats
 from workers.tracer import resolve_closest
-from workers.world import ShardWorld
+from workers.world import EVERYWHERE, ShardWorld
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +87,8 @@ class Shard:
         is_local = np.zeros(len(world.table), bool)
         is_local[local] = True
         self.remote = np.flatnonzero(~is_local).astype(np.int32)
+        # Instances with one owner (not replicated): where camera rays may start.
+        self.owned = np.flatnonzero(world.owner != EVERYWHERE).astype(np.int32)
         self.policy = self._make_policy(proxies or {}, all_meshes, geometry)
         self.integrator = PathIntegrator(self.s, world.camera, meshes, world.materials,
                                          world.table, world.lights)
@@ -121,10 +123,18 @@ class Shard:
     # -- calls from the coordinator -------------------------------------------------
 
     def generate(self, p: Pass) -> list:
-        """Primary rays of a tile assigned to this shard, traced as far as they go here."""
+        """This shard's share of a tile's camera rays, traced as far as they go here.
+
+        Every shard generates the whole tile (deterministic and cheap) and keeps the rays
+        whose first instance box it owns, so no camera ray moves just to reach its first
+        candidate; rays that enter no owned box start on the tile's shard, p.index % k."""
         st = self._state(p)
         with st.stats.phase("generate"):
             rays = self.integrator.primary(p)
+            first = nearest_unvisited(self.world, self.owned, rays.origin, rays.direction,
+                                      rays.tmax, np.zeros(len(rays), np.uint64))
+            mine = (first == self.id) | ((first == DONE) & (p.index % self.k == self.id))
+            rays = rays.take(mine)
         return self._run(p, st, rays, ShadowRayBatch.empty())
 
     def process(self, p: Pass, *parcels: Parcel) -> list:
