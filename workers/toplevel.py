@@ -1,17 +1,17 @@
-"""The instance table: world boxes and float64 transforms of every instance (the
-"top-level BVH"), replicated on every shard, plus the vectorised slab test."""
+"""The instance table: world boxes and float64 transforms of every instance, replicated
+on every shard, with a small BVH over the boxes (the top level) and the slab test."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from scene.model import Scene
+from workers import kernels
 
 # Boxes are padded so flat geometry (a ground quad) never yields a zero-width slab.
 BOX_PAD_REL = 1e-5
-# Rays x instances per slab-test chunk, to bound the (n, m) temporaries. 64k pairs keeps
-# each float64 temporary (512 KiB) in cache: 2-3x faster than 2M pairs, same results.
-SLAB_CHUNK = 1 << 16
+# Up to this many requested instances, a plain loop over their boxes beats the BVH.
+BVH_MIN_INSTANCES = 8
 
 
 class InstanceTable:
@@ -34,6 +34,24 @@ class InstanceTable:
         pad = pad + 1e-7 * np.abs(np.concatenate([lo, hi], axis=1)).max(axis=1, keepdims=True)
         self.world_bounds = np.stack([lo - pad, hi + pad], axis=1)
         self.local_bounds = local
+        self._build_bvh()
+
+    def _build_bvh(self) -> None:
+        """Kernel inputs, owned and writable (arrays unpickled from Ray's object store are
+        read-only, and numba compiles read-only arrays as a separate type)."""
+        boxes = np.array(self.world_bounds, np.float64, order="C")
+        self._bvh = None
+        if len(boxes) and np.isfinite(boxes).all():
+            self._bvh = (boxes, *kernels.bvh_build(boxes))
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.pop("_bvh", None)  # rebuilt on unpickling: cheap, and then writable
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._build_bvh()
 
     def __len__(self) -> int:
         return len(self.mesh)
@@ -51,43 +69,36 @@ class InstanceTable:
         return o.astype(np.float32), d.astype(np.float32)
 
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
-        """Slab test of rays against a set of instance boxes.
+        """Slab test of rays against a set of instance boxes, in float64.
 
         origin, direction : (n, 3) float32; tmax : (n,) float32; instances : (k,) int
         returns ray (p,) int64, inst (p,) int32, t_enter (p,) float64, t_exit (p,) float64
-        for every crossing with t_exit >= max(t_enter, 0) and t_enter < tmax.
+        for every crossing with t_exit >= max(t_enter, 0) and t_enter < tmax, ray-major and
+        then in the order of `instances`. Per axis t = (plane - origin) * (1 / direction),
+        fmin/fmax drop the NaN of 0 * inf (origin on a slab plane, zero direction).
         """
         n, k = len(origin), len(instances)
         if n == 0 or k == 0:
             e = np.zeros(0)
             return e.astype(np.int64), e.astype(np.int32), e, e
-        o = origin.astype(np.float64)
-        with np.errstate(divide="ignore"):
-            inv = 1.0 / direction.astype(np.float64)  # inf for zero components
-        step = max(1, SLAB_CHUNK // k)
-        out = []
-        for s in range(0, n, step):
-            out.append(self._slab(o[s:s + step], inv[s:s + step], tmax[s:s + step],
-                                  instances, s))
-        return tuple(np.concatenate(parts) for parts in zip(*out, strict=True))
-
-    def _slab(self, o, inv, tmax, instances, offset):
-        b = self.world_bounds[instances]  # (k, 2, 3)
-        t_enter = t_exit = None
-        with np.errstate(invalid="ignore"):
-            # One axis at a time on (c, k) arrays: a ufunc reduce over a trailing axis of
-            # length 3 is ~10x slower than these elementwise calls, with identical results.
-            for a in range(3):
-                t0 = (b[None, :, 0, a] - o[:, a, None]) * inv[:, a, None]  # (c, k)
-                t1 = (b[None, :, 1, a] - o[:, a, None]) * inv[:, a, None]
-                # fmin/fmax drop the NaN of 0 * inf (origin on a slab plane, zero direction).
-                lo, hi = np.fmin(t0, t1), np.fmax(t0, t1)
-                t_enter = lo if t_enter is None else np.fmax(t_enter, lo)
-                t_exit = hi if t_exit is None else np.fmin(t_exit, hi)
-        ok = (t_exit >= np.maximum(t_enter, 0.0)) & (t_enter < tmax[:, None])
-        ray, col = np.nonzero(ok)
-        return (ray.astype(np.int64) + offset, instances[col].astype(np.int32),
-                t_enter[ray, col], t_exit[ray, col])
+        instances = np.asarray(instances)
+        # One dtype and layout, so the kernels are compiled (and cached) once.
+        o, d = np.array(origin, np.float64, order="C"), np.array(direction, np.float64, order="C")
+        tm = np.array(tmax, np.float64, order="C")
+        col_of = None
+        if self._bvh is not None and k > BVH_MIN_INSTANCES:
+            m = len(self)
+            if instances.min() >= 0 and instances.max() < m:
+                col_of = np.full(m, -1, np.int32)
+                col_of[instances] = np.arange(k, dtype=np.int32)
+                if np.count_nonzero(col_of >= 0) != k:  # repeated instances: plain loop
+                    col_of = None
+        if col_of is not None:
+            ray, col, t_enter, t_exit = kernels.bvh_slab(o, d, tm, *self._bvh, col_of)
+        else:
+            boxes = np.array(self.world_bounds[instances], np.float64, order="C")
+            ray, col, t_enter, t_exit = kernels.slab_all(o, d, tm, boxes)
+        return ray, instances[col].astype(np.int32), t_enter, t_exit
 
 
 def _box_corners(b: np.ndarray) -> np.ndarray:

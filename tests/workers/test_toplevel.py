@@ -1,0 +1,191 @@
+"""The top-level slab test (`InstanceTable.box_entries`, BVH and plain-loop kernels)
+against a plain numpy oracle: same crossings, order, dtypes and t values."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import trimesh
+
+from tests.workers.helpers import Instance, Scene, mesh_from_trimesh, plane_mesh, trs
+from workers import kernels
+from workers.toplevel import BVH_MIN_INSTANCES, InstanceTable
+
+
+def _oracle(boxes, origin, direction, tmax, instances):
+    """Every ray against every requested box on (n, k) arrays, in one piece.
+
+    boxes : (m, 2, 3) float64; origin, direction : (n, 3); tmax : (n,); instances : (k,)
+    returns ray (p,) int64, inst (p,) int32, t_enter, t_exit (p,) float64
+    """
+    b = boxes[np.asarray(instances, np.int64)]  # (k, 2, 3)
+    o = np.asarray(origin, np.float64)[:, None, :]  # (n, 1, 3)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = (1.0 / np.asarray(direction, np.float64))[:, None, :]
+        t0 = (b[None, :, 0, :] - o) * inv  # (n, k, 3)
+        t1 = (b[None, :, 1, :] - o) * inv
+        lo, hi = np.fmin(t0, t1), np.fmax(t0, t1)
+        t_enter = np.fmax(np.fmax(lo[..., 0], lo[..., 1]), lo[..., 2])  # (n, k)
+        t_exit = np.fmin(np.fmin(hi[..., 0], hi[..., 1]), hi[..., 2])
+        tm = np.asarray(tmax, np.float64)[:, None]
+        ok = (t_exit >= np.maximum(t_enter, 0.0)) & (t_enter < tm)
+    ray, col = np.nonzero(ok)
+    return (ray.astype(np.int64), np.asarray(instances)[col].astype(np.int32),
+            t_enter[ray, col], t_exit[ray, col])
+
+
+def _assert_same(got, want, what=""):
+    names = ("ray", "inst", "t_enter", "t_exit")
+    for name, g, w in zip(names, got, want, strict=True):
+        assert g.dtype == w.dtype, f"{what} {name}: dtype {g.dtype}, want {w.dtype}"
+        assert g.shape == w.shape, f"{what} {name}: {g.shape} crossings, want {w.shape}"
+        if g.dtype.kind == "f":
+            # Bit-identical, up to the sign of a zero: numpy's own fmin/fmax give -0.0 or
+            # 0.0 on a zero tie depending on the array length (SIMD or scalar loop).
+            g, w = g + 0.0, w + 0.0
+            bad = np.flatnonzero(g.view(np.int64) != w.view(np.int64))
+        else:
+            bad = np.flatnonzero(g != w)
+        assert len(bad) == 0, (f"{what} {name}: {len(bad)} rows differ, first at {bad[0]}: "
+                               f"got {g[bad[:3]]}, want {w[bad[:3]]}")
+
+
+def _rays(rng, boxes, n, span):
+    """Awkward rays for these boxes: random, inside boxes, on slab planes, with zero
+    (and -0.0) direction components, a few all-zero or non-finite; tmax cuts."""
+    o = rng.uniform(-span, span, size=(n, 3))
+    pick = rng.integers(0, len(boxes), n)
+    inside = rng.random(n) < 0.3
+    o[inside] = boxes[pick[inside]].mean(axis=1)
+    on_plane = rng.random((n, 3)) < 0.2  # a coordinate exactly on a lo or hi plane
+    side = rng.integers(0, 2, size=(n, 3))
+    planes = boxes[pick[:, None], side, np.arange(3)[None, :]]  # (n, 3)
+    o = np.where(on_plane, planes, o).astype(np.float32)
+    d = rng.normal(size=(n, 3))
+    d = np.where(rng.random((n, 3)) < 0.35, 0.0, d)
+    d = np.where(rng.random((n, 3)) < 0.5, d, -d)  # -0.0 components too
+    d = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-30)
+    d[:: 97] = 0.0  # no direction at all
+    d = d.astype(np.float32)
+    tmax = np.where(rng.random(n) < 0.5, np.inf, rng.uniform(-1.0, 2 * span, n))
+    tmax[:: 89] = 0.0
+    tmax = tmax.astype(np.float32)
+    o[5], d[6], tmax[7] = (np.nan, 0, 0), (np.inf, 0, 0), np.nan  # take the plain loop
+    return o, d, tmax
+
+
+def _random_scene(rng, m):
+    cube = mesh_from_trimesh(trimesh.creation.box(extents=(1.0, 1.0, 1.0)), "cube")
+    flat = plane_mesh(half=1.0)  # zero thickness: only the padding gives it a slab
+    sliver = mesh_from_trimesh(trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0.5, 0, 1e-7]],
+                                               [[0, 1, 2]], process=False), "sliver")
+    inst = [Instance(1, trs((0, 0, 0), 30.0))]  # a ground covering everything
+    for _ in range(m - 1):
+        mesh = int(rng.integers(0, 3))
+        axis_aligned = rng.random() < 0.5
+        inst.append(Instance(mesh, trs(rng.uniform(-8, 8, 3), rng.uniform(0.05, 3.0),
+                                       rng.normal(size=3),
+                                       0.0 if axis_aligned else rng.uniform(0, 360))))
+    return Scene((cube, flat, sliver), tuple(inst))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_box_entries_equals_numpy_oracle_on_awkward_rays(seed, monkeypatch):
+    rng = np.random.default_rng(seed)
+    table = InstanceTable(_random_scene(rng, 60))
+    o, d, tmax = _rays(rng, table.world_bounds, 3000, 10.0)
+    used = []
+    for name in ("bvh_slab", "slab_all"):
+        fn = getattr(kernels, name)
+        monkeypatch.setattr(kernels, name,
+                            lambda *a, _fn=fn, _name=name: used.append(_name) or _fn(*a))
+    m = len(table)
+    subsets = {
+        "all": np.arange(m),
+        "all, int32, reversed": np.arange(m)[::-1].astype(np.int32),
+        "random half, shuffled": rng.permutation(m)[: m // 2],
+        "few": rng.permutation(m)[:BVH_MIN_INSTANCES],
+        "one": np.array([int(rng.integers(0, m))]),
+        "repeated": np.r_[np.arange(20), np.arange(5, 15)],
+        "negative": np.array([-1, -m, 3] + list(range(10, 20))),
+    }
+    crossings = 0
+    for what, instances in subsets.items():
+        used.clear()
+        got = table.box_entries(o, d, tmax, instances)
+        _assert_same(got, _oracle(table.world_bounds, o, d, tmax, instances), what)
+        crossings += len(got[0])
+        if what.startswith(("all", "random")):
+            assert used == ["bvh_slab"], f"{what}: ran {used}, expected the BVH"
+    assert crossings > 2 * len(o), f"only {crossings} crossings: the rays test too little"
+
+
+def test_box_entries_on_empty_inputs():
+    table = InstanceTable(_random_scene(np.random.default_rng(4), 12))
+    o, d = np.zeros((3, 3), np.float32), np.ones((3, 3), np.float32)
+    tmax = np.full(3, np.inf, np.float32)
+    empty = np.zeros(0, np.int64)
+    z3 = np.zeros((0, 3), np.float32)
+    for args in ((o, d, tmax, empty), (z3, z3, np.zeros(0, np.float32), np.arange(12))):
+        _assert_same(table.box_entries(*args), _oracle(table.world_bounds, *args))
+
+
+def test_box_entries_takes_float64_and_read_only_rays():
+    rng = np.random.default_rng(5)
+    table = InstanceTable(_random_scene(rng, 30))
+    o, d, tmax = _rays(rng, table.world_bounds, 500, 10.0)
+    o64, d64 = o.astype(np.float64) + 1e-9, d.astype(np.float64)
+    for a in (o64, d64, tmax):
+        a.flags.writeable = False
+    want = _oracle(table.world_bounds, o64, d64, tmax, np.arange(30))
+    _assert_same(table.box_entries(o64, d64, tmax, np.arange(30)), want)
+
+
+def test_unpickled_table_gives_the_same_crossings():
+    rng = np.random.default_rng(6)
+    table = InstanceTable(_random_scene(rng, 40))
+    o, d, tmax = _rays(rng, table.world_bounds, 1000, 10.0)
+    copy = pickle.loads(pickle.dumps(table))
+    copy.world_bounds.flags.writeable = False  # as read back from Ray's object store
+    _assert_same(copy.box_entries(o, d, tmax, np.arange(40)),
+                 table.box_entries(o, d, tmax, np.arange(40)))
+
+
+def _raw_boxes(rng, m):
+    """Boxes on a coarse float32 grid, many exactly flat in one to three axes (no
+    padding), so float32 origins can sit exactly on their planes."""
+    lo = np.round(rng.uniform(-6, 6, size=(m, 3)) * 4) / 4
+    ext = np.round(rng.uniform(0, 4, size=(m, 3)) * 4) / 4
+    ext[rng.random((m, 3)) < 0.3] = 0.0
+    return np.stack([lo, lo + ext], axis=1)  # (m, 2, 3) float64
+
+
+@pytest.mark.parametrize("seed", [10, 11])
+def test_bvh_kernel_equals_oracle_on_unpadded_flat_boxes(seed):
+    # Flat boxes make the reference formula's NaN cases (origin on a plane, zero
+    # direction) matter: the BVH's inner-node test must still never cull a crossing.
+    rng = np.random.default_rng(seed)
+    boxes = _raw_boxes(rng, 80)
+    o, d, tmax = _rays(rng, boxes, 4000, 8.0)
+    o = np.where(rng.random(o.shape) < 0.3, np.round(o * 4) / 4, o).astype(np.float32)
+    bvh = kernels.bvh_build(boxes)
+    node_box, node_child = bvh[0], bvh[1]
+    inner = np.flatnonzero(node_child >= 0)
+    for c in (node_child[inner], node_child[inner] + 1):  # parents hold their children
+        assert (node_box[inner, 0] <= node_box[c, 0]).all()
+        assert (node_box[inner, 1] >= node_box[c, 1]).all()
+    for instances in (np.arange(80), rng.permutation(80)[:50]):
+        col_of = np.full(80, -1, np.int32)
+        col_of[instances] = np.arange(len(instances), dtype=np.int32)
+        ray, col, t_enter, t_exit = kernels.bvh_slab(
+            o.astype(np.float64), d.astype(np.float64), tmax.astype(np.float64), boxes,
+            *bvh, col_of)
+        got = (ray, instances[col].astype(np.int32), t_enter, t_exit)
+        _assert_same(got, _oracle(boxes, o, d, tmax, instances))
+        ray, col, t_enter, t_exit = kernels.slab_all(
+            o.astype(np.float64), d.astype(np.float64), tmax.astype(np.float64),
+            np.ascontiguousarray(boxes[instances]))
+        got = (ray, instances[col].astype(np.int32), t_enter, t_exit)
+        _assert_same(got, _oracle(boxes, o, d, tmax, instances))

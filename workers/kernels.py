@@ -1,0 +1,242 @@
+"""Jitted top-level kernels: a small BVH over instance boxes, and the float64 slab test
+of rays against instance boxes, with exactly the crossings, order and t values of the
+numpy reference formula (see `InstanceTable.box_entries`)."""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+# Instances per BVH leaf. Leaves are tested with the exact formula, inner nodes only cull.
+BVH_LEAF_SIZE = 2
+# error_model="numpy": 1 / 0.0 is inf (as in numpy), not a ZeroDivisionError.
+JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@njit(inline="always", **JIT)
+def _fmin(a, b):
+    """np.fmin: NaN loses; on a tie the first operand (numpy's own sign of a zero tie
+    depends on the array length, so only values are promised)."""
+    return b if (b < a or a != a) else a
+
+
+@njit(inline="always", **JIT)
+def _fmax(a, b):
+    return b if (b > a or a != a) else a
+
+
+@njit(inline="always", **JIT)
+def _slab(boxes, j, o0, o1, o2, i0, i1, i2, tmax):
+    """The reference slab test of one ray against boxes[j] (2, 3) float64: per axis
+    fmin/fmax of (plane - o) * inv, then fmax/fmin over axes 0, 1, 2 in order.
+    Returns (crossed, t_enter, t_exit). Boxes are indexed, not sliced: a view per box
+    costs two atomic reference counts, more than the test itself."""
+    t0 = (boxes[j, 0, 0] - o0) * i0
+    t1 = (boxes[j, 1, 0] - o0) * i0
+    t_enter, t_exit = _fmin(t0, t1), _fmax(t0, t1)
+    t0 = (boxes[j, 0, 1] - o1) * i1
+    t1 = (boxes[j, 1, 1] - o1) * i1
+    t_enter, t_exit = _fmax(t_enter, _fmin(t0, t1)), _fmin(t_exit, _fmax(t0, t1))
+    t0 = (boxes[j, 0, 2] - o2) * i2
+    t1 = (boxes[j, 1, 2] - o2) * i2
+    t_enter, t_exit = _fmax(t_enter, _fmin(t0, t1)), _fmin(t_exit, _fmax(t0, t1))
+    # np.maximum(t_enter, 0) is NaN for a NaN t_enter, and then the ray is rejected.
+    ok = t_enter == t_enter and t_exit >= max(t_enter, 0.0) and t_enter < tmax
+    return ok, t_enter, t_exit
+
+
+@njit(inline="always", **JIT)
+def _node_hit(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2, tmax):
+    """Whether some box inside node_box[c] (2, 3) may pass `_slab`; s_a = 1 where i_a < 0
+    picks the near plane. Rounding of (x - o) * inv is monotone in x, so the node's slab
+    interval contains each child's. Node boxes are one ulp wider than the union of their
+    boxes: with a zero direction (inv = +-inf) and a box holding o on that axis, lo < o <
+    hi strictly, so this axis gives (-inf, inf), never the NaN of 0 * inf."""
+    t_enter = max(max((node_box[c, s0, 0] - o0) * i0, (node_box[c, s1, 1] - o1) * i1),
+                  (node_box[c, s2, 2] - o2) * i2)
+    t_exit = min(min((node_box[c, 1 - s0, 0] - o0) * i0, (node_box[c, 1 - s1, 1] - o1) * i1),
+                 (node_box[c, 1 - s2, 2] - o2) * i2)
+    return t_exit >= max(t_enter, 0.0) and t_enter < tmax
+
+
+def _buffers(n: int, k: int):
+    """Output rows: ray (c,) int64, col (c,) int32, t_enter, t_exit (c,) float64, with
+    room for two crossings per ray and at least one ray's worth (k)."""
+    cap = 2 * n + k + 16
+    return (np.empty(cap, np.int64), np.empty(cap, np.int32), np.empty(cap), np.empty(cap))
+
+
+def _grown(out, p: int):
+    """The same buffers, twice as long, first p rows kept."""
+    bigger = tuple(np.empty(2 * len(a), a.dtype) for a in out)
+    for a, b in zip(out, bigger, strict=True):
+        b[:p] = a[:p]
+    return bigger
+
+
+def slab_all(origin, direction, tmax, boxes):
+    """Every ray against every box, ray-major, then box order.
+
+    origin, direction : (n, 3) float64; tmax : (n,) float64; boxes : (k, 2, 3) float64
+    returns ray (p,) int64, col (p,) int32 (index into boxes), t_enter, t_exit (p,) float64
+    """
+    out, r, p = _buffers(len(origin), len(boxes)), 0, 0
+    while True:
+        r, p = _all_fill(origin, direction, tmax, boxes, r, p, *out)
+        if r == len(origin):
+            return tuple(a[:p] for a in out)
+        out = _grown(out, p)
+
+
+@njit(**JIT)
+def _all_fill(origin, direction, tmax, boxes, r0, p, ray, col, t_in, t_out):
+    """Rays r0.. of `slab_all` into the buffers from row p, until done or a ray might not
+    fit. Returns (next ray, next row). Buffers are arguments, never reassigned here:
+    numba reloads arrays that a loop rebinds, which made this loop ten times slower."""
+    n, k, cap = origin.shape[0], boxes.shape[0], len(ray)
+    for r in range(r0, n):
+        if p + k > cap:
+            return r, p
+        o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
+        i0, i1, i2 = 1.0 / direction[r, 0], 1.0 / direction[r, 1], 1.0 / direction[r, 2]
+        tm = tmax[r]
+        for j in range(k):
+            ok, te, tx = _slab(boxes, j, o0, o1, o2, i0, i1, i2, tm)
+            if ok:
+                ray[p], col[p], t_in[p], t_out[p] = r, j, te, tx
+                p += 1
+    return n, p
+
+
+def bvh_build(boxes: np.ndarray):
+    """Top-down full-sweep SAH BVH over finite boxes (m, 2, 3) float64, m >= 1. Plain
+    numpy: it runs once per table over instances (few), and numba compiles would cost
+    seconds per fresh cache.
+
+    returns node_box (q, 2, 3) float64 (unions of the boxes below, one ulp wider),
+    node_child (q,) int32 (left child of an inner node, right = left + 1; -1 for a leaf),
+    node_start, node_count (q,) int32 (a leaf's range in prim), prim (m,) int32
+    """
+    m = len(boxes)
+    node_box = np.empty((2 * m - 1, 2, 3))
+    node_child = np.full(2 * m - 1, -1, np.int32)
+    node_start = np.zeros(2 * m - 1, np.int32)
+    node_count = np.zeros(2 * m - 1, np.int32)
+    prim = np.arange(m, dtype=np.int32)
+    centre = 0.5 * (boxes[:, 0] + boxes[:, 1])  # (m, 3)
+    stack, q = [(0, 0, m)], 1
+    while stack:
+        node, s, e = stack.pop()
+        idx = prim[s:e]
+        node_box[node, 0], node_box[node, 1] = boxes[idx, 0].min(0), boxes[idx, 1].max(0)
+        node_start[node], node_count[node] = s, e - s
+        c = e - s
+        if c <= BVH_LEAF_SIZE:
+            continue
+        best_cost, best_order, best_split = np.inf, idx, c // 2
+        for axis in range(3):
+            order = idx[np.argsort(centre[idx, axis], kind="stable")]
+            # (c,) surface areas of the first i + 1 boxes and of the last c - i boxes
+            left = _half_area(np.minimum.accumulate(boxes[order, 0]),
+                              np.maximum.accumulate(boxes[order, 1]))
+            right = _half_area(np.minimum.accumulate(boxes[order[::-1], 0])[::-1],
+                               np.maximum.accumulate(boxes[order[::-1], 1])[::-1])
+            split = np.arange(1, c)  # left part is order[:split]
+            cost = left[:-1] * split + right[1:] * (c - split)
+            i = int(np.argmin(cost))
+            if cost[i] < best_cost:
+                best_cost, best_order, best_split = cost[i], order, i + 1
+        prim[s:e] = best_order
+        mid = s + best_split
+        node_child[node] = q
+        stack += [(q, s, mid), (q + 1, mid, e)]
+        q += 2
+    node_box = np.stack([np.nextafter(node_box[:q, 0], -np.inf),
+                         np.nextafter(node_box[:q, 1], np.inf)], axis=1)
+    return node_box, node_child[:q], node_start[:q], node_count[:q], prim
+
+
+def _half_area(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    ext = hi - lo  # (c, 3)
+    return ext[:, 0] * ext[:, 1] + ext[:, 1] * ext[:, 2] + ext[:, 2] * ext[:, 0]
+
+
+def bvh_slab(origin, direction, tmax, boxes, node_box, node_child, node_start, node_count,
+             prim, col_of):
+    """`slab_all` over the boxes whose col_of (m,) int32 is >= 0 (their position in the
+    requested instance list, unique), through the BVH from `bvh_build(boxes)`. Shapes
+    and dtypes as in `slab_all`; crossings come out ray-major, then by col."""
+    k = int(col_of.max()) + 1
+    members = np.full(k, -1, np.int64)  # col -> box
+    members[col_of[col_of >= 0]] = np.flatnonzero(col_of >= 0)
+    scratch = (np.empty(k, np.int32), np.empty(k), np.empty(k),  # one ray's crossings
+               np.empty(len(node_child) + 1, np.int32))  # traversal stack
+    out, r, p = _buffers(len(origin), k), 0, 0
+    while True:
+        r, p = _bvh_fill(origin, direction, tmax, boxes, node_box, node_child, node_start,
+                         node_count, prim, col_of, members, r, p, *out, *scratch)
+        if r == len(origin):
+            return tuple(a[:p] for a in out)
+        out = _grown(out, p)
+
+
+@njit(**JIT)
+def _bvh_fill(origin, direction, tmax, boxes, node_box, node_child, node_start, node_count,
+              prim, col_of, members, r0, p, ray, col, t_in, t_out, hit_col, hit_in, hit_out,
+              stack):
+    """Rays r0.. of `bvh_slab`, as `_all_fill`. Rays with a non-finite origin or direction
+    component take the plain loop: the node test does not mirror the reference formula's
+    NaN cases for them."""
+    n, k, cap = origin.shape[0], members.shape[0], len(ray)
+    for r in range(r0, n):
+        if p + k > cap:
+            return r, p
+        o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
+        d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
+        i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
+        s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
+        tm = tmax[r]
+        h = 0
+        if (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2) and np.isfinite(d0)
+                and np.isfinite(d1) and np.isfinite(d2)):
+            top = 0
+            if _node_hit(node_box, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm):
+                stack[0] = 0
+                top = 1
+            while top > 0:
+                top -= 1
+                node = stack[top]
+                c = node_child[node]
+                if c >= 0:
+                    if _node_hit(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm):
+                        stack[top] = c
+                        top += 1
+                    if _node_hit(node_box, c + 1, o0, o1, o2, i0, i1, i2, s0, s1, s2,
+                                 tm):
+                        stack[top] = c + 1
+                        top += 1
+                    continue
+                for x in range(node_start[node], node_start[node] + node_count[node]):
+                    b = prim[x]
+                    j = col_of[b]
+                    if j < 0:
+                        continue
+                    ok, te, tx = _slab(boxes, b, o0, o1, o2, i0, i1, i2, tm)
+                    if ok:  # insert by col: a ray crosses few boxes
+                        y = h
+                        while y > 0 and hit_col[y - 1] > j:
+                            hit_col[y], hit_in[y], hit_out[y] = (
+                                hit_col[y - 1], hit_in[y - 1], hit_out[y - 1])
+                            y -= 1
+                        hit_col[y], hit_in[y], hit_out[y] = j, te, tx
+                        h += 1
+        else:
+            for j in range(k):
+                ok, te, tx = _slab(boxes, members[j], o0, o1, o2, i0, i1, i2, tm)
+                if ok:
+                    hit_col[h], hit_in[h], hit_out[h] = j, te, tx
+                    h += 1
+        for y in range(h):
+            ray[p], col[p], t_in[p], t_out[p] = r, hit_col[y], hit_in[y], hit_out[y]
+            p += 1
+    return n, p
