@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from workers import kernels
 from workers.geometry import MeshGeometry
 from workers.toplevel import InstanceTable
 
@@ -28,18 +29,15 @@ class LocalGeometry:
         return f"LocalGeometry({len(self.geometry)} meshes, {len(self.instances)} instances)"
 
     def _pairs_by_mesh(self, origin, direction, tmax):
-        """Yield (mesh index, ray (p,) int64, inst (p,) int32, local origin/direction)."""
+        """Yield (mesh index, ray (p,) int64, inst (p,) int32, local origin/direction), by
+        ascending mesh, crossings in `box_entries` order within a mesh."""
         ray, inst, _, _ = self.table.box_entries(origin, direction, tmax, self.instances)
         if len(ray) == 0:
             return
-        mesh = self.table.mesh[inst]
-        order = np.argsort(mesh, kind="stable")
-        ray, inst, mesh = ray[order], inst[order], mesh[order]
-        starts = np.flatnonzero(np.r_[True, mesh[1:] != mesh[:-1]])
-        for a, b in zip(starts, np.r_[starts[1:], len(mesh)], strict=True):
-            r, i = ray[a:b], inst[a:b]
-            lo, ld = self.table.to_local(i, origin[r], direction[r])
-            yield int(mesh[a]), r, i, lo, ld
+        ray, inst, start, lo, ld = self.table.pairs_by_mesh(ray, inst, origin, direction)
+        for m in np.flatnonzero(start[1:] > start[:-1]):
+            a, b = start[m], start[m + 1]
+            yield int(m), ray[a:b], inst[a:b], lo[a:b], ld[a:b]
 
     def intersect_closest(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray):
         """Closest hit among these instances within (0, tmax).
@@ -54,7 +52,12 @@ class LocalGeometry:
         prim_best = np.full(n, -1, np.int32)
         u_best = np.zeros(n, np.float32)
         v_best = np.zeros(n, np.float32)
-        parts = []
+        # Each ray's closest candidate so far: smaller t, then the lowest instance, so any
+        # shard split agrees. Folded in per mesh (a jitted loop, no sort of all hits).
+        run_t = np.full(n, np.inf, np.float32)
+        run_inst = np.full(n, -1, np.int32)
+        run_prim = np.full(n, -1, np.int32)
+        run_u, run_v = np.zeros(n, np.float32), np.zeros(n, np.float32)
         for m, r, i, lo, ld in self._pairs_by_mesh(origin, direction, tmax):
             # Embree always gets tfar = inf: which of two triangles tied on a shared edge
             # it reports depends on tfar, and an exact render must not depend on the
@@ -62,19 +65,13 @@ class LocalGeometry:
             far = np.full(len(r), _FAR, np.float32)  # fresh: embreex writes tfar in place
             t, prim, u, v = self.geometry[m].intersect_closest(lo, ld, far)
             hit = (prim >= 0) & (t < tmax[r])
-            parts.append((r[hit], t[hit], i[hit], prim[hit], u[hit], v[hit]))
-        if parts:
-            r, t, i, prim, u, v = (np.concatenate(x) for x in zip(*parts, strict=True))
-            # Closest per ray; ties go to the lowest instance so any shard split agrees.
-            order = np.lexsort((i, t, r))
-            r, t, i, prim, u, v = r[order], t[order], i[order], prim[order], u[order], v[order]
-            first = np.ones(len(r), bool)
-            first[1:] = r[1:] != r[:-1]
-            r, t, i, prim, u, v = r[first], t[first], i[first], prim[first], u[first], v[first]
-            better = t < t_best[r]
-            r = r[better]
-            t_best[r], inst_best[r], prim_best[r] = t[better], i[better], prim[better]
-            u_best[r], v_best[r] = u[better], v[better]
+            kernels.closest_candidates(
+                r[hit], t[hit], i[hit], prim[hit], u[hit], v[hit],
+                run_t, run_inst, run_prim, run_u, run_v)
+        better = (run_inst >= 0) & (run_t < t_best)
+        t_best[better], inst_best[better] = run_t[better], run_inst[better]
+        prim_best[better] = run_prim[better]
+        u_best[better], v_best[better] = run_u[better], run_v[better]
         return t_best, inst_best, prim_best, u_best, v_best
 
     def intersect_occluded(self, origin: np.ndarray, direction: np.ndarray,

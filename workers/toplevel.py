@@ -43,10 +43,13 @@ class InstanceTable:
         self._bvh = None
         if len(boxes) and np.isfinite(boxes).all():
             self._bvh = (boxes, *kernels.bvh_build(boxes))
+        self._mesh = np.array(self.mesh, np.int32)
+        self._world_to_local = np.array(self.world_to_local, np.float64, order="C")
 
     def __getstate__(self):
         state = self.__dict__.copy()
-        state.pop("_bvh", None)  # rebuilt on unpickling: cheap, and then writable
+        for name in ("_bvh", "_mesh", "_world_to_local"):
+            state.pop(name, None)  # rebuilt on unpickling: cheap, and then writable
         return state
 
     def __setstate__(self, state):
@@ -63,10 +66,24 @@ class InstanceTable:
         returns origin, direction : (n, 3) float32 local (direction not renormalised,
         so t is the same in both spaces)
         """
-        m = self.world_to_local[inst]  # (n, 3, 4)
-        o = np.einsum("nij,nj->ni", m[:, :, :3], origin.astype(np.float64)) + m[:, :, 3]
-        d = np.einsum("nij,nj->ni", m[:, :, :3], direction.astype(np.float64))
-        return o.astype(np.float32), d.astype(np.float32)
+        return kernels.to_local(np.asarray(inst, np.int32), self._world_to_local,
+                                np.array(origin, np.float64, order="C"),
+                                np.array(direction, np.float64, order="C"))
+
+    def pairs_by_mesh(self, ray: np.ndarray, inst: np.ndarray, origin: np.ndarray,
+                      direction: np.ndarray):
+        """Crossings grouped by base mesh, rays moved to local space (as `to_local`).
+
+        ray (p,) int64, inst (p,) int32 (as from `box_entries`); origin, direction (n, 3)
+        returns ray (p,) int64, inst (p,) int32, start (meshes + 1,) int64 (mesh g's rows
+        are start[g]:start[g + 1], each in the order given), local origin, direction
+        (p, 3) float32
+        """
+        n_mesh = int(self._mesh.max()) + 1 if len(self._mesh) else 0
+        return kernels.pairs_by_mesh(
+            np.asarray(ray, np.int64), np.asarray(inst, np.int32), self._mesh, n_mesh,
+            self._world_to_local, np.array(origin, np.float64, order="C"),
+            np.array(direction, np.float64, order="C"))
 
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
         """Slab test of rays against a set of instance boxes, in float64.
