@@ -141,6 +141,11 @@ def verdict(res: dict) -> dict:
 # -- output ---------------------------------------------------------------------------
 
 
+def _fmt(v, spec: str) -> str:
+    """format(v, spec), or empty for a missing value."""
+    return "" if v is None else format(v, spec)
+
+
 def markdown(res: dict) -> str:
     s, m = res["settings"], res["machine"]
     lines = [f"Size `{res['size']}`, {s['width']}x{s['height']}, {s['spp']} spp, "
@@ -177,8 +182,7 @@ def markdown(res: dict) -> str:
               "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | --- |"]
     for name, sc in res["scenes"].items():
         for d in sc["proxies"]:
-            def f(v, fmt):
-                return "" if v is None else format(v, fmt)
+            f = _fmt
             lines.append(f"| {name} | {d['mesh']} | {d['decision']} | {f(d['width'], 'd')} | "
                          f"{f(d['accuracy'], '.4f')} | "
                          f"{f(d['proxy_bytes'] and d['proxy_bytes'] / 1e3, '.1f')} | "
