@@ -15,15 +15,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from scene.model import Camera, Material, Mesh
+from workers import shade_kernels
 from workers.batch import LIGHT_BASE, NO_HIT, PRIMARY, SECONDARY, RayBatch, ShadowRayBatch
 from workers.camera import generate_primary
-from workers.lights import LightSet
+from workers.lights import FAR_T, LightSet
 from workers.offset import offset_ray_origin
 from workers.passes import Pass
-from workers.rng import DIM_BSDF_U, DIM_BSDF_V, DIM_LIGHT_BASE, DIM_RR, uniform
-from workers.sampling import cosine_hemisphere
+from workers.rng import DIM_BSDF_V
 from workers.settings import RenderSettings
-from workers.surface import surface_at
+from workers.surface import SurfaceTables, surface_at
 from workers.toplevel import InstanceTable
 
 RR_START_DEPTH = 3
@@ -61,6 +61,8 @@ class PathIntegrator:
                  materials: Sequence[Material], table: InstanceTable, lights: LightSet):
         self.s, self.camera, self.meshes, self.materials = settings, camera, meshes, materials
         self.table, self.lights = table, lights
+        self._lights_cache = None
+        self._surfaces: SurfaceTables | None = None  # built on first use
 
     def primary(self, p: Pass) -> RayBatch:
         """Camera rays of one pass: every pixel of the tile times every sample of the chunk."""
@@ -91,8 +93,7 @@ class PathIntegrator:
         shadow, secondary = ShadowRayBatch.empty(), RayBatch.empty()
         if surf.any():
             r = rays.take(surf)
-            sf = surface_at(self.meshes, self.materials, self.table, r.hit_inst, r.hit_prim,
-                            r.hit_u, r.hit_v, r.direction)
+            sf = self._surface_at(r)
             t = thr[surf]
             if sf.emission.any():
                 pix_parts.append(r.pixel)
@@ -106,6 +107,16 @@ class PathIntegrator:
         else:
             pixel, rgb = np.zeros(0, np.uint32), np.zeros((0, 3))
         return Shaded(pixel, rgb, shadow, secondary)
+
+    def _surface_at(self, r: RayBatch):
+        """`surface_at` through its kernel, unless np.einsum's sum order for this
+        instance table's layout was not recognised."""
+        if self._surfaces is None:
+            self._surfaces = SurfaceTables(self.meshes, self.materials, self.table)
+        if self._surfaces.exact:
+            return self._surfaces.at(r.hit_inst, r.hit_prim, r.hit_u, r.hit_v, r.direction)
+        return surface_at(self.meshes, self.materials, self.table, r.hit_inst, r.hit_prim,
+                          r.hit_u, r.hit_v, r.direction)
 
     def _light_emission(self, r: RayBatch) -> np.ndarray:
         """(n, 3) f64 quad radiance, MIS-weighted against next-event sampling."""
@@ -122,49 +133,34 @@ class PathIntegrator:
         S = self.s.shadow_rays
         if S == 0 or self.lights.count == 0:
             return ShadowRayBatch.empty()
-        idx = np.repeat(np.flatnonzero(go), S)  # (n*S,) rows of r
-        s_i = np.tile(np.arange(S), int(go.sum()))
-        pix, smp, dep = r.pixel[idx], r.sample[idx], r.depth[idx]
-        dim = DIM_LIGHT_BASE + 3 * s_i
-
-        def rnd(k):
-            return uniform(self.s.seed, pix, smp, dep, dim + k)
-
-        p = sf.p[idx]
-        wi, dist, value, pdf_l = self.lights.sample(rnd(0), rnd(1), rnd(2), p)
-        ns, ng = sf.ns[idx], sf.ng[idx]
-        cos_s = np.einsum("ij,ij->i", wi, ns)
-        cos_g = np.einsum("ij,ij->i", wi, ng)
-        pdf_b = np.maximum(cos_s, 0.0) / np.pi
-        # Light samples carry Le/p_l; the balance weight S p_l / (S p_l + p_b) over S.
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = np.where(pdf_l > 0, S * pdf_l / (S * pdf_l + pdf_b), 1.0) / S
-        contrib = thr[idx] * (sf.albedo[idx] / np.pi) * value * (np.maximum(cos_s, 0) * w)[:, None]
-        ok = (cos_s > 0) & (cos_g > 0) & (contrib.max(axis=1) > 0)
-        origin = offset_ray_origin(p[ok].astype(np.float32), ng[ok].astype(np.float32))
-        n = int(ok.sum())
+        k, p32, ng32, wi, tmax, contrib, pix = shade_kernels.next_event(
+            self.s.seed, S, np.flatnonzero(go), r.pixel, r.sample, r.depth,
+            sf.p, sf.ns, sf.ng, sf.albedo, thr, *self._light_arrays(),
+            float(FAR_T), float(SHADOW_TMAX_SCALE))
         return ShadowRayBatch(
-            origin=origin, direction=wi[ok].astype(np.float32),
-            tmax=(dist[ok] * SHADOW_TMAX_SCALE).astype(np.float32),
-            contribution=contrib[ok].astype(np.float32), pixel=pix[ok],
-            visited=np.zeros(n, np.uint64), hops=np.zeros(n, np.uint8))
+            origin=offset_ray_origin(p32[:k], ng32[:k]), direction=wi[:k], tmax=tmax[:k],
+            contribution=contrib[:k], pixel=pix[:k],
+            visited=np.zeros(k, np.uint64), hops=np.zeros(k, np.uint8))
+
+    def _light_arrays(self) -> tuple:
+        """The light arrays as the kernels take them: owned, writable, C-ordered float64
+        (arrays read back from Ray's object store are read-only, a separate numba type)."""
+        if self._lights_cache is None:
+            L = self.lights
+            self._lights_cache = tuple(
+                np.array(a, np.float64, order="C") for a in (
+                    L.quad_corner, L.quad_u, L.quad_v, L.quad_normal, L.quad_area,
+                    L.quad_radiance, L.point_pos, L.point_intensity, L.dir_dir,
+                    L.dir_irradiance))
+        return self._lights_cache
 
     def _continue(self, r: RayBatch, sf, thr: np.ndarray, go: np.ndarray) -> RayBatch:
         g = np.flatnonzero(go)
-        pix, smp, dep = r.pixel[g], r.sample[g], r.depth[g]
-        u1 = uniform(self.s.seed, pix, smp, dep, DIM_BSDF_U)
-        u2 = uniform(self.s.seed, pix, smp, dep, DIM_BSDF_V)
-        d, pdf = cosine_hemisphere(u1, u2, sf.ns[g])
-        t = thr[g] * sf.albedo[g]  # f * cos / pdf for a Lambertian BSDF
-        keep = np.einsum("ij,ij->i", d, sf.ng[g]) > 0  # below the true surface: absorbed
-        if self.s.russian_roulette:
-            q = np.clip(1.0 - t.max(axis=1), 0.0, 0.95)
-            rr = dep + 1 >= RR_START_DEPTH
-            survive = uniform(self.s.seed, pix, smp, dep, DIM_RR) >= q
-            keep &= ~rr | survive
-            t = np.where(rr[:, None], t / (1.0 - q)[:, None], t)
-        keep &= t.max(axis=1) > 0
-        k = g[keep]
-        origin = offset_ray_origin(sf.p[k].astype(np.float32), sf.ng[k].astype(np.float32))
-        return new_rays(origin, d[keep], t[keep], r.pixel[k], r.sample[k],
-                        r.depth[k] + 1, SECONDARY, pdf[keep])
+        u2 = shade_kernels.uniform_rows(self.s.seed, g, r.pixel, r.sample, r.depth, DIM_BSDF_V)
+        phi = 2.0 * np.pi * u2  # sines in numpy: its SIMD versions need not round like libm's
+        c, k, p32, ng32, d, t, pdf = shade_kernels.bsdf_continue(
+            self.s.seed, g, r.pixel, r.sample, r.depth, np.cos(phi), np.sin(phi), sf.p, sf.ng,
+            sf.ns, sf.albedo, thr, self.s.russian_roulette, RR_START_DEPTH)
+        k = k[:c]
+        return new_rays(offset_ray_origin(p32[:c], ng32[:c]), d[:c], t[:c], r.pixel[k],
+                        r.sample[k], r.depth[k] + 1, SECONDARY, pdf[:c])

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from scene.model import Material, Mesh
+from workers import shade_kernels
 from workers.sampling import normalize
 from workers.toplevel import InstanceTable
 
@@ -25,10 +26,82 @@ class Surface:
     emission: np.ndarray
 
 
+class SurfaceTables:
+    """The meshes held here, their materials and the instance transforms, concatenated into
+    the owned, writable arrays that `shade_kernels.surface` reads (built once per
+    integrator; arrays read back from Ray's object store are read-only)."""
+
+    def __init__(self, meshes: Mapping[int, Mesh], materials: Sequence[Material],
+                 table: InstanceTable):
+        held = sorted(meshes)
+        n_base = max([*held, int(table.mesh.max(initial=-1))]) + 1
+        self.slot_of_mesh = np.full(n_base, -1, np.int64)
+        self.slot_of_mesh[held] = np.arange(len(held))
+        ms = [meshes[m] for m in held]
+        nv = np.array([len(m.vertices) for m in ms], np.int64)
+        nf = np.array([len(m.faces) for m in ms], np.int64)
+        self.vbase = np.concatenate([[0], np.cumsum(nv)[:-1]]).astype(np.int64)
+        self.fbase = np.concatenate([[0], np.cumsum(nf)[:-1]]).astype(np.int64)
+
+        def cat(parts, width, dtype):
+            parts = [np.asarray(a, dtype).reshape(-1, width) for a in parts]
+            return np.ascontiguousarray(np.concatenate([np.zeros((0, width), dtype), *parts]))
+
+        self.verts = cat([m.vertices for m in ms], 3, np.float32)
+        self.faces = cat([np.asarray(m.faces, np.int64) + b for m, b in zip(ms, self.vbase,
+                                                                              strict=True)],
+                         3, np.int64)
+        self.normals = cat([m.normals if m.normals is not None else np.zeros((len(m.vertices), 3))
+                            for m in ms], 3, np.float32)
+        self.uvs = cat([m.uvs if m.uvs is not None else np.zeros((len(m.vertices), 2))
+                        for m in ms], 2, np.float32)
+        self.has_n = np.array([m.normals is not None for m in ms], np.bool_)
+        self.has_uv = np.array([m.uvs is not None for m in ms], np.bool_)
+        self.mesh_mat = np.array([m.material for m in ms], np.int64)
+        self.mat_albedo = cat([m.albedo for m in materials], 3, np.float64)
+        self.mat_emission = cat([m.emission for m in materials], 3, np.float64)
+        textures = [m.texture for m in materials if m.texture is not None]
+        self.mat_tex = np.full(len(materials), -1, np.int64)
+        self.mat_tex[[i for i, m in enumerate(materials) if m.texture is not None]] = \
+            np.arange(len(textures))
+        self.tex_h = np.array([t.shape[0] for t in textures], np.int64)
+        self.tex_w = np.array([t.shape[1] for t in textures], np.int64)
+        sizes = self.tex_h * self.tex_w
+        self.tex_base = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        self.texels = cat(textures, 3, np.float32)
+        self.inst_mesh = np.array(table.mesh, np.int32)
+        self.l2w = np.array(table.local_to_world, np.float64, order="C")
+        self.nmat = np.array(table.normal_to_world, np.float64, order="C")
+        self.held = held
+        # np.einsum's sum order follows the table's memory layout (a transposed view here,
+        # C order after unpickling): copy whichever surface_at would use.
+        self.l2w_order = shade_kernels.probe_sum_order(table.local_to_world)
+        self.nmat_order = shade_kernels.probe_sum_order(table.normal_to_world)
+        self.exact = self.l2w_order is not None and self.nmat_order is not None
+
+    def at(self, inst: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
+           direction: np.ndarray) -> Surface:
+        """`surface_at` through the kernel (bit-identical); the same arguments."""
+        bad, p, ng, ns, albedo, emission = shade_kernels.surface(
+            np.ascontiguousarray(inst, np.int32), np.ascontiguousarray(prim, np.int32),
+            np.ascontiguousarray(u, np.float32), np.ascontiguousarray(v, np.float32),
+            np.ascontiguousarray(direction, np.float32), self.slot_of_mesh, self.inst_mesh,
+            self.l2w, self.nmat, self.l2w_order, self.nmat_order, self.verts, self.faces,
+            self.normals, self.uvs, self.vbase, self.fbase, self.has_n, self.has_uv,
+            self.mesh_mat, self.mat_albedo, self.mat_emission, self.mat_tex, self.tex_base,
+            self.tex_h, self.tex_w, self.texels)
+        if bad >= 0:
+            m = int(self.inst_mesh[inst[bad]])
+            raise KeyError(f"mesh {m} of instance {int(inst[bad])} is not held here "
+                           f"(held: {self.held})")
+        return Surface(p, ng, ns, albedo, emission)
+
+
 def surface_at(meshes: Mapping[int, Mesh], materials: Sequence[Material],
                table: InstanceTable, inst: np.ndarray, prim: np.ndarray,
                u: np.ndarray, v: np.ndarray, direction: np.ndarray) -> Surface:
-    """inst, prim (n,) int32; u, v (n,) float32 barycentrics; direction (n,3) f32 incoming."""
+    """inst, prim (n,) int32; u, v (n,) float32 barycentrics; direction (n,3) f32 incoming.
+    The numpy formula, kept as the oracle of `SurfaceTables.at`."""
     n = len(inst)
     p_loc = np.zeros((n, 3))
     ng_loc = np.zeros((n, 3))
