@@ -19,7 +19,6 @@ from workers import shade_kernels
 from workers.batch import LIGHT_BASE, NO_HIT, PRIMARY, SECONDARY, RayBatch, ShadowRayBatch
 from workers.camera import generate_primary
 from workers.lights import FAR_T, LightSet
-from workers.offset import offset_ray_origin
 from workers.passes import Pass
 from workers.rng import DIM_BSDF_V
 from workers.settings import RenderSettings
@@ -89,32 +88,33 @@ class PathIntegrator:
         if on_light.any():
             pix_parts.append(rays.pixel[on_light])
             rgb_parts.append(thr[on_light] * self._light_emission(rays.take(on_light)))
-        surf = rays.hit_inst >= 0
+        surf = np.flatnonzero(rays.hit_inst >= 0)  # (h,) rays that hit an instance
         shadow, secondary = ShadowRayBatch.empty(), RayBatch.empty()
-        if surf.any():
-            r = rays.take(surf)
-            sf = self._surface_at(r)
+        if len(surf):
+            sf = self._surface_at(rays, surf)
             t = thr[surf]
             if sf.emission.any():
-                pix_parts.append(r.pixel)
+                pix_parts.append(rays.pixel[surf])
                 rgb_parts.append(t * sf.emission)
-            go = r.depth < self.s.bounces
+            go = rays.depth[surf] < self.s.bounces
             if go.any():
-                shadow = self._next_event(r, sf, t, go)
-                secondary = self._continue(r, sf, t, go)
+                shadow = self._next_event(rays, surf, sf, t, go)
+                secondary = self._continue(rays, surf, sf, t, go)
         if pix_parts:
             pixel, rgb = np.concatenate(pix_parts), np.concatenate(rgb_parts)
         else:
             pixel, rgb = np.zeros(0, np.uint32), np.zeros((0, 3))
         return Shaded(pixel, rgb, shadow, secondary)
 
-    def _surface_at(self, r: RayBatch):
-        """`surface_at` through its kernel, unless np.einsum's sum order for this
-        instance table's layout was not recognised."""
+    def _surface_at(self, rays: RayBatch, surf: np.ndarray):
+        """Surfaces of rays[surf] through the kernel, unless np.einsum's sum order for
+        this instance table's layout was not recognised."""
         if self._surfaces is None:
             self._surfaces = SurfaceTables(self.meshes, self.materials, self.table)
         if self._surfaces.exact:
-            return self._surfaces.at(r.hit_inst, r.hit_prim, r.hit_u, r.hit_v, r.direction)
+            return self._surfaces.at(rays.hit_inst, rays.hit_prim, rays.hit_u, rays.hit_v,
+                                     rays.direction, rows=surf)
+        r = rays.take(surf)
         return surface_at(self.meshes, self.materials, self.table, r.hit_inst, r.hit_prim,
                           r.hit_u, r.hit_v, r.direction)
 
@@ -129,16 +129,18 @@ class PathIntegrator:
         w = np.where(pdf_b > 0, pdf_b / (pdf_b + pdf_l), 1.0)  # camera rays: no MIS
         return le * w[:, None]
 
-    def _next_event(self, r: RayBatch, sf, thr: np.ndarray, go: np.ndarray) -> ShadowRayBatch:
+    def _next_event(self, rays: RayBatch, surf: np.ndarray, sf, thr: np.ndarray,
+                    go: np.ndarray) -> ShadowRayBatch:
+        """S shadow rays per hit where go; hit i is rays[surf[i]]."""
         S = self.s.shadow_rays
         if S == 0 or self.lights.count == 0:
             return ShadowRayBatch.empty()
-        k, p32, ng32, wi, tmax, contrib, pix = shade_kernels.next_event(
-            self.s.seed, S, np.flatnonzero(go), r.pixel, r.sample, r.depth,
+        k, origin, wi, tmax, contrib, pix = shade_kernels.next_event(
+            self.s.seed, S, np.flatnonzero(go), surf, rays.pixel, rays.sample, rays.depth,
             sf.p, sf.ns, sf.ng, sf.albedo, thr, *self._light_arrays(),
             float(FAR_T), float(SHADOW_TMAX_SCALE))
         return ShadowRayBatch(
-            origin=offset_ray_origin(p32[:k], ng32[:k]), direction=wi[:k], tmax=tmax[:k],
+            origin=origin[:k], direction=wi[:k], tmax=tmax[:k],
             contribution=contrib[:k], pixel=pix[:k],
             visited=np.zeros(k, np.uint64), hops=np.zeros(k, np.uint8))
 
@@ -154,13 +156,17 @@ class PathIntegrator:
                     L.dir_irradiance))
         return self._lights_cache
 
-    def _continue(self, r: RayBatch, sf, thr: np.ndarray, go: np.ndarray) -> RayBatch:
+    def _continue(self, rays: RayBatch, surf: np.ndarray, sf, thr: np.ndarray,
+                  go: np.ndarray) -> RayBatch:
+        """One BSDF ray per hit where go (absorbed or terminated ones dropped)."""
         g = np.flatnonzero(go)
-        u2 = shade_kernels.uniform_rows(self.s.seed, g, r.pixel, r.sample, r.depth, DIM_BSDF_V)
+        u2 = shade_kernels.uniform_rows(self.s.seed, surf[g], rays.pixel, rays.sample,
+                                        rays.depth, DIM_BSDF_V)
         phi = 2.0 * np.pi * u2  # sines in numpy: its SIMD versions need not round like libm's
-        c, k, p32, ng32, d, t, pdf = shade_kernels.bsdf_continue(
-            self.s.seed, g, r.pixel, r.sample, r.depth, np.cos(phi), np.sin(phi), sf.p, sf.ng,
-            sf.ns, sf.albedo, thr, self.s.russian_roulette, RR_START_DEPTH)
-        k = k[:c]
-        return new_rays(offset_ray_origin(p32[:c], ng32[:c]), d[:c], t[:c], r.pixel[k],
-                        r.sample[k], r.depth[k] + 1, SECONDARY, pdf[:c])
+        c, k, origin, d, t, pdf = shade_kernels.bsdf_continue(
+            self.s.seed, g, surf, rays.pixel, rays.sample, rays.depth, np.cos(phi),
+            np.sin(phi), sf.p, sf.ng, sf.ns, sf.albedo, thr, self.s.russian_roulette,
+            RR_START_DEPTH)
+        k = surf[k[:c]]
+        return new_rays(origin[:c], d[:c], t[:c], rays.pixel[k],
+                        rays.sample[k], rays.depth[k] + 1, SECONDARY, pdf[:c])

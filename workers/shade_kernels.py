@@ -59,6 +59,37 @@ def uniform_rows(seed, rows, pixel, sample, bounce, dim):
     return out
 
 
+_ORIGIN = np.float32(1.0 / 32.0)  # the constants of workers.offset
+_FLOAT_SCALE = np.float32(1.0 / 65536.0)
+_INT_SCALE = np.float32(256.0)
+_INT32_MIN = -(1 << 31)
+
+
+@njit(inline="always", **JIT)
+def offset_coord(p, n):
+    """One coordinate of `workers.offset.offset_ray_origin`: p, n float32 -> float32, in
+    float32 and wrapping int32 arithmetic as numpy does it."""
+    prod = np.float32(_INT_SCALE * n)
+    # x86's float -> int32 conversion gives INT32_MIN for NaN and out-of-range values.
+    of_i = np.int64(prod) if abs(prod) < np.float32(2147483648.0) else np.int64(_INT32_MIN)
+    if p < 0:
+        of_i = -of_i
+    p_i = np.int32(np.int64(np.float32(p).view(np.int32)) + of_i)  # wraps like numpy's int32 add
+    if abs(p) < _ORIGIN:
+        return np.float32(p + np.float32(_FLOAT_SCALE * n))
+    return np.int32(p_i).view(np.float32)
+
+
+@njit(**JIT)
+def offset_rows(p, n):
+    """`workers.offset.offset_ray_origin` for (k, 3) float32 p and n (its oracle test)."""
+    out = np.empty_like(p)
+    for i in range(len(p)):
+        for c in range(3):
+            out[i, c] = offset_coord(p[i, c], n[i, c])
+    return out
+
+
 @njit(inline="always", **JIT)
 def _dot(a0, a1, a2, b0, b1, b2):
     """np.einsum's order for three terms."""
@@ -107,16 +138,17 @@ def _norm(a0, a1, a2):
 
 
 @njit(**JIT)
-def next_event(seed, S, rows, pixel, sample, depth, p, ns, ng, albedo, thr,
+def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, ns, ng, albedo, thr,
                q_corner, q_u, q_v, q_normal, q_area, q_radiance,
                pt_pos, pt_intensity, dir_dir, dir_irradiance, far_t, tmax_scale):
-    """S light samples per row in `rows` (int64 indices into the per-hit arrays), kept
-    where the light is above both the shading and geometric surface and the contribution
-    is positive (and not NaN).
+    """S light samples per row in `rows` (int64 indices into the per-hit arrays; hit i
+    belongs to ray ray_of[i] of pixel, sample, depth), kept where the light is above both
+    the shading and geometric surface and the contribution is positive (and not NaN).
 
-    pixel, sample (n,) u32; depth (n,) u8; p, ns, ng, albedo, thr (n, 3) float64;
-    light arrays as in `LightSet` (float64); far_t, tmax_scale float64.
-    returns k and, in their first k rows: p32, ng32, direction (m, 3) float32,
+    pixel, sample (n,) u32; depth (n,) u8 per ray; p, ns, ng, albedo, thr (h, 3) float64
+    per hit; light arrays as in `LightSet` (float64); far_t, tmax_scale float64.
+    returns k and, in their first k rows: origin (offset as `workers.offset`),
+    direction (m, 3) float32,
     tmax (m,) float32, contribution (m, 3) float32, pixel (m,) uint32; m = len(rows) * S.
     """
     n_quads, n_points = len(q_area), len(pt_pos)
@@ -125,7 +157,6 @@ def next_event(seed, S, rows, pixel, sample, depth, p, ns, ng, albedo, thr,
     fS = np.float64(S)
     m = len(rows) * S
     o_p = np.empty((m, 3), np.float32)
-    o_ng = np.empty((m, 3), np.float32)
     o_dir = np.empty((m, 3), np.float32)
     o_tmax = np.empty(m, np.float32)
     o_con = np.empty((m, 3), np.float32)
@@ -139,7 +170,8 @@ def next_event(seed, S, rows, pixel, sample, depth, p, ns, ng, albedo, thr,
     k = 0
     for r in range(len(rows)):
         i = rows[r]
-        px, sm, dp = pixel[i], sample[i], depth[i]
+        j = ray_of[i]
+        px, sm, dp = pixel[j], sample[j], depth[j]
         p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
         for s in range(S):
             pick = uniform_keyed(keys[3 * s], px, sm, dp)
@@ -197,35 +229,33 @@ def next_event(seed, S, rows, pixel, sample, depth, p, ns, ng, albedo, thr,
             if c0 != c0 or c1 != c1 or c2 != c2 or not (c0 > 0 or c1 > 0 or c2 > 0):
                 continue  # contrib.max(axis=1) > 0: NaN propagates and fails
             for c in range(3):
-                o_p[k, c] = np.float32(p[i, c])
-                o_ng[k, c] = np.float32(ng[i, c])
+                o_p[k, c] = offset_coord(np.float32(p[i, c]), np.float32(ng[i, c]))
                 o_dir[k, c] = np.float32(wi[c])
             o_con[k, 0], o_con[k, 1], o_con[k, 2] = (np.float32(c0), np.float32(c1),
                                                      np.float32(c2))
             o_tmax[k] = np.float32(dist * tmax_scale)
             o_pix[k] = px
             k += 1
-    return k, o_p, o_ng, o_dir, o_tmax, o_con, o_pix
+    return k, o_p, o_dir, o_tmax, o_con, o_pix
 
 
 @njit(**JIT)
-def surface(inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, l2w_order,
+def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, l2w_order,
             nmat_order, verts, faces, normals, uvs, mesh_vbase, mesh_fbase, mesh_has_n,
             mesh_has_uv, mesh_mat, mat_albedo, mat_emission, mat_tex, tex_base, tex_h, tex_w,
             texels):
-    """Surface interactions of `workers.surface.surface_at`, row by row.
-
-    inst, prim (n,) int32; u, v (n,) float32; direction (n, 3) float32.
+    """Surface interactions of `workers.surface.surface_at` for `rows` (k,) int64 of the
+    hit records inst, prim (n,) int32; u, v (n,) float32; direction (n, 3) float32.
     slot_of_mesh (M,) int64 base mesh -> slot here (-1: not held); inst_mesh (m,) int32;
     l2w (m, 3, 4), nmat (m, 3, 3) float64, each with its np.einsum sum order;
     verts, normals (V, 3) float32; uvs (V, 2) float32; faces (F, 3) int64 (vertex base
     added). Per slot: vertex / face base, has-normals / has-uvs flags, material. Per
     material: albedo, emission (3,) float64, texture (-1: none). Per texture: texel base,
     height, width; texels (T, 3) float32.
-    returns bad (the first row whose mesh is not held, else -1), p, ng, ns, albedo,
-    emission (n, 3) float64.
+    returns bad (the first of rows whose mesh is not held, else -1), p, ng, ns, albedo,
+    emission (k, 3) float64.
     """
-    n = len(inst)
+    n = len(rows)
     p = np.empty((n, 3))
     ng = np.empty((n, 3))
     ns = np.empty((n, 3))
@@ -235,13 +265,14 @@ def surface(inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, l2w
     gl = np.empty(3)
     sl = np.empty(3)
     for i in range(n):
-        it = inst[i]
+        h = rows[i]
+        it = inst[h]
         slot = slot_of_mesh[inst_mesh[it]]
         if slot < 0:
-            return i, p, ng, ns, albedo, emission
-        b1, b2 = np.float64(u[i]), np.float64(v[i])
+            return h, p, ng, ns, albedo, emission
+        b1, b2 = np.float64(u[h]), np.float64(v[h])
         b0 = 1.0 - b1 - b2
-        f = mesh_fbase[slot] + prim[i]
+        f = mesh_fbase[slot] + prim[h]
         t0, t1, t2 = faces[f, 0], faces[f, 1], faces[f, 2]
         for c in range(3):
             x0 = np.float64(verts[t0, c])
@@ -268,11 +299,11 @@ def surface(inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, l2w
                   + b2 * np.float64(uvs[t2, 0]))
             vv = (b0 * np.float64(uvs[t0, 1]) + b1 * np.float64(uvs[t1, 1])
                   + b2 * np.float64(uvs[t2, 1]))
-            h, w = tex_h[tx], tex_w[tx]
-            x = np.int64(np.floor((uu % 1.0) * w)) % w
-            y = np.int64(np.floor(((1.0 - vv) % 1.0) * h)) % h
+            th, tw = tex_h[tx], tex_w[tx]
+            x = np.int64(np.floor((uu % 1.0) * tw)) % tw
+            y = np.int64(np.floor(((1.0 - vv) % 1.0) * th)) % th
             for c in range(3):
-                albedo[i, c] = np.float64(texels[tex_base[tx] + y * w + x, c])
+                albedo[i, c] = np.float64(texels[tex_base[tx] + y * tw + x, c])
         else:
             for c in range(3):
                 albedo[i, c] = mat_albedo[mat, c]
@@ -302,8 +333,8 @@ def surface(inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, l2w
             ln = 1.0
         s0, s1, s2 = s0 / ln, s1 / ln, s2 / ln
         # Two-sided diffuse: both normals face the side the ray came from.
-        if _dot(g0, g1, g2, np.float64(direction[i, 0]), np.float64(direction[i, 1]),
-                np.float64(direction[i, 2])) > 0:
+        if _dot(g0, g1, g2, np.float64(direction[h, 0]), np.float64(direction[h, 1]),
+                np.float64(direction[h, 2])) > 0:
             g0, g1, g2 = -g0, -g1, -g2
         if _dot(s0, s1, s2, g0, g1, g2) < 0:
             s0, s1, s2 = -s0, -s1, -s2
@@ -313,20 +344,21 @@ def surface(inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, l2w
 
 
 @njit(**JIT)
-def bsdf_continue(seed, rows, pixel, sample, depth, cos_phi, sin_phi, p, ng, ns, albedo, thr,
-                  russian_roulette, rr_start_depth):
+def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p, ng, ns,
+                  albedo, thr, russian_roulette, rr_start_depth):
     """Cosine-hemisphere continuation of `rows` (k,) int64 (of `workers.sampling.
     cosine_hemisphere` and `PathIntegrator._continue`): cos_phi, sin_phi (k,) float64 of
     phi = 2 pi u2 come from numpy, whose SIMD sines need not round like libm's.
 
-    pixel, sample (n,) u32; depth (n,) u8; p, ng, ns, albedo, thr (n, 3) float64.
+    ray_of (h,) int64 hit -> ray; pixel, sample (n,) u32; depth (n,) u8 per ray;
+    p, ng, ns, albedo, thr (h, 3) float64 per hit.
     returns c and, in their first c rows: row (c,) int64 (into the per-hit arrays),
-    p32, ng32, direction, throughput (c, 3) float32, pdf (c,) float32.
+    origin (offset as `workers.offset`), direction, throughput (c, 3) float32,
+    pdf (c,) float32.
     """
     k = len(rows)
     o_row = np.empty(k, np.int64)
     o_p = np.empty((k, 3), np.float32)
-    o_ng = np.empty((k, 3), np.float32)
     o_d = np.empty((k, 3), np.float32)
     o_t = np.empty((k, 3), np.float32)
     o_pdf = np.empty(k, np.float32)
@@ -336,7 +368,9 @@ def bsdf_continue(seed, rows, pixel, sample, depth, cos_phi, sin_phi, p, ng, ns,
     c = 0
     for j in range(k):
         i = rows[j]
-        u1 = uniform_keyed(key_u, pixel[i], sample[i], depth[i])
+        ray = ray_of[i]
+        px, sm, dp = pixel[ray], sample[ray], depth[ray]
+        u1 = uniform_keyed(key_u, px, sm, dp)
         r = np.sqrt(u1)
         x, y = r * cos_phi[j], r * sin_phi[j]
         z = np.sqrt(max(0.0, 1.0 - u1))
@@ -352,9 +386,9 @@ def bsdf_continue(seed, rows, pixel, sample, depth, cos_phi, sin_phi, p, ng, ns,
         t0, t1, t2 = thr[i, 0] * albedo[i, 0], thr[i, 1] * albedo[i, 1], thr[i, 2] * albedo[i, 2]
         if t0 != t0 or t1 != t1 or t2 != t2:
             continue  # t.max(axis=1) > 0 fails on NaN
-        if russian_roulette and np.int64(depth[i]) + 1 >= rr_start_depth:
+        if russian_roulette and np.int64(dp) + 1 >= rr_start_depth:
             q = min(max(1.0 - max(max(t0, t1), t2), 0.0), 0.95)
-            if not uniform_keyed(key_rr, pixel[i], sample[i], depth[i]) >= q:
+            if not uniform_keyed(key_rr, px, sm, dp) >= q:
                 continue
             s = 1.0 - q
             t0, t1, t2 = t0 / s, t1 / s, t2 / s
@@ -362,10 +396,9 @@ def bsdf_continue(seed, rows, pixel, sample, depth, cos_phi, sin_phi, p, ng, ns,
             continue
         o_row[c] = i
         for a_ in range(3):
-            o_p[c, a_] = np.float32(p[i, a_])
-            o_ng[c, a_] = np.float32(ng[i, a_])
+            o_p[c, a_] = offset_coord(np.float32(p[i, a_]), np.float32(ng[i, a_]))
         o_d[c, 0], o_d[c, 1], o_d[c, 2] = np.float32(d0), np.float32(d1), np.float32(d2)
         o_t[c, 0], o_t[c, 1], o_t[c, 2] = np.float32(t0), np.float32(t1), np.float32(t2)
         o_pdf[c] = np.float32(z / np.pi)
         c += 1
-    return c, o_row, o_p, o_ng, o_d, o_t, o_pdf
+    return c, o_row, o_p, o_d, o_t, o_pdf

@@ -80,10 +80,14 @@ class SurfaceTables:
         self.exact = self.l2w_order is not None and self.nmat_order is not None
 
     def at(self, inst: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
-           direction: np.ndarray) -> Surface:
-        """`surface_at` through the kernel (bit-identical); the same arguments."""
+           direction: np.ndarray, rows: np.ndarray | None = None) -> Surface:
+        """`surface_at` through the kernel (bit-identical); the same arguments, and
+        optionally rows (k,) int64: only these hits, in this order."""
+        if rows is None:
+            rows = np.arange(len(inst))
         bad, p, ng, ns, albedo, emission = shade_kernels.surface(
-            np.ascontiguousarray(inst, np.int32), np.ascontiguousarray(prim, np.int32),
+            np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(inst, np.int32),
+            np.ascontiguousarray(prim, np.int32),
             np.ascontiguousarray(u, np.float32), np.ascontiguousarray(v, np.float32),
             np.ascontiguousarray(direction, np.float32), self.slot_of_mesh, self.inst_mesh,
             self.l2w, self.nmat, self.l2w_order, self.nmat_order, self.verts, self.faces,
@@ -91,7 +95,7 @@ class SurfaceTables:
             self.mesh_mat, self.mat_albedo, self.mat_emission, self.mat_tex, self.tex_base,
             self.tex_h, self.tex_w, self.texels)
         if bad >= 0:
-            m = int(self.inst_mesh[inst[bad]])
+            m = int(self.inst_mesh[inst[bad]])  # bad: an index into inst
             raise KeyError(f"mesh {m} of instance {int(inst[bad])} is not held here "
                            f"(held: {self.held})")
         return Surface(p, ng, ns, albedo, emission)

@@ -88,10 +88,10 @@ def test_next_event_kernel_matches_numpy_bit_for_bit():
         want = _next_event_numpy(9, S, lights, h, go)
         integ = PathIntegrator.__new__(PathIntegrator)
         integ.lights, integ._lights_cache = lights, None
-        k, p32, ng32, wi, tmax, con, pix = shade_kernels.next_event(
-            9, S, np.flatnonzero(go), h.pixel, h.sample, h.depth, h.p, h.ns, h.ng, h.albedo,
-            h.thr, *integ._light_arrays(), float(FAR_T), float(SHADOW_TMAX_SCALE))
-        got = (offset_ray_origin(p32[:k], ng32[:k]), wi[:k], tmax[:k], con[:k], pix[:k])
+        k, origin, wi, tmax, con, pix = shade_kernels.next_event(
+            9, S, np.flatnonzero(go), np.arange(3000), h.pixel, h.sample, h.depth, h.p, h.ns,
+            h.ng, h.albedo, h.thr, *integ._light_arrays(), float(FAR_T), float(SHADOW_TMAX_SCALE))
+        got = (origin[:k], wi[:k], tmax[:k], con[:k], pix[:k])
         assert k > 0
         for a, b in zip(want, got, strict=True):
             assert a.dtype == b.dtype and np.array_equal(a, b)
@@ -139,10 +139,10 @@ def test_continue_kernel_matches_numpy_bit_for_bit(rr_on):
     want = _continue_numpy(5, rr_on, h, go)
     g = np.flatnonzero(go)
     phi = 2.0 * np.pi * shade_kernels.uniform_rows(5, g, h.pixel, h.sample, h.depth, DIM_BSDF_V)
-    c, k, p32, ng32, d, t, pdf = shade_kernels.bsdf_continue(
-        5, g, h.pixel, h.sample, h.depth, np.cos(phi), np.sin(phi), h.p, h.ng, h.ns, h.albedo,
-        h.thr, rr_on, RR_START_DEPTH)
-    got = (k[:c], offset_ray_origin(p32[:c], ng32[:c]), d[:c], t[:c], pdf[:c])
+    c, k, origin, d, t, pdf = shade_kernels.bsdf_continue(
+        5, g, np.arange(4000), h.pixel, h.sample, h.depth, np.cos(phi), np.sin(phi), h.p,
+        h.ng, h.ns, h.albedo, h.thr, rr_on, RR_START_DEPTH)
+    got = (k[:c], origin[:c], d[:c], t[:c], pdf[:c])
     assert c > 0
     for a, b in zip(want, got, strict=True):
         assert a.dtype == b.dtype and np.array_equal(a, b)
@@ -184,3 +184,21 @@ def test_surface_kernel_refuses_meshes_not_held():
     with pytest.raises(KeyError, match="not held"):
         tables.at(np.array([other], np.int32), np.zeros(1, np.int32), one, one,
                   np.ones((1, 3), np.float32))
+
+
+def test_offset_kernel_matches_offset_ray_origin_bit_for_bit():
+    """Near the origin (the float offset), far from it (the integer-ULP one), at zeros of
+    either sign, at the float32 extremes, and for non-finite normals."""
+    rng = np.random.default_rng(7)
+    n = 200000
+    p = (rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-8, 8, (n, 3))).astype(np.float32)
+    p[:100] = np.array([0.0, -0.0, 1.0 / 32.0], np.float32)
+    p[100:200] = np.float32(3.0e38)
+    p[200:300] = -np.float32(1.0 / 32.0)
+    nrm = normalize(rng.normal(size=(n, 3))).astype(np.float32)
+    nrm[300:400] = np.array([np.nan, np.inf, -np.inf], np.float32)
+    nrm[400:500] = np.array([-0.0, 0.0, 1.0], np.float32)
+    with np.errstate(invalid="ignore"):
+        want = offset_ray_origin(p, nrm)
+    got = shade_kernels.offset_rows(p, nrm)
+    assert np.array_equal(want.view(np.int32), got.view(np.int32))
