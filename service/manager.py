@@ -73,7 +73,7 @@ class JobManager:
             t.start()
             self._threads.append(t)
 
-    def stop(self, timeout_s: float = 10.0) -> None:
+    def stop(self, timeout_s: float = 30.0) -> None:
         """Interrupt renders at their next pass boundary; their jobs stay unfinished in the
         store, so the next start resumes them from the checkpoint."""
         self._stopping.set()
@@ -85,7 +85,10 @@ class JobManager:
         deadline = time.monotonic() + timeout_s
         for t in self._threads:
             t.join(max(0.0, deadline - time.monotonic()))
-        if self._started_ray:
+        running = [t.name for t in self._threads if t.is_alive()]
+        if running:  # never pull Ray from under a render; it goes at interpreter exit
+            log.warning("%s still rendering after %.0f s; leaving Ray up", running, timeout_s)
+        elif self._started_ray:
             import ray
 
             ray.shutdown()

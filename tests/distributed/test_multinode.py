@@ -4,6 +4,8 @@ cluster; `ray_local` restarts it for later modules."""
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 import ray
 from ray.cluster_utils import Cluster
@@ -19,6 +21,10 @@ OBJECT_STORE_BYTES = 128 * 1024**2  # per node; the test moves a few MB at most
 
 @pytest.fixture(scope="module")
 def cluster(_ray_session):
+    # A service job thread left running by an earlier test could shut Ray down under
+    # this fixture (seen once in CI as ray.init failing half-way); name it if so.
+    leftover = [t.name for t in threading.enumerate() if t.name.startswith("nprt-")]
+    assert not leftover, f"threads of an earlier service still running: {leftover}"
     if ray.is_initialized():
         ray.shutdown()
     c = Cluster(initialize_head=True, head_node_args=dict(
@@ -26,9 +32,9 @@ def cluster(_ray_session):
         include_dashboard=False))
     for i in range(1, NODES):
         c.add_node(num_cpus=1, resources={f"node{i}": 1}, object_store_memory=OBJECT_STORE_BYTES)
-    c.wait_for_nodes()
-    ray.init(address=c.address, log_to_driver=False, include_dashboard=False)
-    try:
+    try:  # the cluster's processes go even when joining it fails
+        c.wait_for_nodes()
+        ray.init(address=c.address, log_to_driver=False, include_dashboard=False)
         yield c
     finally:
         ray.shutdown()

@@ -21,6 +21,7 @@ from service.config import ServiceSettings
 TINY = {"width": 32, "height": 32, "spp": 4, "bounces": 2, "shadow_rays": 1,
         "tile_size": 16, "spp_per_pass": 2}
 START_TIMEOUT_S = 20.0
+STOP_TIMEOUT_S = 120.0
 
 
 class LiveServer:
@@ -53,8 +54,12 @@ class LiveServer:
 
     def __exit__(self, *exc) -> None:
         self.server.should_exit = True
-        self.thread.join(15)
+        # The lifespan stops the job manager (and a Ray it started): a server still
+        # shutting down behind the next test would pull Ray from under it.
+        self.thread.join(STOP_TIMEOUT_S)
         self.sock.close()
+        if self.thread.is_alive():
+            raise RuntimeError(f"the service did not stop within {STOP_TIMEOUT_S} s")
 
 
 def settings_for(tmp: Path, **overrides) -> ServiceSettings:
