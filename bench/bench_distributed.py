@@ -40,10 +40,10 @@ from rich.progress import (  # noqa: E402
     TimeElapsedColumn,
 )
 
+from bench.common import timed_render  # noqa: E402
 from scene.demos import DEMOS, make_demo  # noqa: E402
 from scene.model import Scene  # noqa: E402
 from workers.batch import KIND_NAMES  # noqa: E402
-from workers.coordinator import Coordinator  # noqa: E402
 from workers.render import render  # noqa: E402
 from workers.settings import RenderSettings  # noqa: E402
 
@@ -77,38 +77,23 @@ def bench_reference(scene: Scene, s: RenderSettings, on_pass,
 def bench_distributed(scene: Scene, s: RenderSettings, k: int, ref: np.ndarray, on_pass,
                       repeat: int) -> dict:
     """One Coordinator, `repeat` renders (the fastest is kept; the statistics are the same)."""
-    t0 = time.perf_counter()
-    coord = Coordinator(scene, s.model_copy(update={"shards": k}))
-    prepare_s = time.perf_counter() - t0
-    try:
-        best = None
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            result = render(scene, coord.s, renderer=coord, on_pass=on_pass)
-            wall_s = time.perf_counter() - t0
-            if best is None or wall_s < best[0]:
-                best = (wall_s, result)
-        info = coord.info()
-    finally:
-        coord.close()
-    wall_s, result = best
-    st = result.stats.to_dict()
-    hist = np.asarray(st["hops_histogram"], np.int64)
+    row, img, info = timed_render(scene, s.model_copy(update={"shards": k}), on_pass, repeat)
+    hist = np.asarray(row["hops_histogram"], np.int64)
     primary = s.width * s.height * s.spp  # camera rays: one per pixel sample
     return {
         "k": k,
-        "prepare_s": round(prepare_s, 4),
-        "render_s": round(wall_s, 4),
-        "rel_error": _rel_error(result.film.image(), ref),
-        "rays": st["rays"],  # rays intersected, counted once per shard visit
-        "transfers": st["transfers"],
-        "bytes": st["bytes"],
-        "total_transfers": st["total_transfers"],
-        "total_bytes": st["total_bytes"],
-        "transfers_per_primary_ray": round(st["total_transfers"] / primary, 4),
+        "prepare_s": row["prepare_s"],
+        "render_s": row["render_s"],
+        "rel_error": _rel_error(img, ref),
+        "rays": row["rays"],  # rays intersected, counted once per shard visit
+        "transfers": row["transfers"],
+        "bytes": row["bytes"],
+        "total_transfers": row["total_transfers"],
+        "total_bytes": row["total_bytes"],
+        "transfers_per_primary_ray": round(row["total_transfers"] / primary, 4),
         "hops_histogram": hist.tolist(),
         "hops_mean": round(float((hist * np.arange(len(hist))).sum() / max(hist.sum(), 1)), 4),
-        "phase_s": st["phase_s"],
+        "phase_s": row["phase_s"],
         "max_shard_geometry_bytes": info["max_shard_geometry_bytes"],
         "partition_imbalance": info["partition"]["imbalance"],
     }

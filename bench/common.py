@@ -50,6 +50,7 @@ def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1)
     row = {"mode": s.mode, "k": s.shards, "prepare_s": round(prepare_s, 3),
            "render_s": round(wall, 3), "transfers": st["transfers"], "bytes": st["bytes"],
            "total_transfers": st["total_transfers"], "total_bytes": st["total_bytes"],
+           "rays": st["rays"], "hops_histogram": st["hops_histogram"],
            "phase_s": st["phase_s"], "counters": st["counters"]}
     return row, result.film.image(), info
 
