@@ -21,7 +21,6 @@ import json
 import logging
 import os
 import platform
-import re
 import sys
 import time
 from pathlib import Path
@@ -40,7 +39,7 @@ from rich.progress import (  # noqa: E402
     TimeElapsedColumn,
 )
 
-from bench.common import timed_render  # noqa: E402
+from bench.common import replace_section, timed_render  # noqa: E402
 from scene.demos import DEMOS, make_demo  # noqa: E402
 from scene.model import Scene  # noqa: E402
 from workers.batch import KIND_NAMES  # noqa: E402
@@ -254,7 +253,7 @@ def update_readme(paths: list[Path]) -> None:
         tables.append(f"`{path.relative_to(README.parent)}` "
                       f"(plot: `{path.with_suffix('.png').relative_to(README.parent)}`):\n\n"
                       + markdown(res))
-    section = (f"{README_BEGIN}\n## Distributed exact renderer (`bench_distributed.py`)\n\n"
+    section = ("## Distributed exact renderer (`bench_distributed.py`)\n\n"
                "`python -m bench.bench_distributed --size small` renders each demo with the "
                "single-process reference and then with K = 2, 4 and 8 `Shard` actors in exact "
                "mode (one Ray instance for the whole run), and checks every image against the "
@@ -268,12 +267,8 @@ def update_readme(paths: list[Path]) -> None:
                "speed-up. The paper's 7.0 s to 15.1 s is its exact baseline on a real "
                "cluster and its own scenes: compare the growth with K (the bracketed "
                "ratios), not the seconds.\n\n"
-               + "\n\n".join(tables) + f"\n{README_END}")
-    text = README.read_text() if README.exists() else "# Benchmarks\n"
-    pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
-    text = pattern.sub(lambda _: section, text) if pattern.search(text) \
-        else text.rstrip("\n") + "\n\n" + section + "\n"
-    README.write_text(text)
+               + "\n\n".join(tables))
+    replace_section(README, README_BEGIN, README_END, section)
 
 
 def main(argv=None) -> int:

@@ -31,7 +31,6 @@ import contextlib
 import json
 import logging
 import platform
-import re
 import sys
 import time
 from collections import defaultdict
@@ -45,6 +44,7 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
 from embreex import mesh_construction, rtcore_scene  # noqa: E402
 
 import workers.reference as reference_module  # noqa: E402
+from bench.common import replace_section  # noqa: E402
 from scene.demos import DEMOS, make_demo  # noqa: E402
 from scene.model import Scene  # noqa: E402
 from workers.batch import KIND_NAMES, SHADOW  # noqa: E402
@@ -305,7 +305,7 @@ def write_readme_section(out: Path) -> None:
         tables.append(f"`{path.relative_to(README.parent)}` "
                       f"(plot: `{path.with_suffix('.png').relative_to(README.parent)}`):\n\n"
                       + markdown_table(data["results"], data["meta"]))
-    section = (f"{README_BEGIN}\n## Reference renderer throughput (`bench_reference.py`)\n\n"
+    section = ("## Reference renderer throughput (`bench_reference.py`)\n\n"
                "`python -m bench.bench_reference --size small` renders each demo with the "
                "single-process reference renderer, records every ray it traces, and replays "
                "them through raw single-threaded Embree on the scene baked into world space. "
@@ -317,12 +317,8 @@ def write_readme_section(out: Path) -> None:
                "top-level slab test, the Embree calls, and the rest (moving rays to local "
                "space, sorting and merging hits, quad lights).\n\n"
                + f"**Target (ratio >= {TARGET_RATIO}) met in {met} of {rows} rows.**\n\n"
-               + "\n\n".join(tables) + f"\n{README_END}")
-    text = README.read_text() if README.exists() else "# Benchmarks\n"
-    pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
-    text = pattern.sub(lambda _: section, text) if pattern.search(text) else \
-        text.rstrip("\n") + "\n\n" + section + "\n"
-    README.write_text(text)
+               + "\n\n".join(tables))
+    replace_section(README, README_BEGIN, README_END, section)
 
 
 def main(argv=None) -> int:

@@ -76,11 +76,11 @@ def run(args: argparse.Namespace) -> int:
     scene = load_any(args.source, size=args.size, seed=args.seed)
     cache = ProxyCache(args.out)
     rows, seen = [], set()
+    lightest = estimate_proxy_bytes(config.with_width(min(DEFAULT_WIDTHS)))
     for mesh in scene.meshes:
         if mesh.content_hash in seen:
             continue
         seen.add(mesh.content_hash)
-        lightest = estimate_proxy_bytes(config.with_width(min(DEFAULT_WIDTHS)))
         if mesh.nbytes < lightest and not args.force:
             print(f"{mesh.name}: skipped, {mesh.nbytes} B of triangles is less than a proxy "
                   f"(~{lightest} B): the policy replicates it (--force to train anyway)")

@@ -38,14 +38,15 @@ class ExactPolicy:
 
 
 class ProxyPolicy(ExactPolicy):
-    """modeled : (m,) int32 remote instances answered by proxies; known : the remote
-    instances whose base mesh this shard holds, answered exactly. Exact fallback forwarding
-    covers both (all remote instances)."""
+    """remote : (m,) int32 instances not held here (exact fallback forwarding covers all of
+    them); known : those of them whose base mesh this shard holds, answered exactly; the
+    rest (`modeled`) are answered by proxies."""
 
-    def __init__(self, world, shard, modeled, proxies: dict, settings: RenderSettings,
+    def __init__(self, world, shard, remote, proxies: dict, settings: RenderSettings,
                  known: LocalGeometry):
-        super().__init__(world, shard, np.union1d(modeled, known.instances).astype(np.int32))
-        self.modeled, self.known, self.proxies = modeled, known, proxies
+        super().__init__(world, shard, remote)
+        self.modeled = remote[~np.isin(remote, known.instances)]
+        self.known, self.proxies = known, proxies
         knobs = settings.proxy
         self.threshold, self.band, self.shadow_band = knobs.threshold, knobs.band, knobs.shadow_band
 

@@ -102,7 +102,7 @@ class Shard:
             # intersected exactly with it, not through a proxy.
             held = np.isin(self.world.table.mesh[self.remote], list(geometry))
             known = LocalGeometry(geometry, self.world.table, self.remote[held])
-            return ProxyPolicy(self.world, self.id, self.remote[~held], proxies, self.s, known)
+            return ProxyPolicy(self.world, self.id, self.remote, proxies, self.s, known)
         if mode == "oracle":
             if all_meshes is None:
                 raise ValueError("the oracle policy needs all_meshes (the whole scene)")
