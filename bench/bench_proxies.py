@@ -36,7 +36,7 @@ from proxies.evaluate import throughput
 from scene.demos import DEMOS, make_demo
 from scene.partition import partition
 from workers.batch import KIND_NAMES
-from workers.coordinator import make_plan
+from workers.pool import make_plan
 from workers.settings import RenderSettings
 
 log = logging.getLogger(__name__)

@@ -20,8 +20,8 @@ def cmd_demo(a) -> int:
 
     from scene.io import load_any
     from service.cli import render_with_progress, settings_from_args
-    from workers.coordinator import ensure_ray
     from workers.metrics import compare
+    from workers.raysession import ensure_ray
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -237,7 +237,7 @@ class JobManager:
         """Start or join Ray once for the whole service. A Coordinator that started Ray
         itself would shut it down when its job ends, under any other sharded job, and every
         job would pay the start-up again."""
-        from workers.coordinator import ensure_ray
+        from workers.raysession import ensure_ray
 
         with self._ray_lock:
             if ensure_ray(self.settings.ray_address):

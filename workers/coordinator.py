@@ -1,218 +1,285 @@
-"""The Coordinator: starts K Shard actors, drives passes, routes ObjectRefs between
-shards, and sums the partial framebuffers. It reads only manifests (ray counts per
-target) and finished films: never a ray batch, which moves shard to shard through the
-object store."""
+"""The Coordinator: drives one job's passes over a pool of K Shard actors, routing
+ObjectRefs between shards and summing each finished pass's partial films. It reads only
+manifests (ray counts per pass and target) and finished films: never a ray batch, which
+moves shard to shard through the object store.
+
+Pipelining (why a window of passes): a pass is a wavefront whose last bounces hold few
+rays on few shards, so one pass at a time leaves shards idle. Up to `window` pass
+attempts are in flight; whatever work is waiting for a shard (camera rays of new passes,
+parcels of any pass) goes out together in one call as soon as the shard has fewer than
+MAX_QUEUED_CALLS calls queued, so a shard never idles while work for it exists, and
+calls stay few and large. Shard-to-shard sends were the alternative; they would put
+pass accounting and retry in every shard, while here one loop sees every pass end.
+
+Failure: a shard that dies loses the partial films of every pass attempt it held, so
+all live attempts are dropped and re-run under new tokens; a shard that restarted unseen
+is caught when it hands back fewer calls for a token than were sent. A pass's film is
+added only once all K parts of one attempt are back, so no sample is counted twice.
+"""
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
+from collections import deque
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 
 import numpy as np
 import ray
-from ray.exceptions import RayActorError
-from ray.util.placement_group import placement_group, remove_placement_group
-from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
+from ray.exceptions import ActorUnavailableError, RayActorError
 
 from scene.model import Scene
-from scene.partition import partition
 from workers.passes import Pass
+from workers.pool import ShardPool
 from workers.settings import RenderSettings
-from workers.shard import Manifest, Shard, ShardConfig
+from workers.shard import Manifest, WorkItem
 from workers.stats import RenderStats
-from workers.world import EVERYWHERE, ShardWorld
 
 log = logging.getLogger(__name__)
 
 MAX_PASS_ATTEMPTS = 4
+MAX_QUEUED_CALLS = 2  # per shard: one running, one waiting, so it never idles
+WINDOW_PER_SHARD = 3  # pass attempts in flight per shard
+MIN_WINDOW = 4
+CANCEL_POLL_S = 0.25
+SHARD_LOST = (RayActorError, ActorUnavailableError)
 
 
 class ShardStateLost(RuntimeError):
-    """A shard restarted between two calls of a pass, so its partial film is gone."""
+    """A shard restarted while it held part of a pass, so that part is gone."""
 
 
-def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None, train=True):
-    """Which meshes get a proxy, are replicated, or need nothing (proxies.policy)."""
-    from proxies.cache import ProxyCache
-    from proxies.config import DEFAULT_WIDTHS, ProxyConfig
-    from proxies.policy import plan_proxies
+@dataclass
+class _Attempt:
+    """One try of one pass. pending: calls in flight plus parcels waiting, for this token."""
 
-    knobs = settings.proxy
-    return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,
-                        cache=ProxyCache(proxy_dir), train=train,
-                        config=ProxyConfig(budget_s=knobs.budget_s),
-                        widths=DEFAULT_WIDTHS if knobs.width is None else (knobs.width,))
-
-
-_RAY_LOCK = threading.Lock()
-_RAY_USERS = 0  # live coordinators on a Ray that this module started
-_RAY_OWNED = False
-
-
-def ensure_ray(address: str | None = None) -> bool:
-    """Join `address`, or start a local Ray. Returns True when this call started it."""
-    with _RAY_LOCK:
-        if ray.is_initialized():
-            return False
-        ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING,
-                 log_to_driver=False)
-        return True
-
-
-def _acquire_ray(address: str | None) -> None:
-    """Coordinators in several threads (the service runs jobs concurrently) share one
-    Ray; the last one out shuts down a Ray that a coordinator started."""
-    global _RAY_USERS, _RAY_OWNED
-    with _RAY_LOCK:
-        if not ray.is_initialized():
-            ray.init(address=address, include_dashboard=False,
-                     logging_level=logging.WARNING, log_to_driver=False)
-            _RAY_OWNED = True
-        _RAY_USERS += 1
-
-
-def _release_ray() -> None:
-    global _RAY_USERS, _RAY_OWNED
-    with _RAY_LOCK:
-        _RAY_USERS -= 1
-        if _RAY_USERS == 0 and _RAY_OWNED:
-            ray.shutdown()
-            _RAY_OWNED = False
+    pass_: Pass
+    pending: int
+    sent: np.ndarray  # (k,) int calls sent to each shard for this token
+    collecting: bool = False
+    parts: dict = field(default_factory=dict)  # shard -> (sums or None, stats dict, calls)
 
 
 class Coordinator:
-    def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
-                 proxy_dir=None, shard_options: list[dict] | None = None):
-        self.scene, self.s, self.k = scene, settings, settings.shards
-        t0 = time.perf_counter()
-        self.partition = partition(scene, self.k)
-        owner = np.asarray(self.partition.instance_shard, np.int32).copy()
-        shard_meshes = [set(m) for m in self.partition.shard_meshes]
-        self.plan, proxies = None, {}
-        if settings.mode in ("proxy", "oracle"):
-            # The oracle bounds the proxy mode, so it gets the same placement: meshes
-            # lighter than their proxy are replicated (it trains nothing to learn that).
-            self.plan = make_plan(scene, self.partition, settings, proxy_dir,
-                                  train=settings.mode == "proxy")
-            proxies = self.plan.proxies if settings.mode == "proxy" else {}
-            for m in self.plan.replicated:  # cheaper to copy than to model
-                owner[self.world_mesh_instances(scene, m)] = EVERYWHERE
-                for held in shard_meshes:
-                    held.add(m)
-        self.world = ShardWorld.build(scene, owner)
-        _acquire_ray(ray_address)
-        world_ref = ray.put(self.world)
-        all_ref = ray.put(dict(enumerate(scene.meshes))) if settings.mode == "oracle" else None
-        cpus = ray.cluster_resources().get("CPU", 1.0)
-        per_shard_cpu = min(1.0, cpus / self.k)
-        # Gang-schedule the K shards: with several jobs at once, partial placements of
-        # two jobs would otherwise wait on each other forever.
-        self.pg = None
-        if shard_options is None:
-            self.pg = placement_group([{"CPU": per_shard_cpu}] * self.k, strategy="SPREAD")
-            ray.get(self.pg.ready())
-        self.actors = []
-        # A restarted actor re-reads its constructor arguments from the object store, so
-        # they must outlive __init__ (ray-project/ray#53727).
-        self._init_refs = [world_ref, all_ref]
-        for sid in range(self.k):
-            meshes_ref = ray.put({i: scene.meshes[i] for i in sorted(shard_meshes[sid])})
-            # Only the proxies of meshes this shard does not hold.
-            proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in shard_meshes[sid]})
-            opts = dict(max_restarts=-1, max_task_retries=0, num_cpus=per_shard_cpu)
-            if self.pg is not None:
-                opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
-                    self.pg, placement_group_bundle_index=sid)
-            opts.update((shard_options or [{}] * self.k)[sid])
-            actor = ray.remote(Shard).options(**opts).remote(
-                ShardConfig(sid, self.k, settings), world_ref, meshes_ref, proxies_ref, all_ref)
-            self.actors.append(actor)
-            self._init_refs += [meshes_ref, proxies_ref]
-        self.shard_info = ray.get([a.ready.remote() for a in self.actors])
-        self.prepare_s = time.perf_counter() - t0
-        self.fetched: list[type] = []  # what this coordinator read back, for the tests
-        log.info("started %d shards in %.2f s", self.k, self.prepare_s)
+    """One job on a pool. Without `pool` it starts a private one and closes it with itself."""
 
-    @staticmethod
-    def world_mesh_instances(scene: Scene, mesh: int) -> np.ndarray:
-        return np.array([i for i, inst in enumerate(scene.instances) if inst.mesh == mesh], int)
+    def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
+                 proxy_dir=None, shard_options: list[dict] | None = None,
+                 pool: ShardPool | None = None):
+        self.scene, self.s, self.k = scene, settings, settings.shards
+        self._own_pool = pool is None
+        self.pool = pool or ShardPool(scene, settings, ray_address, proxy_dir, shard_options)
+        if (self.pool.k, self.pool.mode) != (self.k, settings.mode):
+            raise ValueError(f"{self.pool!r} cannot run a K={self.k} {settings.mode!r} job")
+        self.window = max(MIN_WINDOW, WINDOW_PER_SHARD * self.k)
+        self.fetched: list[type] = []  # what this coordinator read back, for the tests
+        self.busy_s = np.zeros(self.k)
+        self.bytes_in = np.zeros(self.k, np.int64)
+        self.bytes_out = np.zeros(self.k, np.int64)
+        self.calls = np.zeros(self.k, np.int64)
+        self.wall_s = 0.0
+        self.wait_s = 0.0
+        self._tokens = itertools.count()
+        self._lock = threading.Lock()
+
+    @property
+    def actors(self):
+        return self.pool.actors
+
+    @property
+    def shard_info(self) -> list[dict]:
+        return self.pool.shard_info
+
+    @property
+    def partition(self):
+        return self.pool.partition
+
+    @property
+    def plan(self):
+        return self.pool.plan
+
+    @property
+    def prepare_s(self) -> float:
+        return self.pool.prepare_s if self._own_pool else 0.0
 
     def __repr__(self) -> str:
         return f"Coordinator({self.scene.name!r}, k={self.k}, mode={self.s.mode!r})"
 
-    def _get(self, refs):
-        out = ray.get(refs)
-        self.fetched.extend(type(x) for x in (out if isinstance(refs, list) else [out]))
+    def _get(self, ref):
+        out = ray.get(ref)
+        self.fetched.append(type(out))
         return out
 
-    def run_pass(self, p: Pass) -> tuple[np.ndarray, RenderStats]:
-        for attempt in range(1, MAX_PASS_ATTEMPTS + 1):
-            try:
-                return self._run_pass(p)
-            except (RayActorError, ShardStateLost) as e:
-                log.warning("pass %d attempt %d lost a shard (%s); re-running it",
-                            p.index, attempt, type(e).__name__)
-                self._abort(p)
-        raise RuntimeError(f"pass {p.index} failed {MAX_PASS_ATTEMPTS} times; giving up")
-
-    def _abort(self, p: Pass) -> None:
-        """Drop the pass's partial films everywhere; restarted actors come back empty."""
-        for _ in range(MAX_PASS_ATTEMPTS * 5):
-            try:
-                ray.get([a.abort_pass.remote(p.index) for a in self.actors])
-                return
-            except RayActorError:
-                time.sleep(0.5)
-        raise RuntimeError(f"shards did not come back while aborting pass {p.index}")
-
-    def _call(self, shard: int, method: str, *args):
-        """Start an actor call; returns (manifest ref, parcel refs (k,))."""
-        fn = getattr(self.actors[shard], method).options(num_returns=self.k + 1)
-        refs = fn.remote(*args)
+    def _dispatch(self, shard: int, items: list[WorkItem], parcels: list):
+        """Start one work call; returns (manifest ref, (k,) output refs)."""
+        fn = self.actors[shard].work.options(num_returns=self.k + 1)
+        refs = fn.remote(self._settings_ref, items, *parcels)
         return refs[0], refs[1:]
 
-    def _run_pass(self, p: Pass) -> tuple[np.ndarray, RenderStats]:
-        wait_s = 0.0
-        inflight: dict = {}
-        busy = [False] * self.k
-        calls = [0] * self.k  # calls sent per shard; an idle shard can die and restart unseen
-        inbox: list[list] = [[] for _ in range(self.k)]
-        for sid in range(self.k):  # each keeps the camera rays whose first box it owns
-            m_ref, parcels = self._call(sid, "generate", p)
-            inflight[m_ref] = (sid, parcels)
-            busy[sid] = True
-            calls[sid] += 1
-        while inflight:
-            t0 = time.perf_counter()
-            ready, _ = ray.wait(list(inflight), num_returns=1)
-            wait_s += time.perf_counter() - t0
-            manifest: Manifest = self._get(ready[0])
-            shard, parcels = inflight.pop(ready[0])
-            busy[shard] = False
-            for target, count in enumerate(manifest.counts):
+    def _collect(self, shard: int, tokens: list[int]):
+        return self.actors[shard].collect.remote(tokens)
+
+    def render_passes(self, passes: Iterator[Pass],
+                      cancel: threading.Event | None = None
+                      ) -> Iterator[tuple[Pass, np.ndarray, RenderStats]]:
+        """Yield (pass, tile sums (n_pixels, 3) float64, stats) as passes finish, in any
+        order. Stops admitting passes once `cancel` is set; closing the generator drops
+        the passes still in flight."""
+        k = self.k
+        self._settings_ref = ray.put(self.s)
+        live: dict[int, _Attempt] = {}
+        retry: deque[Pass] = deque()
+        attempts: dict[int, int] = {}
+        inbox: list[list] = [[] for _ in range(k)]  # (token, parcel ref or None = generate)
+        queued = [0] * k  # calls in flight per shard
+        waiting: dict = {}  # ref -> ("work", shard, tokens, outs) | ("collect", shard, tokens)
+        exhausted = False
+        t_start = time.perf_counter()
+        try:
+            while True:
+                stop = cancel is not None and cancel.is_set()
+                while not stop and len(live) < self.window:
+                    p = retry.popleft() if retry else next(passes, None)
+                    if p is None:
+                        exhausted = True
+                        break
+                    attempts[p.index] = attempts.get(p.index, 0) + 1
+                    token = next(self._tokens)
+                    live[token] = _Attempt(p, pending=k, sent=np.zeros(k, np.int64))
+                    for sid in range(k):
+                        inbox[sid].append((token, None))
+                for sid in range(k):
+                    if inbox[sid] and queued[sid] < MAX_QUEUED_CALLS:
+                        waiting.update(self._send(sid, inbox[sid], live))
+                        inbox[sid] = []
+                        queued[sid] += 1
+                if not waiting:
+                    if stop or (exhausted and not live):
+                        return
+                    raise RuntimeError("coordinator stalled: passes live but nothing in flight")
+                t0 = time.perf_counter()
+                ready, _ = ray.wait(list(waiting), num_returns=1, timeout=CANCEL_POLL_S)
+                self.wait_s += time.perf_counter() - t0
+                if not ready:
+                    continue
+                what = waiting.pop(ready[0])
+                try:
+                    if what[0] == "work":
+                        queued[what[1]] -= 1
+                        self._on_work(ready[0], what, live, inbox)
+                    else:
+                        yield from self._on_collect(ready[0], what, live, retry, attempts)
+                except SHARD_LOST as e:
+                    if not any(t in live for t in what[2]):
+                        continue  # a call of attempts already dropped for this loss
+                    lost = list(live)
+                    log.warning("shard %d lost (%s); re-running %d passes in flight",
+                                what[1], type(e).__name__, len(lost))
+                    for token in lost:
+                        self._requeue(live.pop(token).pass_, retry, attempts)
+                    inbox = [[] for _ in range(k)]
+                    self._abort(lost)
+                for token in [t for t, a in live.items() if a.pending == 0 and not a.collecting]:
+                    live[token].collecting = True
+                    for sid in range(k):
+                        waiting[self._collect(sid, [token])] = ("collect", sid, [token])
+        finally:
+            self.wall_s += time.perf_counter() - t_start
+            if live:  # canceled or failed: free what the shards hold for this job
+                self._abort(list(live), wait=False)
+
+    def _send(self, sid: int, entries: list, live: dict) -> dict:
+        """One call to shard sid with everything in its inbox, grouped by token."""
+        by_token: dict[int, list] = {}
+        for token, ref in entries:
+            by_token.setdefault(token, []).append(ref)
+        items, parcels = [], []
+        for token, refs in by_token.items():
+            att = live[token]
+            att.pending += 1 - len(refs)  # the entries become one call
+            att.sent[sid] += 1
+            got = [r for r in refs if r is not None]
+            items.append(WorkItem(token, att.pass_, None in refs, len(got)))
+            parcels += got
+        self.calls[sid] += 1
+        m_ref, outs = self._dispatch(sid, items, parcels)
+        return {m_ref: ("work", sid, list(by_token), outs)}
+
+    def _on_work(self, ref, what, live: dict, inbox: list) -> None:
+        _, sid, tokens, outs = what
+        manifest: Manifest = self._get(ref)
+        self.busy_s[sid] += manifest.busy_s
+        self.bytes_in[sid] += manifest.bytes_in
+        self.bytes_out[sid] += manifest.bytes_out
+        for token in tokens:
+            att = live.get(token)
+            if att is None:  # an attempt dropped after a loss; its rays go nowhere
+                continue
+            att.pending -= 1
+            for target, count in enumerate(manifest.counts.get(token, ())):
                 if count:
-                    inbox[target].append(parcels[target])
-            for sid in range(self.k):
-                if inbox[sid] and not busy[sid]:
-                    m_ref, out = self._call(sid, "process", p, *inbox[sid])
-                    inflight[m_ref] = (sid, out)
-                    inbox[sid], busy[sid] = [], True
-                    calls[sid] += 1
-        results = self._get([a.finish_pass.remote(p.index) for a in self.actors])
-        sums = np.zeros((p.n_pixels, 3))
-        stats = RenderStats()
-        for sid, (part, st, ran) in enumerate(results):
-            if ran != calls[sid]:
-                raise ShardStateLost(f"shard {sid} ran {ran} of {calls[sid]} calls of pass "
-                                     f"{p.index}: it restarted mid-pass")
-            if part is not None:
-                sums += part
-            stats.merge(RenderStats.from_dict(st))
-        stats.phase_s["coordinator_wait"] += wait_s
-        return sums, stats
+                    inbox[target].append((token, outs[target]))
+                    att.pending += 1
+
+    def _on_collect(self, ref, what, live: dict, retry: deque, attempts: dict):
+        _, sid, tokens = what
+        parts = self._get(ref)
+        for token, sums, stats, calls in parts:
+            att = live.get(token)
+            if att is None:
+                continue
+            att.parts[sid] = (sums, stats, calls)
+            if len(att.parts) < self.k:
+                continue
+            del live[token]
+            short = [s for s, (_, _, c) in att.parts.items() if c != att.sent[s]]
+            if short:
+                log.warning("pass %d: shard %s ran fewer calls than sent (it restarted); "
+                            "re-running it", att.pass_.index, short)
+                self._requeue(att.pass_, retry, attempts)
+                continue
+            p = att.pass_
+            sums_all = np.zeros((p.n_pixels, 3))
+            st = RenderStats()
+            for s in range(self.k):
+                part, pst, _ = att.parts[s]
+                if part is not None:
+                    sums_all += part
+                st.merge(RenderStats.from_dict(pst))
+            yield p, sums_all, st
+
+    def _requeue(self, p: Pass, retry: deque, attempts: dict) -> None:
+        if attempts.get(p.index, 0) >= MAX_PASS_ATTEMPTS:
+            raise RuntimeError(f"pass {p.index} failed {MAX_PASS_ATTEMPTS} times; giving up")
+        retry.append(p)
+
+    def _abort(self, tokens: list[int], wait: bool = True) -> None:
+        """Drop these attempts on every shard; wait until every shard answers again (a dead
+        one is restarted by Ray and comes back empty)."""
+        for _ in range(MAX_PASS_ATTEMPTS * 20 if wait else 1):
+            try:
+                refs = [a.abort.remote(tokens) for a in self.actors]
+                if wait:
+                    ray.get(refs, timeout=30)
+                return
+            except SHARD_LOST:
+                time.sleep(0.5)
+            except ray.exceptions.GetTimeoutError:
+                break
+        raise RuntimeError(f"shards did not come back while dropping {len(tokens)} passes")
 
     def info(self) -> dict:
+        wall = max(self.wall_s, 1e-9)
+        shards = [{"shard": i["shard"], "node": i.get("node"), "pid": i["pid"],
+                   "geometry_bytes": i["geometry_bytes"],
+                   "busy_s": round(float(self.busy_s[s]), 4),
+                   "busy_fraction": round(float(self.busy_s[s]) / wall, 4),
+                   "calls": int(self.calls[s]), "bytes_in": int(self.bytes_in[s]),
+                   "bytes_out": int(self.bytes_out[s])}
+                  for s, i in enumerate(self.shard_info)]
         return {
             "scene": self.scene.summary(),
             "renderer": "distributed",
@@ -222,15 +289,14 @@ class Coordinator:
             "shard_geometry_bytes": [i["geometry_bytes"] for i in self.shard_info],
             "max_shard_geometry_bytes": max(i["geometry_bytes"] for i in self.shard_info),
             "prepare_s": round(self.prepare_s, 4),
+            "warm_pool": not self._own_pool,
+            "window": self.window,
+            "coordinator_wait_s": round(self.wait_s, 4),
+            "shard_stats": shards,
             "proxy_plan": None if self.plan is None else self.plan.to_dict(),
         }
 
     def close(self) -> None:
-        if self.actors is None:
-            return
-        for a in self.actors:
-            ray.kill(a, no_restart=True)
-        self.actors = None
-        if self.pg is not None:
-            remove_placement_group(self.pg)
-        _release_ray()
+        if self._own_pool and self.pool is not None:
+            self.pool.close()
+        self.pool = None if self._own_pool else self.pool

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +19,7 @@ class Film:
         self.width, self.height = width, height
         self.sums = np.zeros((width * height, 3), ACCUM_DTYPE)
         self.samples = np.zeros(width * height, np.int64)
+        self.lock = threading.Lock()  # readers of a live film (the service) take it too
 
     def add(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
         """Scatter-add radiance. pixel : (n,) uint32, rgb : (n, 3) float."""

@@ -1,8 +1,12 @@
-"""A render is a list of passes, one per tile and sample chunk; a pass is the unit of
-progress, of resumption after a restart, and of retry after a shard dies."""
+"""A render is a sequence of passes, one per tile and sample chunk; a pass is the unit of
+progress, of resumption after a restart, and of retry after a shard dies.
+
+Passes are computed from their index, never listed: a job of 1e9 passes costs nothing to
+accept, and a render walks its passes lazily."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,13 +44,38 @@ class Pass:
         return (self.x1 - self.x0) * (self.y1 - self.y0) * (self.sample1 - self.sample0)
 
 
+def _grid(s: RenderSettings) -> tuple[int, int, int]:
+    """(tiles across, tiles down, sample chunks)."""
+    return (-(-s.width // s.tile_size), -(-s.height // s.tile_size),
+            -(-s.spp // s.spp_per_pass))
+
+
+def count_passes(s: RenderSettings) -> int:
+    tx, ty, chunks = _grid(s)
+    return tx * ty * chunks
+
+
+def pass_at(s: RenderSettings, index: int) -> Pass:
+    """Pass `index` in render order: sample chunks outermost, so a partial image covers the
+    whole frame early; tiles row-major within a chunk."""
+    tx, ty, chunks = _grid(s)
+    if not 0 <= index < tx * ty * chunks:
+        raise IndexError(f"pass {index} out of range 0..{tx * ty * chunks - 1}")
+    chunk, tile = divmod(index, tx * ty)
+    y, x = divmod(tile, tx)
+    x0, y0, s0 = x * s.tile_size, y * s.tile_size, chunk * s.spp_per_pass
+    return Pass(index, x0, y0, min(s.width, x0 + s.tile_size), min(s.height, y0 + s.tile_size),
+                s0, min(s.spp, s0 + s.spp_per_pass))
+
+
+def iter_passes(s: RenderSettings, start: int = 0, skip: Iterable[int] = ()) -> Iterator[Pass]:
+    """Passes from `start` on, in order, leaving out the indices in `skip`."""
+    skip = set(skip)
+    for i in range(start, count_passes(s)):
+        if i not in skip:
+            yield pass_at(s, i)
+
+
 def plan_passes(s: RenderSettings) -> list[Pass]:
-    """Sample chunks outermost, so a partial image covers the whole frame early."""
-    out = []
-    for s0 in range(0, s.spp, s.spp_per_pass):
-        s1 = min(s.spp, s0 + s.spp_per_pass)
-        for y0 in range(0, s.height, s.tile_size):
-            for x0 in range(0, s.width, s.tile_size):
-                out.append(Pass(len(out), x0, y0, min(s.width, x0 + s.tile_size),
-                                min(s.height, y0 + s.tile_size), s0, s1))
-    return out
+    """Every pass as a list: for tests and small renders only (the render never lists them)."""
+    return list(iter_passes(s))

@@ -1,69 +1,61 @@
-"""The single-process reference renderer: all geometry in one process, no Ray.
-Every distributed image is compared against this one."""
+"""The single-process reference renderer: the wavefront of one Shard that holds the whole
+scene, driven in this process without Ray. Every distributed image is compared against it,
+and it runs the same stages under the same names as every shard."""
 
 from __future__ import annotations
+
+import itertools
+import threading
+import time
+from collections.abc import Iterator
 
 import numpy as np
 
 from scene.model import Scene
-from workers.batch import KIND_NAMES, SHADOW
-from workers.geometry import MeshGeometry
-from workers.integrator import PathIntegrator
-from workers.lights import LightSet
-from workers.local import LocalGeometry
+from workers.batch import KIND_NAMES
 from workers.passes import Pass
 from workers.settings import RenderSettings
+from workers.shard import Shard, ShardConfig, WorkItem
 from workers.stats import RenderStats
-from workers.toplevel import InstanceTable
-from workers.tracer import resolve_closest, unoccluded
+from workers.world import ShardWorld
 
 
 class ReferenceRenderer:
     def __init__(self, scene: Scene, settings: RenderSettings):
+        t0 = time.perf_counter()
         self.scene, self.s = scene, settings
-        self.table = InstanceTable(scene)
-        self.lights = LightSet(scene)
-        geometry = {i: MeshGeometry(m) for i, m in enumerate(scene.meshes)}
-        self.geometry = LocalGeometry(geometry, self.table, np.arange(len(scene.instances)))
-        self.integrator = PathIntegrator(settings, scene.camera, dict(enumerate(scene.meshes)),
-                                         scene.materials, self.table, self.lights)
+        world = ShardWorld.build(scene, np.zeros(len(scene.instances), np.int32))
+        self.shard = Shard(ShardConfig(0, 1, settings), world, dict(enumerate(scene.meshes)))
+        self.warm_s = self.shard.warm()
+        self.prepare_s = time.perf_counter() - t0
+        self._tokens = itertools.count()
+
+    @property
+    def geometry(self):
+        return self.shard.local
 
     def __repr__(self) -> str:
-        return f"ReferenceRenderer({self.scene.name!r}, {self.geometry})"
+        return f"ReferenceRenderer({self.scene.name!r}, {self.shard.local})"
 
     def run_pass(self, p: Pass) -> tuple[np.ndarray, RenderStats]:
         """Trace one pass. Returns tile sums (p.n_pixels, 3) float64 and its statistics."""
-        stats = RenderStats()
-        sums = np.zeros((p.n_pixels, 3))
-        w = self.s.width
+        token = next(self._tokens)
+        self.shard.work(self.s, [WorkItem(token, p, True, 0)])
+        ((_, sums, stats, _),) = self.shard.collect([token])
+        st = RenderStats.from_dict(stats)
+        return sums, st
 
-        def splat(pixel, rgb):
-            idx = p.local_index(pixel, w)
-            for c in range(3):
-                sums[:, c] += np.bincount(idx, weights=rgb[:, c], minlength=p.n_pixels)
-
-        with stats.phase("generate"):
-            rays = self.integrator.primary(p)
-        while len(rays):
-            stats.count_rays(rays.kind)
-            with stats.phase("intersect"):
-                rays = resolve_closest(rays, self.geometry, self.lights)
-            with stats.phase("shade"):
-                shaded = self.integrator.shade(rays)
-            splat(shaded.pixel, shaded.rgb)
-            shadow = shaded.shadow
-            if len(shadow):
-                stats.count_rays(SHADOW, len(shadow))
-                with stats.phase("shadow"):
-                    free = unoccluded(shadow, self.geometry)
-                splat(shadow.pixel[free], shadow.contribution[free].astype(np.float64))
-            rays = shaded.secondary
-        stats.counters["paths"] += p.n_paths
-        return sums, stats
+    def render_passes(self, passes: Iterator[Pass], cancel: threading.Event | None = None):
+        """Yield (pass, tile sums, stats) one pass after another."""
+        for p in passes:
+            if cancel is not None and cancel.is_set():
+                return
+            sums, st = self.run_pass(p)
+            yield p, sums, st
 
     def info(self) -> dict:
         return {"scene": self.scene.summary(), "renderer": "reference",
-                "ray_kinds": list(KIND_NAMES)}
+                "ray_kinds": list(KIND_NAMES), "prepare_s": round(self.prepare_s, 4)}
 
     def close(self) -> None:
         pass

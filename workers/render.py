@@ -1,5 +1,5 @@
 """The one entry point that the CLI, REST and gRPC use: render a scene pass by pass,
-reporting each finished pass, resumable from any pass boundary, cancellable."""
+reporting each finished pass, resumable from any set of finished passes, cancellable."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import numpy as np
 
 from scene.model import Scene
 from workers.film import Film
-from workers.passes import Pass, plan_passes
+from workers.passes import Pass, count_passes, iter_passes
 from workers.settings import RenderSettings
 from workers.stats import RenderStats
 
@@ -26,12 +26,36 @@ class RenderCanceled(Exception):
 
 @dataclass
 class ResumeState:
-    """What a render needs to go on after pass `next_pass - 1`: the film sums so far."""
+    """What a render needs to go on: the film sums so far, and which passes they hold
+    (every pass below `next_pass`, plus `done`, finished out of order above it)."""
 
     next_pass: int
     sums: np.ndarray  # (h * w, 3) float64
     samples: np.ndarray  # (h * w,) int64
     stats: dict = field(default_factory=dict)
+    done: list[int] = field(default_factory=list)
+
+
+class Progress:
+    """Finished passes as a low-water mark plus the few finished above it (passes finish
+    out of order, at most a window apart): O(window) memory for any number of passes."""
+
+    def __init__(self, next_pass: int = 0, done=()):
+        self.next_pass, self.done = next_pass, set(done)
+        self._advance()
+
+    def mark(self, index: int) -> None:
+        self.done.add(index)
+        self._advance()
+
+    def _advance(self) -> None:
+        while self.next_pass in self.done:
+            self.done.discard(self.next_pass)
+            self.next_pass += 1
+
+    @property
+    def count(self) -> int:
+        return self.next_pass + len(self.done)
 
 
 @dataclass
@@ -39,8 +63,9 @@ class PassDone:
     index: int
     total: int
     pass_: Pass
-    film: Film
+    film: Film  # read it under film.lock: other passes are added from the render thread
     stats: RenderStats
+    progress: Progress
 
 
 @dataclass
@@ -54,15 +79,15 @@ class RenderResult:
 
 
 def make_renderer(scene: Scene, settings: RenderSettings, ray_address: str | None = None,
-                  proxy_dir=None):
-    """The reference renderer for shards == 0, else the distributed coordinator."""
+                  proxy_dir=None, pool=None):
+    """The reference renderer for shards == 0, else a coordinator (on `pool` if given)."""
     if settings.shards == 0:
         from workers.reference import ReferenceRenderer
 
         return ReferenceRenderer(scene, settings)
     from workers.coordinator import Coordinator
 
-    return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir)
+    return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir, pool=pool)
 
 
 def render(scene: Scene, settings: RenderSettings, *,
@@ -72,35 +97,45 @@ def render(scene: Scene, settings: RenderSettings, *,
            ray_address: str | None = None,
            proxy_dir=None,
            renderer=None) -> RenderResult:
-    """Render every pass in order; `on_pass` sees the film after each one."""
+    """Render every pass (several at once when distributed); `on_pass` sees the film after
+    each one finishes, in the order they finish."""
     t0 = time.perf_counter()
-    passes = plan_passes(settings)
+    total = count_passes(settings)
     film = Film(settings.width, settings.height)
     stats = RenderStats()
-    start = 0
+    progress = Progress()
     if resume is not None:
-        start = resume.next_pass
+        progress = Progress(resume.next_pass, resume.done)
         film.sums[:] = resume.sums
         film.samples[:] = resume.samples
         stats = RenderStats.from_dict(resume.stats)
     own = renderer is None
     renderer = renderer or make_renderer(scene, settings, ray_address, proxy_dir)
     try:
-        for p in passes[start:]:
-            if cancel is not None and cancel.is_set():
-                raise RenderCanceled(f"canceled before pass {p.index} of {len(passes)}")
-            sums, pass_stats = renderer.run_pass(p)
-            pix = p.pixels(settings.width)
-            film.sums[pix] += sums
-            film.samples[pix] += p.sample1 - p.sample0
-            stats.merge(pass_stats)
-            if on_pass is not None:
-                on_pass(PassDone(p.index, len(passes), p, film, stats))
+        todo = iter_passes(settings, progress.next_pass, progress.done)
+        finished = renderer.render_passes(todo, cancel)
+        try:
+            for p, sums, pass_stats in finished:
+                pix = p.pixels(settings.width)
+                with film.lock:
+                    film.sums[pix] += sums
+                    film.samples[pix] += p.sample1 - p.sample0
+                pass_stats.counters["paths"] += p.n_paths
+                stats.merge(pass_stats)
+                progress.mark(p.index)
+                if on_pass is not None:
+                    on_pass(PassDone(p.index, total, p, film, stats, progress))
+                if cancel is not None and cancel.is_set():
+                    break
+        finally:
+            finished.close()
+        if progress.count < total:
+            raise RenderCanceled(f"canceled with {progress.count} of {total} passes done")
         info = dict(renderer.info())
     finally:
         if own:
             renderer.close()
     info["wall_s"] = round(time.perf_counter() - t0, 4)
-    info["passes"] = len(passes)
+    info["passes"] = total
     info["settings"] = settings.model_dump()
     return RenderResult(film, stats, info)

@@ -2,10 +2,12 @@
 instance table and lights, and the traversal policy. A plain class; the coordinator
 applies ray.remote where it starts it.
 
-Every call takes parcels of rays that other shards sent here and returns one parcel
-per target shard, so batches move shard to shard through the object store while the
-coordinator only routes references. Film and statistics are kept per pass and handed
-back by `finish_pass`, so a pass that fails can be dropped without counting it twice.
+Every call carries work of several passes (camera rays to generate, parcels that other
+shards sent here) and returns one object per target shard, so batches move shard to
+shard through the object store while the coordinator only routes references. Film and
+statistics are kept per pass attempt (a token) and handed back by `collect`, so a pass
+that fails can be dropped without counting it twice. The geometry outlives a job: a
+pool reuses the shard, and each call brings its job's settings.
 """
 
 from __future__ import annotations
@@ -35,14 +37,28 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class ShardConfig:
+    """settings: those the pool was started with (placement, warm-up); each call brings
+    the settings of the job it belongs to."""
+
     shard_id: int
     k: int
     settings: RenderSettings
 
 
+@dataclass(frozen=True)
+class WorkItem:
+    """One pass's share of a call: its camera rays (generate) and/or `n_parcels` of the
+    call's parcel arguments, in order. token: the pass attempt (a re-run gets a new one)."""
+
+    token: int
+    pass_: Pass
+    generate: bool
+    n_parcels: int
+
+
 @dataclass
 class Parcel:
-    """Rays travelling to one shard. Either part may be empty."""
+    """Rays of one pass attempt travelling to one shard. Either part may be empty."""
 
     rays: RayBatch
     shadow: ShadowRayBatch
@@ -58,17 +74,20 @@ class Parcel:
 
 @dataclass
 class Manifest:
-    """The small part of a call's result that the coordinator reads: rays per target."""
+    """The small part of a call's result that the coordinator reads."""
 
     shard: int
-    counts: list[int]  # (k,) rays + shadow rays sent to each shard
+    counts: dict[int, list[int]]  # token -> (k,) rays + shadow rays sent to each shard
+    busy_s: float = 0.0  # wall time of the call inside the shard
+    bytes_in: int = 0  # ray bytes the call received
+    bytes_out: int = 0  # ray bytes it sent
 
 
 @dataclass
 class _PassState:
     sums: np.ndarray  # (n_pixels, 3) float64
     stats: RenderStats = field(default_factory=RenderStats)
-    calls: int = 0  # generate/process calls seen; fewer than sent means a restart lost state
+    calls: int = 0  # calls seen for this token; fewer than sent means a restart lost state
 
 
 class Shard:
@@ -78,22 +97,35 @@ class Shard:
         -> proxies.inference.Proxy for remote meshes (proxy mode); all_meshes: the whole
         scene, for the benchmark-only oracle policy."""
         self.config, self.world = config, world
-        self.id, self.k, self.s = config.shard_id, config.k, config.settings
+        self.id, self.k = config.shard_id, config.k
         self.bit = visited_bit(self.id)
         self.meshes = meshes
-        geometry = {i: MeshGeometry(m) for i, m in meshes.items()}
+        self.geometry = {i: MeshGeometry(m) for i, m in meshes.items()}
         local = world.local_instances(self.id)
-        self.local = LocalGeometry(geometry, world.table, local)
+        self.local = LocalGeometry(self.geometry, world.table, local)
         is_local = np.zeros(len(world.table), bool)
         is_local[local] = True
         self.remote = np.flatnonzero(~is_local).astype(np.int32)
         # Instances with one owner (not replicated): where camera rays may start.
         self.owned = np.flatnonzero(world.owner != EVERYWHERE).astype(np.int32)
-        self.policy = self._make_policy(proxies or {}, all_meshes, geometry)
-        self.integrator = PathIntegrator(self.s, world.camera, meshes, world.materials,
-                                         world.table, world.lights)
+        self._proxies, self._all_meshes = proxies or {}, all_meshes
+        self.s: RenderSettings | None = None
+        self.configure(config.settings)
         self.passes: dict[int, _PassState] = {}
         log.info("%r started in pid %d", self, os.getpid())
+
+    def configure(self, settings: RenderSettings) -> None:
+        """Per-job settings (seed, bounces, knobs): cheap, the geometry stays."""
+        if settings == self.s:
+            return
+        if (settings.shards or 1) != self.k or settings.mode != self.config.settings.mode:
+            raise ValueError(f"{self!r} holds a K={self.k} {self.config.settings.mode!r} "
+                             f"placement, not K={settings.shards} {settings.mode!r}")
+        self.s = settings
+        self.policy = self._make_policy(self._proxies, self._all_meshes, self.geometry)
+        self.integrator = PathIntegrator(settings, self.world.camera, self.meshes,
+                                         self.world.materials, self.world.table,
+                                         self.world.lights)
 
     def _make_policy(self, proxies, all_meshes, geometry):
         mode = self.s.mode
@@ -117,53 +149,103 @@ class Shard:
                 f"{len(self.local.instances)} local instances)")
 
     def ready(self) -> dict:
-        return {"shard": self.id, "pid": os.getpid(),
+        import ray
+
+        node = ray.util.get_node_ip_address() if ray.is_initialized() else "local"
+        return {"shard": self.id, "pid": os.getpid(), "node": node,
                 "geometry_bytes": int(sum(m.nbytes for m in self.meshes.values()))}
+
+    def warm(self) -> float:
+        """Trace a 4x4-pixel, 1-sample pass and drop it, so every kernel is compiled (or
+        loaded from numba's cache) before the first timed pass. Returns seconds taken."""
+        t0 = time.perf_counter()
+        s = self.config.settings
+        p = Pass(-1, 0, 0, min(4, s.width), min(4, s.height), 0, 1)
+        self.work(s, [WorkItem(-1, p, True, 0)])
+        self.passes.pop(-1, None)
+        return time.perf_counter() - t0
 
     # -- calls from the coordinator -------------------------------------------------
 
-    def generate(self, p: Pass) -> list:
-        """This shard's share of a tile's camera rays, traced as far as they go here.
+    def work(self, settings: RenderSettings, items: list[WorkItem],
+             *parcels: dict[int, Parcel]) -> list:
+        """Run each item's rays as far as they go here. Returns [Manifest, out_0 ..
+        out_{k-1}], out_t a {token: Parcel} of the rays going to shard t (None if none)."""
+        t0 = time.perf_counter()
+        self.configure(settings)
+        out: list[dict] = [{} for _ in range(self.k)]
+        counts: dict[int, list[int]] = {}
+        bytes_in = bytes_out = 0
+        at = 0
+        for item in items:
+            # Each argument is one shard's {token: Parcel} output; a call may get it once
+            # per token it holds.
+            mine = [x[item.token] for x in parcels[at:at + item.n_parcels]]
+            at += item.n_parcels
+            st = self._state(item)
+            rays, shadow = RayBatch.empty(), ShadowRayBatch.empty()
+            if item.generate:
+                rays = self._generate(item.pass_, st)
+            if mine:
+                now = time.time()
+                st.stats.phase_s["transfer_wait"] += max(0.0, now - min(x.sent_at for x in mine))
+                bytes_in += sum(x.nbytes for x in mine)
+                rays = RayBatch.concat([rays] + [x.rays for x in mine])
+                shadow = ShadowRayBatch.concat([x.shadow for x in mine])
+            sent = self._run(item.pass_, st, rays, shadow)
+            counts[item.token] = [0 if x is None else len(x) for x in sent]
+            for t, parcel in enumerate(sent):
+                if parcel is not None:
+                    out[t][item.token] = parcel
+                    bytes_out += parcel.nbytes
+        manifest = Manifest(self.id, counts, time.perf_counter() - t0, bytes_in, bytes_out)
+        return [manifest, *[o or None for o in out]]
+
+    def collect(self, tokens: list[int]) -> tuple:
+        """((token, film sums (n_pixels, 3) f64 or None, stats dict, calls seen), ...) for
+        finished passes; their state is dropped here."""
+        out = []
+        for token in tokens:
+            st = self.passes.pop(token, None)
+            if st is None:
+                out.append((token, None, RenderStats().to_dict(), 0))
+            else:
+                out.append((token, st.sums, st.stats.to_dict(), st.calls))
+        return tuple(out)
+
+    def abort(self, tokens: list[int]) -> None:
+        """Drop the state of pass attempts that will be re-run."""
+        for token in tokens:
+            self.passes.pop(token, None)
+
+    def _generate(self, p: Pass, st: _PassState) -> RayBatch:
+        """This shard's share of a tile's camera rays.
 
         Every shard generates the whole tile (deterministic and cheap) and keeps the rays
         whose first instance box it owns, so no camera ray moves just to reach its first
         candidate; rays that enter no owned box start on the tile's shard, p.index % k."""
-        st = self._state(p)
         with st.stats.phase("generate"):
             rays = self.integrator.primary(p)
+            if self.k == 1:
+                return rays
             first = nearest_unvisited(self.world, self.owned, rays.origin, rays.direction,
                                       rays.tmax, np.zeros(len(rays), np.uint64))
             mine = (first == self.id) | ((first == DONE) & (p.index % self.k == self.id))
-            rays = rays.take(mine)
-        return self._run(p, st, rays, ShadowRayBatch.empty())
-
-    def process(self, p: Pass, *parcels: Parcel) -> list:
-        """Rays that other shards sent here."""
-        st = self._state(p)
-        st.stats.phase_s["transfer_wait"] += max(0.0, time.time() - min(x.sent_at for x in parcels))
-        rays = RayBatch.concat([x.rays for x in parcels])
-        shadow = ShadowRayBatch.concat([x.shadow for x in parcels])
-        return self._run(p, st, rays, shadow)
-
-    def finish_pass(self, index: int) -> tuple[np.ndarray | None, dict, int]:
-        """(film sums, stats, calls this incarnation ran for the pass)."""
-        st = self.passes.pop(index, None)
-        if st is None:
-            return None, RenderStats().to_dict(), 0
-        return st.sums, st.stats.to_dict(), st.calls
-
-    def abort_pass(self, index: int) -> None:
-        self.passes.pop(index, None)
+            return rays.take(mine)
 
     # -- the wavefront inside one call ---------------------------------------------
 
-    def _state(self, p: Pass) -> _PassState:
-        if p.index not in self.passes:
-            self.passes[p.index] = _PassState(np.zeros((p.n_pixels, 3)))
-        self.passes[p.index].calls += 1
-        return self.passes[p.index]
+    def _state(self, item: WorkItem) -> _PassState:
+        st = self.passes.get(item.token)
+        if st is None:
+            st = self.passes[item.token] = _PassState(np.zeros((item.pass_.n_pixels, 3)))
+        st.calls += 1
+        return st
 
     def _run(self, p: Pass, st: _PassState, rays: RayBatch, shadow: ShadowRayBatch) -> list:
+        """The wavefront: intersect locally, route (top level, proxies), shade what ends
+        here, trace its shadow rays; repeat until every ray has ended or left. Returns
+        (k,) Parcel or None per target shard. With one shard this is the reference."""
         stats = st.stats
         out_rays = [[] for _ in range(self.k)]
         out_shadow = [[] for _ in range(self.k)]
@@ -213,8 +295,7 @@ class Shard:
                 if len(batch):
                     self._count_transfer(stats, kind, batch)
             parcels.append(parcel if len(parcel) else None)
-        manifest = Manifest(self.id, [0 if x is None else len(x) for x in parcels])
-        return [manifest, *parcels]
+        return parcels
 
     def _send(self, batch, target: np.ndarray, out: list) -> None:
         away = target != DONE

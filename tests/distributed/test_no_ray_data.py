@@ -76,7 +76,7 @@ def test_coordinator_never_reads_ray_batches(ray_local, recorder, scenes, refere
                    references["forest"].film.image())
     assert result.stats.to_dict()["total_transfers"] > 0
     assert recorder.calls > 0
-    # Its own record: manifests and (film sums, stats, calls) tuples, nothing else.
+    # Its own record: manifests and tuples of (token, film sums, stats, calls), nothing else.
     fetched = set(coord.fetched)
     assert Manifest in fetched and tuple in fetched, fetched
     assert fetched <= {Manifest, tuple}, fetched

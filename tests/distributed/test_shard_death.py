@@ -1,5 +1,6 @@
-"""A shard that dies in the middle of a render is restarted by Ray (max_restarts=-1) and
-the pass it was in is re-run: the image and the ray counts come out as if nothing happened."""
+"""A shard that dies in the middle of a render, with several passes in flight, is
+restarted by Ray and the passes it held are re-run: the image and the ray counts come out
+as if nothing happened."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from workers.render import render
 
 SCENE = "city"
 K = 4
-KILL_PASS = 2  # of 6: 48x32 in 16-pixel tiles
+KILL_PASS = 2  # of 6 (48x32 in 16-pixel tiles), all 6 in flight at once
 # Ray fails calls that are in flight when the driver learns of a restart (ActorUnavailableError);
 # let that news settle so the coordinator's next call reaches the new actor without an error.
 RESTART_SETTLE_S = 1.0
@@ -46,27 +47,29 @@ def _pid(actor) -> int:
     raise TimeoutError("shard did not come back")
 
 
-def _retries(caplog) -> list[str]:
+def _retries(caplog, words: str = "re-running") -> list[str]:
     return [r.getMessage() for r in caplog.records
-            if r.name == "workers.coordinator" and "re-running" in r.getMessage()]
+            if r.name == "workers.coordinator" and words in r.getMessage()]
 
 
 def _render_with_kill(scene, s, kill):
-    """Render with `kill(coordinator, shard, method, pass_index, seen)` called before every
-    actor call; seen maps shard -> manifest refs of its calls so far in the pass."""
+    """Render with `kill(coordinator, shard, items, refs)` called before every work call;
+    refs maps shard -> refs of its calls so far (work and collect)."""
     coord = Coordinator(scene, s)
-    call, seen = coord._call, {}
+    dispatch, collect, refs = coord._dispatch, coord._collect, {}
 
-    def spy(shard, method, p, *parcels):
-        if not seen.get("_pass") == p.index:
-            seen.clear()
-            seen["_pass"] = p.index
-        kill(coord, shard, method, p.index, seen)
-        m_ref, out = call(shard, method, p, *parcels)
-        seen.setdefault(shard, []).append(m_ref)
+    def spy_dispatch(shard, items, parcels):
+        kill(coord, shard, items, refs)
+        m_ref, out = dispatch(shard, items, parcels)
+        refs.setdefault(shard, []).append(m_ref)
         return m_ref, out
 
-    coord._call = spy
+    def spy_collect(shard, tokens):
+        ref = collect(shard, tokens)
+        refs.setdefault(shard, []).append(ref)
+        return ref
+
+    coord._dispatch, coord._collect = spy_dispatch, spy_collect
     try:
         pids = [i["pid"] for i in coord.shard_info]
         result = render(scene, s, renderer=coord)
@@ -82,14 +85,19 @@ def _check(tmp_path, name, result, ref_image, uninterrupted):
         assert st[key] == uninterrupted[key], (key, st[key], uninterrupted[key])
 
 
-def test_shard_killed_with_calls_in_flight_reruns_the_pass(scenes, s, uninterrupted, ref_image,
-                                                           tmp_path, caplog):
+def _passes_in_flight(items) -> set[int]:
+    return {i.pass_.index for i in items}
+
+
+def test_shard_killed_with_several_passes_in_flight_reruns_them(
+        scenes, s, uninterrupted, ref_image, tmp_path, caplog):
     killed = []
 
-    def kill(coord, shard, method, index, seen):
-        # Kill the shard that is about to get work, right after earlier work of this pass,
-        # so that calls to it are in flight or queued when it dies.
-        if index == KILL_PASS and not killed and method == "process":
+    def kill(coord, shard, items, refs):
+        # Kill the shard that is about to get parcels of a later pass, so that calls of
+        # several passes are in flight or queued when it dies.
+        if not killed and any(i.n_parcels for i in items) and \
+                max(_passes_in_flight(items)) >= KILL_PASS:
             killed.append(shard)
             ray.kill(coord.actors[shard], no_restart=False)
 
@@ -97,7 +105,7 @@ def test_shard_killed_with_calls_in_flight_reruns_the_pass(scenes, s, uninterrup
     result, before, _, after = _render_with_kill(scenes[SCENE], s, kill)
     assert killed, "the kill never happened"
     assert after[killed[0]] != before[killed[0]], "the shard was not restarted"
-    assert _retries(caplog), "no pass was re-run"
+    assert _retries(caplog, "passes in flight"), "no pass was re-run"
     _check(tmp_path, "killed_busy", result, ref_image, uninterrupted)
 
 
@@ -105,16 +113,16 @@ def test_shard_that_dies_idle_and_restarts_unseen_does_not_lose_its_film(
         scenes, s, uninterrupted, ref_image, tmp_path, caplog):
     killed = []
 
-    def kill(coord, shard, method, index, seen):
-        # A shard that already worked in this pass and has no call left in flight dies and is
-        # back before the coordinator calls it again: no call of the coordinator ever fails.
-        if index != KILL_PASS or killed:
+    def kill(coord, shard, items, refs):
+        # A shard that already worked and has no call left in flight dies and is back
+        # before the coordinator calls it again: no call of the coordinator ever fails.
+        if killed or not any(i.n_parcels for i in items):
             return
-        idle = [v for v in seen if v not in ("_pass", shard)]
+        idle = [v for v in refs if v != shard]
         if not idle:
             return
         victim = idle[0]
-        ray.wait(seen[victim], num_returns=len(seen[victim]), fetch_local=False)
+        ray.wait(refs[victim], num_returns=len(refs[victim]), fetch_local=False)
         killed.append(victim)
         ray.kill(coord.actors[victim], no_restart=False)
         _pid(coord.actors[victim])  # wait until it is back...
@@ -125,5 +133,6 @@ def test_shard_that_dies_idle_and_restarts_unseen_does_not_lose_its_film(
     result, before, _, after = _render_with_kill(scenes[SCENE], s, kill)
     assert killed, "the kill never happened"
     assert after[killed[0]] != before[killed[0]], "the shard was not restarted"
-    assert _retries(caplog), "the lost film went unnoticed: no pass was re-run"
+    assert _retries(caplog, "fewer calls"), "the lost film went unnoticed: no pass was re-run"
+    assert not _retries(caplog, "passes in flight"), "a call failed: the test missed its case"
     _check(tmp_path, "killed_idle", result, ref_image, uninterrupted)

@@ -1,0 +1,251 @@
+"""Shard pools: K Shard actors holding one scene's geometry placement, started once and
+reused by every job on that scene (the service keeps them, least recently used first out,
+within a memory bound). Starting a pool plans proxies, ships the world and each shard's
+meshes, and warms every kernel, so a job on a warm pool starts tracing at once."""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import threading
+import time
+from collections import OrderedDict
+from contextlib import contextmanager
+
+import numpy as np
+import ray
+from ray.util.placement_group import placement_group, remove_placement_group
+from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
+
+from scene.model import Scene
+from scene.partition import partition
+from workers.raysession import acquire_ray, release_ray
+from workers.settings import RenderSettings
+from workers.shard import Shard, ShardConfig
+from workers.world import EVERYWHERE, ShardWorld
+
+log = logging.getLogger(__name__)
+
+# A shard that keeps dying (out of memory in its constructor, say) fails the job instead of
+# restarting for ever.
+MAX_SHARD_RESTARTS = 4
+READY_TIMEOUT_S = 600.0  # loading, planning and warming one shard
+
+
+def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None, train=True):
+    """Which meshes get a proxy, are replicated, or need nothing (proxies.policy)."""
+    from proxies.cache import ProxyCache
+    from proxies.config import DEFAULT_WIDTHS, ProxyConfig
+    from proxies.policy import plan_proxies
+
+    knobs = settings.proxy
+    return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,
+                        cache=ProxyCache(proxy_dir), train=train,
+                        config=ProxyConfig(budget_s=knobs.budget_s),
+                        widths=DEFAULT_WIDTHS if knobs.width is None else (knobs.width,))
+
+
+def pool_key(scene: Scene, settings: RenderSettings) -> str:
+    """Scene content plus the settings that decide what each shard holds."""
+    h = hashlib.sha256()
+    for m in scene.meshes:
+        h.update(f"{m.content_hash}:{m.material}:{m.name}|".encode())
+    h.update(np.array([i.mesh for i in scene.instances], np.int64).tobytes())
+    if scene.instances:
+        h.update(np.stack([i.transform for i in scene.instances]).astype(np.float64).tobytes())
+    lights = (scene.quad_lights, scene.point_lights, scene.directional_lights,
+              scene.environment, scene.camera)
+    h.update(repr(lights).encode())
+    for mat in scene.materials:
+        h.update(repr((mat.name, mat.albedo, mat.emission)).encode())
+        if mat.texture is not None:
+            h.update(np.ascontiguousarray(mat.texture).tobytes())
+    p = settings.proxy
+    placement = (settings.shards, settings.mode, p.accuracy_target, p.width, p.budget_s)
+    h.update(repr(placement).encode())
+    return h.hexdigest()
+
+
+class ShardPool:
+    """K started, warmed Shard actors for one scene and placement.
+
+    shard_options: per-shard extra actor options (tests pin shards to nodes with them);
+    without them the K shards are gang-scheduled in a SPREAD placement group."""
+
+    def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
+                 proxy_dir=None, shard_options: list[dict] | None = None):
+        t0 = time.perf_counter()
+        self.key = pool_key(scene, settings)
+        self.scene_name, self.k, self.mode = scene.name, settings.shards, settings.mode
+        self.partition = partition(scene, self.k)
+        owner = np.asarray(self.partition.instance_shard, np.int32).copy()
+        shard_meshes = [set(m) for m in self.partition.shard_meshes]
+        self.plan, proxies = None, {}
+        if settings.mode in ("proxy", "oracle"):
+            # The oracle bounds the proxy mode, so it gets the same placement: meshes
+            # lighter than their proxy are replicated (it trains nothing to learn that).
+            self.plan = make_plan(scene, self.partition, settings, proxy_dir,
+                                  train=settings.mode == "proxy")
+            proxies = self.plan.proxies if settings.mode == "proxy" else {}
+            inst_mesh = np.array([i.mesh for i in scene.instances], np.int64)
+            for m in self.plan.replicated:  # cheaper to copy than to model
+                owner[inst_mesh == m] = EVERYWHERE
+                for held in shard_meshes:
+                    held.add(m)
+        self.world = ShardWorld.build(scene, owner)
+        acquire_ray(ray_address)
+        self.pg, self.actors = None, []
+        try:
+            self._start(scene, settings, shard_meshes, proxies, shard_options)
+        except BaseException:
+            self.close()
+            raise
+        self.prepare_s = time.perf_counter() - t0
+        self.last_used = time.monotonic()
+        log.info("pool %s: %d shards of %r ready in %.2f s (warm-up %.2f s)", self.key[:12],
+                 self.k, scene.name, self.prepare_s, max(self.warm_s))
+
+    def _start(self, scene, settings, shard_meshes, proxies, shard_options) -> None:
+        world_ref = ray.put(self.world)
+        all_ref = ray.put(dict(enumerate(scene.meshes))) if settings.mode == "oracle" else None
+        cpus = ray.cluster_resources().get("CPU", 1.0)
+        per_shard_cpu = min(1.0, cpus / self.k)
+        # Gang-schedule the K shards: with several jobs at once, partial placements of
+        # two jobs would otherwise wait on each other forever.
+        if shard_options is None:
+            self.pg = placement_group([{"CPU": per_shard_cpu}] * self.k, strategy="SPREAD")
+            ray.get(self.pg.ready(), timeout=READY_TIMEOUT_S)
+        # A restarted actor re-reads its constructor arguments from the object store, so
+        # they must outlive the constructor (ray-project/ray#53727).
+        self._init_refs = [world_ref, all_ref]
+        for sid in range(self.k):
+            meshes_ref = ray.put({i: scene.meshes[i] for i in sorted(shard_meshes[sid])})
+            # Only the proxies of meshes this shard does not hold.
+            proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in shard_meshes[sid]})
+            opts = dict(max_restarts=MAX_SHARD_RESTARTS, max_task_retries=0,
+                        num_cpus=per_shard_cpu)
+            if self.pg is not None:
+                opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
+                    self.pg, placement_group_bundle_index=sid)
+            opts.update((shard_options or [{}] * self.k)[sid])
+            actor = ray.remote(Shard).options(**opts).remote(
+                ShardConfig(sid, self.k, settings), world_ref, meshes_ref, proxies_ref, all_ref)
+            self.actors.append(actor)
+            self._init_refs += [meshes_ref, proxies_ref]
+        self.shard_info = ray.get([a.ready.remote() for a in self.actors],
+                                  timeout=READY_TIMEOUT_S)
+        self.warm_s = ray.get([a.warm.remote() for a in self.actors], timeout=READY_TIMEOUT_S)
+
+    def __repr__(self) -> str:
+        return f"ShardPool({self.scene_name!r}, k={self.k}, mode={self.mode!r})"
+
+    @property
+    def nbytes(self) -> int:
+        """Geometry bytes held by all its shards (what the service's memory bound counts)."""
+        return int(sum(i["geometry_bytes"] for i in self.shard_info))
+
+    def alive(self, timeout_s: float = 10.0) -> bool:
+        try:
+            ray.get([a.ready.remote() for a in self.actors], timeout=timeout_s)
+            return True
+        except Exception:  # dead for good, or not answering: not worth reusing
+            return False
+
+    def close(self) -> None:
+        if self.actors is None:
+            return
+        for a in self.actors:
+            ray.kill(a, no_restart=True)
+        self.actors = None
+        if self.pg is not None:
+            remove_placement_group(self.pg)
+        release_ray()
+
+
+class PoolRegistry:
+    """Warm pools by key; idle ones are evicted least recently used first when the held
+    geometry would exceed max_bytes, when there are more than max_pools, or when a new pool
+    needs the CPUs they reserve."""
+
+    def __init__(self, max_bytes: int = 8 << 30, max_pools: int = 4):
+        self.max_bytes, self.max_pools = max_bytes, max_pools
+        self._pools: OrderedDict[str, ShardPool] = OrderedDict()
+        self._busy: set[str] = set()
+        self._lock = threading.Lock()
+        self.started = 0  # pools created, for tests and statistics
+
+    @contextmanager
+    def lease(self, scene: Scene, settings: RenderSettings, **pool_kwargs):
+        """A warm pool for (scene, placement), exclusive while the block runs."""
+        key, shared = pool_key(scene, settings), False
+        with self._lock:
+            pool = self._pools.get(key)
+            reuse = pool is not None and key not in self._busy
+            if reuse:
+                self._busy.add(key)
+                self._pools.move_to_end(key)
+        if reuse and not pool.alive():
+            log.warning("%r lost its shards; starting a new one", pool)
+            self._drop(key)
+            reuse = False
+        if not reuse:
+            self._make_room(settings)
+            pool = ShardPool(scene, settings, **pool_kwargs)
+            self.started += 1
+            with self._lock:
+                shared = key not in self._pools
+                if shared:  # a second job on a busy pool gets a private one
+                    self._pools[key] = pool
+                    self._busy.add(key)
+        try:
+            yield pool
+        finally:
+            pool.last_used = time.monotonic()
+            if reuse or shared:
+                with self._lock:
+                    self._busy.discard(key)
+                self._evict(keep_bytes=self.max_bytes, keep_pools=self.max_pools)
+            else:
+                pool.close()
+
+    def _make_room(self, settings: RenderSettings) -> None:
+        """Evict idle pools until the new one fits the bounds and the free CPUs."""
+        self._evict(keep_bytes=self.max_bytes, keep_pools=self.max_pools - 1)
+        if not ray.is_initialized():
+            return
+        want = min(1.0, ray.cluster_resources().get("CPU", 1.0) / max(settings.shards, 1))
+        while ray.available_resources().get("CPU", 0.0) < want * settings.shards:
+            if not self._evict_one():
+                return
+
+    def _evict(self, keep_bytes: int, keep_pools: int) -> None:
+        while True:
+            with self._lock:
+                held = sum(p.nbytes for p in self._pools.values())
+                over = held > keep_bytes or len(self._pools) > keep_pools
+            if not over or not self._evict_one():
+                return
+
+    def _evict_one(self) -> bool:
+        with self._lock:
+            idle = [k for k in self._pools if k not in self._busy]
+            if not idle:
+                return False
+            pool = self._pools.pop(idle[0])
+        log.info("evicting %r (least recently used)", pool)
+        pool.close()
+        return True
+
+    def _drop(self, key: str) -> None:
+        with self._lock:
+            pool = self._pools.pop(key, None)
+            self._busy.discard(key)
+        if pool is not None:
+            pool.close()
+
+    def close(self) -> None:
+        with self._lock:
+            pools, self._pools = list(self._pools.values()), OrderedDict()
+            self._busy.clear()
+        for p in pools:
+            p.close()

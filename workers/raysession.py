@@ -1,0 +1,47 @@
+"""One Ray per process, shared by every pool and coordinator in it: started here (and shut
+down by the last user) unless the process already joined one."""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import ray
+
+_RAY_LOCK = threading.Lock()
+_RAY_USERS = 0  # live pools on a Ray that this module started
+_RAY_OWNED = False
+
+
+def _init(address: str | None) -> None:
+    ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING,
+             log_to_driver=False)
+
+
+def ensure_ray(address: str | None = None) -> bool:
+    """Join `address`, or start a local Ray. Returns True when this call started it."""
+    with _RAY_LOCK:
+        if ray.is_initialized():
+            return False
+        _init(address)
+        return True
+
+
+def acquire_ray(address: str | None) -> None:
+    """Pools in several threads (the service runs jobs concurrently) share one Ray; the
+    last one out shuts down a Ray that a pool started."""
+    global _RAY_USERS, _RAY_OWNED
+    with _RAY_LOCK:
+        if not ray.is_initialized():
+            _init(address)
+            _RAY_OWNED = True
+        _RAY_USERS += 1
+
+
+def release_ray() -> None:
+    global _RAY_USERS, _RAY_OWNED
+    with _RAY_LOCK:
+        _RAY_USERS -= 1
+        if _RAY_USERS == 0 and _RAY_OWNED:
+            ray.shutdown()
+            _RAY_OWNED = False
