@@ -1,7 +1,10 @@
-"""Per-job files: the resumable film checkpoint after each pass, and the final outputs.
+"""Per-job files: the resumable film checkpoint, written every few seconds, and the final
+outputs.
 
 A checkpoint is sums-<n>.npy + samples-<n>.npy + checkpoint.json; the json is written
-last, with os.replace, so it only ever names a complete pair (n = next pass to render).
+last, with os.replace, so it only ever names a complete pair. It records which passes the
+film holds: every pass below `next_pass` plus the few in `done` (passes finish out of
+order), so a restart re-renders exactly the others and counts no sample twice.
 """
 
 from __future__ import annotations
@@ -43,16 +46,20 @@ def atomic_save_npy(path: Path, arr: np.ndarray) -> None:
 
 
 def save_checkpoint(job_dir: Path, next_pass: int, sums: np.ndarray, samples: np.ndarray,
-                    stats: dict) -> None:
-    """sums : (h * w, 3) float64; samples : (h * w,) int64; stats : RenderStats.to_dict()."""
-    atomic_save_npy(job_dir / f"sums-{next_pass}.npy", sums)
-    atomic_save_npy(job_dir / f"samples-{next_pass}.npy", samples)
-    meta = {"next_pass": next_pass, "stats": stats}
-    atomic_write_bytes(job_dir / CHECKPOINT, json.dumps(meta).encode())
+                    stats: dict, done: list[int] | tuple = ()) -> int:
+    """sums : (h * w, 3) float64; samples : (h * w,) int64; stats : RenderStats.to_dict();
+    done : finished passes at or above next_pass. Returns the bytes written."""
+    tag = f"{next_pass}-{len(done)}"
+    atomic_save_npy(job_dir / f"sums-{tag}.npy", sums)
+    atomic_save_npy(job_dir / f"samples-{tag}.npy", samples)
+    meta = json.dumps({"next_pass": next_pass, "done": sorted(done), "tag": tag,
+                       "stats": stats}).encode()
+    atomic_write_bytes(job_dir / CHECKPOINT, meta)
     # Older pairs are garbage only once the json no longer names them.
     for old in list(job_dir.glob("sums-*.npy")) + list(job_dir.glob("samples-*.npy")):
-        if old.stem.rsplit("-", 1)[1] != str(next_pass):
+        if old.stem.split("-", 1)[1] != tag:
             old.unlink(missing_ok=True)
+    return int(sums.nbytes + samples.nbytes + len(meta))
 
 
 def load_checkpoint(job_dir: Path) -> ResumeState | None:
@@ -61,9 +68,10 @@ def load_checkpoint(job_dir: Path) -> ResumeState | None:
         return None
     meta = json.loads(path.read_text())
     n = int(meta["next_pass"])
-    return ResumeState(next_pass=n, sums=np.load(job_dir / f"sums-{n}.npy"),
-                       samples=np.load(job_dir / f"samples-{n}.npy"),
-                       stats=meta.get("stats", {}))
+    tag = meta.get("tag", str(n))
+    return ResumeState(next_pass=n, sums=np.load(job_dir / f"sums-{tag}.npy"),
+                       samples=np.load(job_dir / f"samples-{tag}.npy"),
+                       stats=meta.get("stats", {}), done=[int(i) for i in meta.get("done", [])])
 
 
 def clear_checkpoint(job_dir: Path) -> None:

@@ -28,6 +28,14 @@ class ServiceSettings(BaseSettings):
     grpc_max_message_bytes: int = Field(64 << 20, ge=1 << 20,
                                         description="gRPC message limit, bytes (tiles, images)")
     scene_cache_size: int = Field(8, ge=0, description="loaded scenes kept in memory")
+    pool_max_bytes: int = Field(8 << 30, ge=0,
+                                description="geometry bytes that idle warm shard pools may "
+                                            "hold; least recently used pools go first")
+    pool_max_count: int = Field(4, ge=1, le=64, description="warm shard pools kept at most")
+    checkpoint_interval_s: float = Field(
+        5.0, ge=0.0, le=3600.0,
+        description="seconds between film checkpoints of a running job (0 = every pass); a "
+                    "restart loses at most this much work")
 
     @property
     def db_path(self) -> Path:

@@ -1,8 +1,10 @@
 """The job manager: stores every job before it runs, renders FIFO on a bounded pool of
-threads, checkpoints after each pass, and re-queues unfinished jobs on startup."""
+threads on warm shard pools, checkpoints every few seconds, and re-queues unfinished jobs
+on startup."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import queue
@@ -22,9 +24,12 @@ from service.events import Deliver, EventBroker
 from service.joblog import job_log
 from service.scenes import SceneStore
 from service.store import TERMINAL, JobRecord, JobStore
-from workers.passes import plan_passes
-from workers.render import PassDone, RenderCanceled, make_renderer, render
+from workers.film import Film
+from workers.passes import count_passes
+from workers.pool import PoolRegistry
+from workers.render import PassDone, Progress, RenderCanceled, make_renderer, render
 from workers.settings import RenderSettings
+from workers.stats import RenderStats
 
 log = logging.getLogger(__name__)
 
@@ -34,9 +39,12 @@ class _Live:
     """What exists only while this process owns a queued or running job."""
 
     cancel: threading.Event = field(default_factory=threading.Event)
-    # Copies taken after the last pass, so partial images never see a half-added tile.
-    sums: np.ndarray | None = None  # (h * w, 3) float64
-    samples: np.ndarray | None = None  # (h * w,) int64
+    film: Film | None = None  # the render's film; read it under film.lock
+    progress: Progress | None = None
+    stats: RenderStats | None = None
+    saved_at: float = 0.0  # monotonic time of the last checkpoint
+    stored_at: float = 0.0  # ... and of the last progress write to the store
+    checkpoint_bytes: int = 0
 
 
 class JobManager:
@@ -49,6 +57,8 @@ class JobManager:
         self._queue: queue.Queue[str | None] = queue.Queue()
         self._live: dict[str, _Live] = {}
         self._lock = threading.Lock()
+        self._active = 0  # jobs being run by worker threads
+        self._idle = threading.Condition(self._lock)
         self._stopping = threading.Event()
         self._threads: list[threading.Thread] = []
         self._ray_lock = threading.Lock()
@@ -56,6 +66,7 @@ class JobManager:
         # Without placement groups, two Coordinators that each ask for the whole cluster can
         # each get part of their actors and then wait on each other for ever.
         self._sharded_slots = threading.BoundedSemaphore(settings.max_sharded_jobs)
+        self.pools = PoolRegistry(settings.pool_max_bytes, settings.pool_max_count)
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
 
     # ------------------------------------------------------------ lifecycle
@@ -66,7 +77,7 @@ class JobManager:
             log.info("re-queueing job %s (was %s, resumes at pass %d of %d)", rec.id, rec.state,
                      ck.next_pass if ck else 0, rec.passes_total)
             self.store.update(rec.id, state="queued",
-                              passes_done=ck.next_pass if ck else 0)
+                              passes_done=ck.next_pass + len(ck.done) if ck else 0)
             self._enqueue(rec.id)
         for i in range(self.settings.max_concurrent_jobs):
             t = threading.Thread(target=self._worker, name=f"nprt-worker-{i}", daemon=True)
@@ -80,13 +91,20 @@ class JobManager:
         with self._lock:
             for live in self._live.values():
                 live.cancel.set()
+        deadline = time.monotonic() + timeout_s
+        with self._idle:
+            self._idle.wait_for(lambda: self._active == 0, timeout_s)
+            idle = self._active == 0
+        if idle:
+            # Before the workers exit: Ray's processes die with the thread that started
+            # them (parent-death signal), and closing a pool needs them.
+            self.pools.close()
         for _ in self._threads:
             self._queue.put(None)
-        deadline = time.monotonic() + timeout_s
         for t in self._threads:
             t.join(max(0.0, deadline - time.monotonic()))
         running = [t.name for t in self._threads if t.is_alive()]
-        if running:  # never pull Ray from under a render; it goes at interpreter exit
+        if running or not idle:  # never pull Ray from under a render; it goes at exit
             log.warning("%s still rendering after %.0f s; leaving Ray up", running, timeout_s)
         elif self._started_ray:
             import ray
@@ -105,7 +123,7 @@ class JobManager:
         job_id = uuid.uuid4().hex
         self.job_dir(job_id).mkdir(parents=True, exist_ok=True)
         rec = self.store.insert(job_id, scene, settings.model_dump(mode="json"),
-                                len(plan_passes(settings)))
+                                count_passes(settings))
         self._enqueue(job_id)
         log.info("job %s queued: scene %r, %dx%d, %d spp, mode %s, shards %d", job_id, scene,
                  settings.width, settings.height, settings.spp, settings.mode, settings.shards)
@@ -146,7 +164,11 @@ class JobManager:
             return final.read_bytes(), False
         with self._lock:
             live = self._live.get(job_id)
-            sums, samples = (live.sums, live.samples) if live else (None, None)
+            film = live.film if live else None
+        sums = samples = None
+        if film is not None:
+            with film.lock:
+                sums, samples = film.sums.copy(), film.samples.copy()
         if sums is None:
             ck = checkpoint.load_checkpoint(self.job_dir(job_id))
             if ck is None:
@@ -170,6 +192,8 @@ class JobManager:
         while (job_id := self._queue.get()) is not None:
             if self._stopping.is_set():
                 return
+            with self._lock:
+                self._active += 1
             try:
                 self._run(job_id)
             except Exception:  # keep the worker alive for the next job
@@ -177,6 +201,8 @@ class JobManager:
             finally:
                 with self._lock:
                     self._live.pop(job_id, None)
+                    self._active -= 1
+                    self._idle.notify_all()
 
     def _run(self, job_id: str) -> None:
         rec = self.store.get(job_id)
@@ -207,20 +233,22 @@ class JobManager:
             scene = self.scenes.load(rec.scene)
             if settings.shards > 0:
                 self._ensure_ray()
-            renderer = make_renderer(scene, settings, ray_address=self.settings.ray_address,
-                                     proxy_dir=self.settings.proxies_dir)
-            try:
-                if live.cancel.is_set():
-                    raise RenderCanceled("canceled while preparing")
-                self._set_state(job_id, "running")
-                result = render(scene, settings, resume=resume, cancel=live.cancel,
-                                renderer=renderer,
-                                on_pass=lambda p: self._on_pass(job_id, job_dir, live, p))
-            finally:
-                renderer.close()
+            with self._pool_for(scene, settings) as pool:
+                renderer = make_renderer(scene, settings, ray_address=self.settings.ray_address,
+                                         proxy_dir=self.settings.proxies_dir, pool=pool)
+                try:
+                    if live.cancel.is_set():
+                        raise RenderCanceled("canceled while preparing")
+                    self._set_state(job_id, "running")
+                    result = render(scene, settings, resume=resume, cancel=live.cancel,
+                                    renderer=renderer,
+                                    on_pass=lambda p: self._on_pass(job_id, job_dir, live, p))
+                finally:
+                    renderer.close()
             self._finish(job_id, job_dir, result)
         except RenderCanceled as e:
             if self._stopping.is_set():
+                self._checkpoint(job_dir, live)
                 log.info("job %s: interrupted by shutdown; resumes on next start", job_id)
                 return
             log.info("job %s: %s", job_id, e)
@@ -246,23 +274,46 @@ class JobManager:
                          self.settings.ray_address else "joined Ray at %s",
                          self.settings.ray_address)
 
+    def _pool_for(self, scene, settings: RenderSettings):
+        """A warm shard pool for a sharded job (none for the reference renderer)."""
+        if settings.shards == 0:
+            return contextlib.nullcontext()
+        return self.pools.lease(scene, settings, ray_address=self.settings.ray_address,
+                                proxy_dir=self.settings.proxies_dir)
+
+    def _checkpoint(self, job_dir: Path, live: _Live) -> None:
+        """Save the film and the set of passes it holds (O(film); every few seconds)."""
+        if live.film is None:
+            return
+        with live.film.lock:
+            sums, samples = live.film.sums.copy(), live.film.samples.copy()
+            done = sorted(live.progress.done)
+            next_pass, stats = live.progress.next_pass, live.stats.to_dict()
+        live.checkpoint_bytes += checkpoint.save_checkpoint(job_dir, next_pass, sums, samples,
+                                                            stats, done)
+        live.saved_at = time.monotonic()
+
     def _on_pass(self, job_id: str, job_dir: Path, live: _Live, p: PassDone) -> None:
-        sums, samples = p.film.sums.copy(), p.film.samples.copy()
-        stats = p.stats.to_dict()
-        checkpoint.save_checkpoint(job_dir, p.index + 1, sums, samples, stats)
-        with self._lock:
-            live.sums, live.samples = sums, samples
-        self.store.update(job_id, passes_done=p.index + 1, stats=stats)
+        """After each pass: a tile event (the tile's pixels only); every
+        checkpoint_interval_s a checkpoint and a progress write to the store."""
+        live.film, live.progress, live.stats = p.film, p.progress, p.stats
+        now = time.monotonic()
+        if now - live.saved_at >= self.settings.checkpoint_interval_s:
+            self._checkpoint(job_dir, live)
+        if now - live.stored_at >= min(1.0, self.settings.checkpoint_interval_s):
+            self.store.update(job_id, passes_done=p.progress.count, stats=p.stats.to_dict())
+            live.stored_at = now
         if not self.broker.subscribers(job_id):
             return
         t = p.pass_
-        w = p.film.width
-        pix = t.pixels(w)
-        rgb = (sums[pix] / np.maximum(samples[pix], 1)[:, None]).astype(np.float32)
+        pix = t.pixels(p.film.width)
+        with p.film.lock:
+            rgb = (p.film.sums[pix] / np.maximum(p.film.samples[pix], 1)[:, None])
+        rgb = rgb.astype(np.float32)
         self.broker.publish(job_id, {
             "type": "tile", "pass_index": p.index, "passes_total": p.total,
             "rect": (t.x0, t.y0, t.x1, t.y1), "sample0": t.sample0, "sample1": t.sample1,
-            "progress": (p.index + 1) / p.total,
+            "progress": p.progress.count / p.total,
             "rgb": rgb.reshape(t.y1 - t.y0, t.x1 - t.x0, 3),
         })
 
@@ -272,6 +323,10 @@ class JobManager:
         (job_dir / "image.png").write_bytes(images.png_bytes(img))
         (job_dir / "image.exr").write_bytes(images.exr_bytes(img))
         stats = result.stats_dict()
+        with self._lock:
+            live = self._live.get(job_id)
+        if live is not None:
+            stats["checkpoint_bytes"] = live.checkpoint_bytes
         checkpoint.atomic_write_bytes(job_dir / "stats.json",
                                       json.dumps(stats, indent=1, default=str).encode())
         # The final film stays on disk: it proves every pixel got its samples.

@@ -74,6 +74,8 @@ class Coordinator:
         self.pool = pool or ShardPool(scene, settings, ray_address, proxy_dir, shard_options)
         if (self.pool.k, self.pool.mode) != (self.k, settings.mode):
             raise ValueError(f"{self.pool!r} cannot run a K={self.k} {settings.mode!r} job")
+        self.pool.jobs += 1
+        self.warm = self.pool.jobs > 1  # the pool was started for an earlier job
         self.window = max(MIN_WINDOW, WINDOW_PER_SHARD * self.k)
         self.fetched: list[type] = []  # what this coordinator read back, for the tests
         self.busy_s = np.zeros(self.k)
@@ -103,7 +105,7 @@ class Coordinator:
 
     @property
     def prepare_s(self) -> float:
-        return self.pool.prepare_s if self._own_pool else 0.0
+        return 0.0 if self.warm else self.pool.prepare_s
 
     def __repr__(self) -> str:
         return f"Coordinator({self.scene.name!r}, k={self.k}, mode={self.s.mode!r})"
@@ -188,6 +190,7 @@ class Coordinator:
                         waiting[self._collect(sid, [token])] = ("collect", sid, [token])
         finally:
             self.wall_s += time.perf_counter() - t_start
+            self._settings_ref = None
             if live:  # canceled or failed: free what the shards hold for this job
                 self._abort(list(live), wait=False)
 
@@ -289,7 +292,7 @@ class Coordinator:
             "shard_geometry_bytes": [i["geometry_bytes"] for i in self.shard_info],
             "max_shard_geometry_bytes": max(i["geometry_bytes"] for i in self.shard_info),
             "prepare_s": round(self.prepare_s, 4),
-            "warm_pool": not self._own_pool,
+            "warm_pool": self.warm,
             "window": self.window,
             "coordinator_wait_s": round(self.wait_s, 4),
             "shard_stats": shards,

@@ -76,6 +76,7 @@ class ShardPool:
                  proxy_dir=None, shard_options: list[dict] | None = None):
         t0 = time.perf_counter()
         self.key = pool_key(scene, settings)
+        self.jobs = 0  # coordinators that ran on it
         self.scene_name, self.k, self.mode = scene.name, settings.shards, settings.mode
         self.partition = partition(scene, self.k)
         owner = np.asarray(self.partition.instance_shard, np.int32).copy()
@@ -156,9 +157,12 @@ class ShardPool:
             return
         for a in self.actors:
             ray.kill(a, no_restart=True)
-        self.actors = None
+        # Drop every handle and reference before Ray may shut down: one released after
+        # that makes the core worker wait for a GCS that is gone, then exit the process.
+        self.actors, self._init_refs = None, []
         if self.pg is not None:
             remove_placement_group(self.pg)
+            self.pg = None
         release_ray()
 
 

@@ -32,3 +32,32 @@ def test_concurrent_sharded_exact_jobs_match_reference_job(tmp_path):
             img = png_pixels(client.get(f"/v1/jobs/{jobs[k]}/image.png").content).astype(int)
             # Float summation order differs between shards: allow one 8-bit step.
             assert np.abs(img - ref).max() <= 1, f"{k} shards differ from the reference"
+
+
+@pytest.mark.slow
+def test_second_job_on_a_scene_reuses_its_warm_shard_pool(tmp_path):
+    pytest.importorskip("ray")
+    with LiveServer(settings_for(tmp_path, max_concurrent_jobs=1)) as server, \
+            httpx.Client(base_url=server.url, timeout=30.0) as client:
+        manager = server.app.state.manager
+        done = []
+        for seed in (1, 2):  # a different job (seed) on the same scene and placement
+            job_id = client.post("/v1/jobs", json={"scene": "forest:tiny", **TINY, "shards": 2,
+                                                   "seed": seed}).json()["id"]
+            done.append(wait_for(lambda j=job_id: (r := client.get(f"/v1/jobs/{j}").json())
+                                 ["state"] in ("succeeded", "failed") and r, 300,
+                                 interval_s=0.1, what="sharded job"))
+            if seed == 1:
+                (pool,) = manager.pools._pools.values()
+                actors = [a._actor_id.hex() for a in pool.actors]
+        assert [j["state"] for j in done] == ["succeeded", "succeeded"], done
+        first, second = (j["stats"] for j in done)
+        assert not first["warm_pool"] and second["warm_pool"]
+        assert [s["pid"] for s in first["shard_stats"]] == [s["pid"] for s in second["shard_stats"]]
+        (same,) = manager.pools._pools.values()
+        assert same is pool and [a._actor_id.hex() for a in same.actors] == actors
+        assert manager.pools.started == 1, "the second job started shard actors"
+        # Different seeds on one pool: the per-job settings did reach the shards.
+        a = png_pixels(client.get(f"/v1/jobs/{done[0]['id']}/image.png").content)
+        b = png_pixels(client.get(f"/v1/jobs/{done[1]['id']}/image.png").content)
+        assert (a != b).any()

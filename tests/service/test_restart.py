@@ -36,7 +36,9 @@ def _free_port() -> int:
 
 def _start(data_dir: Path, log_path: Path) -> tuple[subprocess.Popen, str]:
     port = _free_port()
-    env = {**os.environ, "PYTHONPATH": str(REPO), "NPRT_MAX_CONCURRENT_JOBS": "1"}
+    # Checkpoint after every pass: the kill below lands between two of them.
+    env = {**os.environ, "PYTHONPATH": str(REPO), "NPRT_MAX_CONCURRENT_JOBS": "1",
+           "NPRT_CHECKPOINT_INTERVAL_S": "0"}
     env.pop("NPRT_API_TOKEN", None)
     log = log_path.open("ab")
     proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--data-dir",

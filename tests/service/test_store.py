@@ -47,7 +47,7 @@ def test_checkpoint_round_trips_and_keeps_only_the_latest_pair(tmp_path):
     np.testing.assert_array_equal(ck.sums, sums)
     np.testing.assert_array_equal(ck.samples, samples + 1)
     assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "checkpoint.json", "samples-4.npy", "sums-4.npy"]
+        "checkpoint.json", "samples-4-0.npy", "sums-4-0.npy"]
     clear_checkpoint(tmp_path)
     assert load_checkpoint(tmp_path) is None and list(tmp_path.iterdir()) == []
 
