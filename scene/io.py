@@ -34,6 +34,7 @@ from scene.model import (
     validate_mesh,
     validate_transform,
 )
+from scene.paths import FileRefs, load_trimesh
 
 log = logging.getLogger(__name__)
 
@@ -99,21 +100,20 @@ def build_mesh(
     return Mesh(name, raw.vertices, kept, n, uv, material, dropped)
 
 
-def read_mesh_file(path: Path, where: str) -> dict:
-    """Read one mesh file through trimesh (multi-mesh files are flattened into one).
+def read_mesh_file(path: Path, where: str, refs: FileRefs | None = None) -> dict:
+    """Read one mesh file through trimesh (multi-mesh files are flattened into one); `path`
+    comes from `refs.resolve`, and the files it names (MTL, textures, glTF buffers) are
+    read through `refs` too.
 
     returns : dict with vertices (v, 3), faces (f, 3), normals (v, 3) or None, uvs (v, 2) or None
     """
-    if not path.is_file():
-        raise SceneError(f"{where}: mesh file not found: {path}")
+    refs = refs or FileRefs(path.parent)
     if path.suffix.lower() not in MESH_SUFFIXES:
-        raise SceneError(f"{where}: unsupported mesh format {path.suffix!r} ({path})")
-    try:
-        tm = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many exception types for bad files
-        raise SceneError(f"{where}: could not read mesh file {path}: {e}") from None
+        raise SceneError(f"{where}: unsupported mesh format {path.suffix!r} ({refs.show(path)})")
+    tm = load_trimesh(path, refs, f"mesh file {refs.show(path)}", where, force="mesh",
+                      process=False)
     if not isinstance(tm, trimesh.Trimesh):
-        raise SceneError(f"{where}: {path} holds no triangle mesh")
+        raise SceneError(f"{where}: {refs.show(path)} holds no triangle mesh")
     uv = getattr(tm.visual, "uv", None)
     uv = uv if uv is not None and np.shape(uv) == (len(tm.vertices), 2) else None
     return {
@@ -153,10 +153,10 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
-def read_texture(path: Path, where: str) -> np.ndarray:
-    """An image (sRGB) or .npy (linear) as texture : (h, w, 3) float32 linear."""
-    if not path.is_file():
-        raise SceneError(f"{where}: texture file not found: {path}")
+def read_texture(path: Path, where: str, refs: FileRefs | None = None) -> np.ndarray:
+    """An image (sRGB) or .npy (linear) as texture : (h, w, 3) float32 linear; `path`
+    comes from `refs.resolve`."""
+    shown = (refs or FileRefs(path.parent)).show(path)
     try:
         if path.suffix.lower() == ".npy":
             tex = np.load(path, allow_pickle=False).astype(np.float32)
@@ -166,11 +166,11 @@ def read_texture(path: Path, where: str) -> np.ndarray:
             with Image.open(path) as img:
                 tex = srgb_to_linear(np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0)
     except Exception as e:  # PIL/numpy raise many types for bad files
-        raise SceneError(f"{where}: could not read texture {path}: {e}") from None
+        raise SceneError(f"{where}: could not read texture {shown}: {e}") from None
     if tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] == 0 or tex.shape[1] == 0:
-        raise SceneError(f"{where}: texture {path} must have shape (h, w, 3), got {tex.shape}")
+        raise SceneError(f"{where}: texture {shown} must have shape (h, w, 3), got {tex.shape}")
     if not np.isfinite(tex).all():
-        raise SceneError(f"{where}: texture {path} has non-finite texels")
+        raise SceneError(f"{where}: texture {shown} has non-finite texels")
     return np.ascontiguousarray(tex)
 
 
@@ -198,29 +198,30 @@ _AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
 # ---------------------------------------------------------------- scene files
 
 
-def load_scene(path) -> Scene:
-    """Load a JSON scene file; mesh and texture paths are relative to it."""
-    path = Path(path)
+def load_scene(path, root: Path | None = None) -> Scene:
+    """Load a JSON scene file; mesh and texture paths are relative to it, and with `root`
+    set (an upload) they must stay inside `root`."""
+    refs = FileRefs(Path(path).parent, root)
+    path = refs.resolve(Path(path).name, "scene file", "")
+    shown = refs.show(path)
     try:
         text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SceneError(f"scene file not found: {path}") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise SceneError(f"{path}: could not read scene file: {e}") from None
+        raise SceneError(f"{shown}: could not read scene file: {e}") from None
     try:
         data = json.loads(text)
     except json.JSONDecodeError as e:
         raise SceneError(
-            f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}"
+            f"{shown}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}"
         ) from None
     try:
         spec = schema.SceneFile.model_validate(data)
     except ValidationError as e:
-        raise validation_error(e, str(path)) from None
+        raise validation_error(e, shown) from None
     try:
-        return scene_from_spec(spec, path.parent)
+        return scene_from_spec(spec, refs)
     except SceneError as e:
-        raise SceneError(f"{path}: {e}") from None
+        raise type(e)(f"{shown}: {e}") from None  # keeps UnsafePath an UnsafePath
 
 
 def validation_error(err: ValidationError, source: str) -> SceneError:
@@ -265,16 +266,14 @@ def _resolve(ref, names: list[str], kind: str, field: str) -> int:
     return hits[0]
 
 
-def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
-    """Convert a validated SceneFile; relative paths resolve against `base`."""
+def scene_from_spec(spec: schema.SceneFile, refs: FileRefs | Path) -> Scene:
+    """Convert a validated SceneFile; file paths resolve through `refs` (a bare directory:
+    relative to it, unconfined)."""
+    refs = refs if isinstance(refs, FileRefs) else FileRefs(Path(refs))
     mat_names = [m.name for m in spec.materials]
     materials = tuple(
-        Material(
-            m.name,
-            m.albedo,
-            m.emission,
-            read_texture(base / m.texture, f"materials[{i}] ({m.name!r})") if m.texture else None,
-        )
+        Material(m.name, m.albedo, m.emission, _texture(m.texture, refs, f"materials[{i}] "
+                                                        f"({m.name!r})"))
         for i, m in enumerate(spec.materials)
     ) or (Material(),)
     meshes = []
@@ -284,7 +283,7 @@ def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
             ms.material, mat_names, "material", f"{where}.material"
         )
         if ms.path is not None:
-            arrays = read_mesh_file(base / ms.path, where)
+            arrays = read_mesh_file(refs.resolve(ms.path, "mesh file", where), where, refs)
         else:
             arrays = {"vertices": ms.vertices, "faces": ms.faces,
                       "normals": ms.normals, "uvs": ms.uvs}
@@ -311,6 +310,10 @@ def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
         camera=Camera(**spec.camera.model_dump()),
         name=spec.name,
     )
+
+
+def _texture(ref: str | None, refs: FileRefs, where: str) -> np.ndarray | None:
+    return None if ref is None else read_texture(refs.resolve(ref, "texture", where), where, refs)
 
 
 def save_scene(scene: Scene, path) -> Path:
@@ -415,8 +418,9 @@ def scene_from_meshes(meshes: list[Mesh], transforms: list[tuple[int, np.ndarray
                  camera=frame_camera(bounds), name=name)
 
 
-def load_any(source, size: str = "default", seed: int = 0) -> Scene:
-    """A demo name ("forest", "city:small"), a .json scene, a .glb/.gltf file or a mesh file."""
+def load_any(source, size: str = "default", seed: int = 0, root: Path | None = None) -> Scene:
+    """A demo name ("forest", "city:small"), a .json scene, a .glb/.gltf file or a mesh file.
+    With `root` set (an upload), no file outside `root` is read."""
     from scene import demos, gltf  # deferred: both import this module
 
     if isinstance(source, str) and not source.lower().endswith((".json", *MESH_SUFFIXES)):
@@ -426,11 +430,14 @@ def load_any(source, size: str = "default", seed: int = 0) -> Scene:
     path = Path(source)
     suffix = path.suffix.lower()
     if suffix == ".json":
-        return load_scene(path)
+        return load_scene(path, root)
     if suffix in (".glb", ".gltf"):
-        return gltf.load_gltf(path)
+        return gltf.load_gltf(path, root)
     if suffix in MESH_SUFFIXES:
-        mesh = build_mesh(path.stem, where=str(path), **read_mesh_file(path, str(path)))
+        refs = FileRefs(path.parent, root)
+        path = refs.resolve(path.name, "mesh file", "")
+        where = refs.show(path)
+        mesh = build_mesh(path.stem, where=where, **read_mesh_file(path, where, refs))
         return scene_from_meshes([mesh], [(0, np.eye(4))], (Material(),), path.stem)
     if not path.exists():
         raise SceneError(
