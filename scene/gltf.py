@@ -12,7 +12,7 @@ import numpy as np
 import trimesh
 
 from scene.errors import SceneError
-from scene.io import build_mesh, scene_from_meshes, srgb_to_linear
+from scene.io import build_mesh, file_normals, scene_from_meshes, srgb_to_linear
 from scene.model import TRANSFORM_DTYPE, Material, Mesh, Scene, validate_transform
 from scene.paths import FileRefs, load_trimesh
 
@@ -27,7 +27,7 @@ def load_gltf(path, root: Path | None = None) -> Scene:
     refs = FileRefs(Path(path).parent, root)
     path = refs.resolve(Path(path).name, "glTF file", "")
     shown = refs.show(path)
-    tm = load_trimesh(path, refs, "glTF", shown, force="scene", process=False)
+    tm, _ = load_trimesh(path, refs, "glTF", shown, force="scene", process=False)
     meshes: list[Mesh] = []
     materials: list[Material] = []
     mesh_of: dict[str, int] = {}  # geometry name -> base mesh index
@@ -46,7 +46,7 @@ def load_gltf(path, root: Path | None = None) -> Scene:
             tex = materials[mat].texture is not None
             mesh = build_mesh(
                 str(geom_name), geom.vertices, geom.faces,
-                normals=_file_normals(geom),
+                normals=file_normals(geom),
                 uvs=np.asarray(geom.visual.uv) if tex else None,
                 material=mat, where=f"{shown}: mesh {geom_name!r}",
             )
@@ -72,13 +72,6 @@ def _content_key(mesh: Mesh) -> tuple:
     return mesh.content_hash, extra.hexdigest(), mesh.material
 
 
-def _file_normals(geom: trimesh.Trimesh) -> np.ndarray | None:
-    # Only normals the file carried: trimesh keeps them in its cache, computed ones are not there.
-    if "vertex_normals" in geom._cache:
-        return np.asarray(geom.vertex_normals)
-    return None
-
-
 def _material_index(geom: trimesh.Trimesh, geom_name: str, materials: list[Material],
                     material_of: dict) -> int:
     """Index of the geometry's material in `materials`, appending it if new. Materials that
@@ -96,6 +89,11 @@ def _material_index(geom: trimesh.Trimesh, geom_name: str, materials: list[Mater
     if source is not None:
         material_of[id(source)] = material_of[key]
     return material_of[key]
+
+
+def file_material(visual, name: str, n_vertices: int) -> Material:
+    """The material a loaded mesh file carries (an OBJ's MTL: Kd, map_Kd)."""
+    return _convert_material(visual, getattr(visual, "material", None), name, n_vertices)
 
 
 def _convert_material(visual, source, geom_name: str, n_vertices: int) -> Material:

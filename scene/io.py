@@ -100,38 +100,63 @@ def build_mesh(
     return Mesh(name, raw.vertices, kept, n, uv, material, dropped)
 
 
-def read_mesh_file(path: Path, where: str, refs: FileRefs | None = None) -> dict:
+def open_mesh_file(path: Path, where: str,
+                   refs: FileRefs | None = None) -> tuple[trimesh.Trimesh, list[Path]]:
     """Read one mesh file through trimesh (multi-mesh files are flattened into one); `path`
     comes from `refs.resolve`, and the files it names (MTL, textures, glTF buffers) are
-    read through `refs` too.
-
-    returns : dict with vertices (v, 3), faces (f, 3), normals (v, 3) or None, uvs (v, 2) or None
-    """
+    read through `refs` too. Returns the mesh and those other files."""
     refs = refs or FileRefs(path.parent)
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise SceneError(f"{where}: unsupported mesh format {path.suffix!r} ({refs.show(path)})")
-    tm = load_trimesh(path, refs, f"mesh file {refs.show(path)}", where, force="mesh",
-                      process=False)
-    if not isinstance(tm, trimesh.Trimesh):
+    loaded, named = load_trimesh(path, refs, f"mesh file {refs.show(path)}", where,
+                                 force="scene", process=False)
+    meshes = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh)]
+    nodes = loaded.graph.nodes_geometry
+    if not meshes:
         raise SceneError(f"{where}: {refs.show(path)} holds no triangle mesh")
+    if len(meshes) == 1 and len(nodes) == 1 and np.array_equal(loaded.graph[nodes[0]][0],
+                                                                np.eye(4)):
+        return meshes[0], named  # as loaded: concatenating would drop the file's normals
+    return loaded.to_mesh(), named
+
+
+def mesh_arrays(tm: trimesh.Trimesh) -> dict:
+    """What `build_mesh` takes from a loaded mesh file.
+
+    returns : dict with vertices (v, 3), faces (f, 3), normals (v, 3) or None, uvs (v, 2) or None
+    """
     uv = getattr(tm.visual, "uv", None)
     uv = uv if uv is not None and np.shape(uv) == (len(tm.vertices), 2) else None
-    return {
-        "vertices": tm.vertices,
-        "faces": tm.faces,
-        "normals": _ply_normals(tm),
-        "uvs": uv,
-    }
+    normals = _ply_normals(tm) if "_ply_raw" in tm.metadata else file_normals(tm)
+    return {"vertices": tm.vertices, "faces": tm.faces, "normals": normals, "uvs": uv}
+
+
+def read_mesh_file(path: Path, where: str, refs: FileRefs | None = None) -> dict:
+    """`mesh_arrays` of `open_mesh_file`."""
+    return mesh_arrays(open_mesh_file(path, where, refs)[0])
+
+
+def file_normals(tm: trimesh.Trimesh) -> np.ndarray | None:
+    """Vertex normals the file carried (OBJ `vn`, glTF NORMAL), or None: trimesh keeps
+    those in its cache; computed ones are not there until asked for."""
+    if "vertex_normals" in tm._cache:
+        return np.asarray(tm.vertex_normals)
+    return None
 
 
 def _ply_normals(tm: trimesh.Trimesh) -> np.ndarray | None:
-    # trimesh recomputes normals on load; the file's own nx/ny/nz survive in the raw PLY data.
+    """The file's own nx/ny/nz as (v, 3) float32, or None. trimesh recomputes normals on
+    load; the file's survive in the raw PLY data: a structured array for binary PLY, a
+    dict of (v, 1) columns for ASCII PLY."""
     raw = tm.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
-    if raw is None or raw.dtype.names is None or not {"nx", "ny", "nz"} <= set(raw.dtype.names):
+    names = raw.keys() if isinstance(raw, dict) else getattr(getattr(raw, "dtype", None),
+                                                             "names", None)
+    if not names or not {"nx", "ny", "nz"} <= set(names):
         return None
-    if len(raw) != len(tm.vertices):
+    normals = np.column_stack([np.ravel(raw[k]) for k in ("nx", "ny", "nz")])  # (v, 3)
+    if len(normals) != len(tm.vertices):
         return None
-    return np.column_stack([raw["nx"], raw["ny"], raw["nz"]]).astype(VERTEX_DTYPE)
+    return normals.astype(VERTEX_DTYPE)
 
 
 def _write_ply(mesh: Mesh, path: Path) -> None:
@@ -437,8 +462,12 @@ def load_any(source, size: str = "default", seed: int = 0, root: Path | None = N
         refs = FileRefs(path.parent, root)
         path = refs.resolve(path.name, "mesh file", "")
         where = refs.show(path)
-        mesh = build_mesh(path.stem, where=where, **read_mesh_file(path, where, refs))
-        return scene_from_meshes([mesh], [(0, np.eye(4))], (Material(),), path.stem)
+        tm, named = open_mesh_file(path, where, refs)
+        mesh = build_mesh(path.stem, where=where, **mesh_arrays(tm))
+        material = Material()
+        if any(p.suffix.lower() == ".mtl" for p in named):  # an OBJ whose MTL was read
+            material = gltf.file_material(tm.visual, path.stem, len(tm.vertices))
+        return scene_from_meshes([mesh], [(0, np.eye(4))], (material,), path.stem)
     if not path.exists():
         raise SceneError(
             f"unknown scene {str(source)!r}: not a demo ({', '.join(demos.DEMOS)}) "

@@ -7,7 +7,7 @@ from __future__ import annotations
 import errno
 import os
 import stat
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import trimesh
@@ -90,21 +90,32 @@ class FileRefs:
         return FileRefs(Path(path).parent, self.root)
 
 
-class TrimeshResolver(trimesh.resolvers.Resolver):
-    """Hands trimesh the files a mesh file names, through FileRefs. trimesh swallows errors
-    from some of these reads (MTL, textures), so a refusal is kept and raised by `load`."""
+@dataclass
+class ReadLog:
+    """What a trimesh load asked for: the files read, and the first refusal (trimesh
+    swallows errors from some reads, MTL and textures, so `load_trimesh` raises it)."""
 
-    def __init__(self, refs: FileRefs, where: str, file_name: str = ""):
+    read: list[Path] = field(default_factory=list)
+    refused: UnsafePath | None = None
+
+
+class TrimeshResolver(trimesh.resolvers.Resolver):
+    """Hands trimesh the files a mesh file names, through FileRefs."""
+
+    def __init__(self, refs: FileRefs, where: str, file_name: str = "",
+                 log: ReadLog | None = None):
         self.refs, self.where, self.file_name = refs, where, file_name
-        self.refused: UnsafePath | None = None
+        self.log = log or ReadLog()
 
     def get(self, name: str) -> bytes:
         try:
             path = self.refs.resolve(name, "referenced file", self.where)
         except UnsafePath as e:
-            self.refused = self.refused or e
+            self.log.refused = self.log.refused or e
             raise
-        return path.read_bytes()
+        data = path.read_bytes()
+        self.log.read.append(path)
+        return data
 
     def keys(self):
         """Names of the files next to the mesh file (trimesh asks for `name in resolver`)."""
@@ -117,19 +128,23 @@ class TrimeshResolver(trimesh.resolvers.Resolver):
 
     def namespaced(self, namespace: str) -> TrimeshResolver:
         return TrimeshResolver(FileRefs(self.refs.base / namespace, self.refs.root),
-                               self.where, self.file_name)
+                               self.where, self.file_name, self.log)
 
 
-def load_trimesh(path: Path, refs: FileRefs, what: str, where: str, **kwargs):
+def load_trimesh(path: Path, refs: FileRefs, what: str, where: str,
+                 **kwargs) -> tuple[object, list[Path]]:
     """trimesh.load(path, **kwargs) with every file it names read through `refs`; `what`
-    names the file in messages ("mesh file rock.obj")."""
+    names the file in messages ("mesh file rock.obj"). Returns what trimesh loaded and the
+    files it read besides `path` (an OBJ's MTL, textures, glTF buffers)."""
     resolver = TrimeshResolver(refs.beside(path), where, Path(path).name)
     try:
         loaded = trimesh.load(path, resolver=resolver, **kwargs)
+    except SceneError:  # from the resolver: already names the file and the problem
+        raise
     except Exception as e:  # trimesh raises many exception types for bad files
-        if resolver.refused is not None:
-            raise resolver.refused from None
+        if resolver.log.refused is not None:
+            raise resolver.log.refused from None
         raise SceneError(f"{where}: could not read {what}: {e}") from None
-    if resolver.refused is not None:
-        raise resolver.refused
-    return loaded
+    if resolver.log.refused is not None:
+        raise resolver.log.refused
+    return loaded, resolver.log.read
