@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -76,15 +77,14 @@ def build_mesh(
     try:
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces)
+        if f.dtype.kind in "fO" and not isinstance(faces, np.ndarray):
+            f = np.asarray(faces, dtype=object)  # Python ints past int64 stay exact
     except (ValueError, TypeError) as e:
         raise SceneError(f"{where}: vertices/faces are not numeric arrays: {e}") from None
     v = v.reshape(0, 3) if v.size == 0 else v
-    f = f.reshape(0, 3).astype(INDEX_DTYPE) if f.size == 0 else f
-    if not np.issubdtype(f.dtype, np.integer) or (f.size and f.min() < 0):
-        raise SceneError(f"{where}: face indices must be non-negative integers")
+    f = _face_indices(f, len(v), where)
     if np.isfinite(v).all() and np.abs(v).max(initial=0.0) > np.finfo(VERTEX_DTYPE).max:
         raise SceneError(f"{where}: vertex coordinates overflow float32")
-    f = np.ascontiguousarray(f, dtype=INDEX_DTYPE)
     n = None if normals is None else np.ascontiguousarray(normals, dtype=VERTEX_DTYPE)
     uv = None if uvs is None else np.ascontiguousarray(uvs, dtype=VERTEX_DTYPE)
     raw = Mesh(name, np.ascontiguousarray(v, dtype=VERTEX_DTYPE), f, n, uv, material)
@@ -129,6 +129,27 @@ def mesh_arrays(tm: trimesh.Trimesh) -> dict:
     uv = uv if uv is not None and np.shape(uv) == (len(tm.vertices), 2) else None
     normals = _ply_normals(tm) if "_ply_raw" in tm.metadata else file_normals(tm)
     return {"vertices": tm.vertices, "faces": tm.faces, "normals": normals, "uvs": uv}
+
+
+def _face_indices(f: np.ndarray, n_vertices: int, where: str) -> np.ndarray:
+    """f : (f, 3) integers of any dtype (object: Python ints) -> (f, 3) uint32, refusing
+    non-integers, negatives and indices past the vertices before a cast could wrap them."""
+    if f.size == 0:
+        return f.reshape(0, 3).astype(INDEX_DTYPE)
+    if f.dtype == object:
+        flat = f.ravel().tolist()
+        if not all(isinstance(x, int | np.integer) for x in flat):
+            raise SceneError(f"{where}: face indices must be integers")
+        lo, hi = min(flat), max(flat)
+    elif np.issubdtype(f.dtype, np.integer):
+        lo, hi = f.min(), f.max()
+    else:
+        raise SceneError(f"{where}: face indices must be integers, got {f.dtype}")
+    if lo < 0:
+        raise SceneError(f"{where}: face index {int(lo)} is negative")
+    if hi >= n_vertices:
+        raise SceneError(f"{where}: face index {int(hi)} out of range for {n_vertices} vertices")
+    return np.ascontiguousarray(f.astype(np.int64), dtype=INDEX_DTYPE)
 
 
 def read_mesh_file(path: Path, where: str, refs: FileRefs | None = None) -> dict:
@@ -235,6 +256,9 @@ def load_scene(path, root: Path | None = None) -> Scene:
         raise SceneError(f"{shown}: could not read scene file: {e}") from None
     try:
         data = json.loads(text)
+    except RecursionError:
+        raise SceneError(f"{shown}: JSON nested too deeply to read (deeper than about "
+                         f"{sys.getrecursionlimit()} levels)") from None
     except json.JSONDecodeError as e:
         raise SceneError(
             f"{shown}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}"

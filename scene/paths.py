@@ -54,7 +54,7 @@ class FileRefs:
         path = self.base / ref if self.root is None else self._confine(ref, f"{at}{what}")
         problem = file_problem(path)
         if problem is not None:
-            raise SceneError(f"{at}{what} {problem}: {self.show(path)}")
+            raise SceneError(f"{at}{self.show(path)}: {what} {problem}")
         return path
 
     def _confine(self, ref: str, what: str) -> Path:
@@ -70,7 +70,7 @@ class FileRefs:
         try:
             real = joined.resolve()
         except (OSError, RuntimeError):  # RuntimeError: a symlink loop (Python < 3.13)
-            raise SceneError(f"{what} is a symlink loop: {ref}") from None
+            raise SceneError(f"{what} {ref!r} is a symlink loop") from None
         if not real.is_relative_to(root):
             raise UnsafePath(f"{what} path {ref!r} leaves the upload through a symlink")
         return real
