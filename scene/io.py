@@ -100,6 +100,27 @@ def build_mesh(
     return Mesh(name, raw.vertices, kept, n, uv, material, dropped)
 
 
+def _face_indices(f: np.ndarray, n_vertices: int, where: str) -> np.ndarray:
+    """f : (f, 3) integers of any dtype (object: Python ints) -> (f, 3) uint32, refusing
+    non-integers, negatives and indices past the vertices before a cast could wrap them."""
+    if f.size == 0:
+        return f.reshape(0, 3).astype(INDEX_DTYPE)
+    if f.dtype == object:
+        flat = f.ravel().tolist()
+        if not all(isinstance(x, int | np.integer) for x in flat):
+            raise SceneError(f"{where}: face indices must be integers")
+        lo, hi = min(flat), max(flat)
+    elif np.issubdtype(f.dtype, np.integer):
+        lo, hi = f.min(), f.max()
+    else:
+        raise SceneError(f"{where}: face indices must be integers, got {f.dtype}")
+    if lo < 0:
+        raise SceneError(f"{where}: face index {int(lo)} is negative")
+    if hi >= n_vertices:
+        raise SceneError(f"{where}: face index {int(hi)} out of range for {n_vertices} vertices")
+    return np.ascontiguousarray(f.astype(np.int64), dtype=INDEX_DTYPE)
+
+
 def open_mesh_file(path: Path, where: str,
                    refs: FileRefs | None = None) -> tuple[trimesh.Trimesh, list[Path]]:
     """Read one mesh file through trimesh (multi-mesh files are flattened into one); `path`
@@ -129,27 +150,6 @@ def mesh_arrays(tm: trimesh.Trimesh) -> dict:
     uv = uv if uv is not None and np.shape(uv) == (len(tm.vertices), 2) else None
     normals = _ply_normals(tm) if "_ply_raw" in tm.metadata else file_normals(tm)
     return {"vertices": tm.vertices, "faces": tm.faces, "normals": normals, "uvs": uv}
-
-
-def _face_indices(f: np.ndarray, n_vertices: int, where: str) -> np.ndarray:
-    """f : (f, 3) integers of any dtype (object: Python ints) -> (f, 3) uint32, refusing
-    non-integers, negatives and indices past the vertices before a cast could wrap them."""
-    if f.size == 0:
-        return f.reshape(0, 3).astype(INDEX_DTYPE)
-    if f.dtype == object:
-        flat = f.ravel().tolist()
-        if not all(isinstance(x, int | np.integer) for x in flat):
-            raise SceneError(f"{where}: face indices must be integers")
-        lo, hi = min(flat), max(flat)
-    elif np.issubdtype(f.dtype, np.integer):
-        lo, hi = f.min(), f.max()
-    else:
-        raise SceneError(f"{where}: face indices must be integers, got {f.dtype}")
-    if lo < 0:
-        raise SceneError(f"{where}: face index {int(lo)} is negative")
-    if hi >= n_vertices:
-        raise SceneError(f"{where}: face index {int(hi)} out of range for {n_vertices} vertices")
-    return np.ascontiguousarray(f.astype(np.int64), dtype=INDEX_DTYPE)
 
 
 def read_mesh_file(path: Path, where: str, refs: FileRefs | None = None) -> dict:
