@@ -12,23 +12,22 @@ import numpy as np
 import trimesh
 
 from scene.errors import SceneError
-from scene.io import build_mesh, scene_from_meshes, srgb_to_linear
+from scene.io import build_mesh, file_normals, scene_from_meshes, srgb_to_linear
 from scene.model import TRANSFORM_DTYPE, Material, Mesh, Scene, validate_transform
+from scene.paths import FileRefs, load_trimesh
 
 log = logging.getLogger(__name__)
 
 
-def load_gltf(path) -> Scene:
+def load_gltf(path, root: Path | None = None) -> Scene:
     """Load a .glb/.gltf file; meshes keep their local space, node world transforms become
     instances, and identical meshes (geometry, UVs, normals, material) are stored once.
-    The scene gets a framing camera and a sky (glTF cameras/lights are ignored)."""
-    path = Path(path)
-    if not path.is_file():
-        raise SceneError(f"glTF file not found: {path}")
-    try:
-        tm = trimesh.load(path, force="scene", process=False)
-    except Exception as e:  # trimesh raises many exception types for bad files
-        raise SceneError(f"{path}: could not read glTF: {e}") from None
+    The scene gets a framing camera and a sky (glTF cameras/lights are ignored). External
+    buffers and images resolve next to the file, inside `root` when it is set (an upload)."""
+    refs = FileRefs(Path(path).parent, root)
+    path = refs.resolve(Path(path).name, "glTF file", "")
+    shown = refs.show(path)
+    tm, _ = load_trimesh(path, refs, "glTF", shown, force="scene", process=False)
     meshes: list[Mesh] = []
     materials: list[Material] = []
     mesh_of: dict[str, int] = {}  # geometry name -> base mesh index
@@ -40,16 +39,16 @@ def load_gltf(path) -> Scene:
         geom = tm.geometry[geom_name]
         if not isinstance(geom, trimesh.Trimesh):
             log.warning("%s: node %r holds a %s, not triangles; skipped",
-                        path, node, type(geom).__name__)
+                        shown, node, type(geom).__name__)
             continue
         if geom_name not in mesh_of:
             mat = _material_index(geom, geom_name, materials, material_of)
             tex = materials[mat].texture is not None
             mesh = build_mesh(
                 str(geom_name), geom.vertices, geom.faces,
-                normals=_file_normals(geom),
+                normals=file_normals(geom),
                 uvs=np.asarray(geom.visual.uv) if tex else None,
-                material=mat, where=f"{path}: mesh {geom_name!r}",
+                material=mat, where=f"{shown}: mesh {geom_name!r}",
             )
             # Exporters often write one copy per node; identical copies become one base mesh.
             key = _content_key(mesh)
@@ -58,11 +57,11 @@ def load_gltf(path) -> Scene:
                 meshes.append(mesh)
             mesh_of[geom_name] = mesh_of_content[key]
         xf = np.asarray(xf, dtype=TRANSFORM_DTYPE)
-        validate_transform(xf, f"{path}: node {node!r} (mesh {geom_name!r})")
+        validate_transform(xf, f"{shown}: node {node!r} (mesh {geom_name!r})")
         placements.append((mesh_of[geom_name], xf))
     if not placements:
-        raise SceneError(f"{path}: no triangle meshes in the glTF scene")
-    log.info("%s: %d base meshes, %d instances", path, len(meshes), len(placements))
+        raise SceneError(f"{shown}: no triangle meshes in the glTF scene")
+    log.info("%s: %d base meshes, %d instances", shown, len(meshes), len(placements))
     return scene_from_meshes(meshes, placements, tuple(materials) or (Material(),), path.stem)
 
 
@@ -71,13 +70,6 @@ def _content_key(mesh: Mesh) -> tuple:
     for arr in (mesh.normals, mesh.uvs):
         extra.update(b"-" if arr is None else arr.tobytes())
     return mesh.content_hash, extra.hexdigest(), mesh.material
-
-
-def _file_normals(geom: trimesh.Trimesh) -> np.ndarray | None:
-    # Only normals the file carried: trimesh keeps them in its cache, computed ones are not there.
-    if "vertex_normals" in geom._cache:
-        return np.asarray(geom.vertex_normals)
-    return None
 
 
 def _material_index(geom: trimesh.Trimesh, geom_name: str, materials: list[Material],
@@ -97,6 +89,11 @@ def _material_index(geom: trimesh.Trimesh, geom_name: str, materials: list[Mater
     if source is not None:
         material_of[id(source)] = material_of[key]
     return material_of[key]
+
+
+def file_material(visual, name: str, n_vertices: int) -> Material:
+    """The material a loaded mesh file carries (an OBJ's MTL: Kd, map_Kd)."""
+    return _convert_material(visual, getattr(visual, "material", None), name, n_vertices)
 
 
 def _convert_material(visual, source, geom_name: str, n_vertices: int) -> Material:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +35,7 @@ from scene.model import (
     validate_mesh,
     validate_transform,
 )
+from scene.paths import FileRefs, load_trimesh
 
 log = logging.getLogger(__name__)
 
@@ -75,15 +77,14 @@ def build_mesh(
     try:
         v = np.asarray(vertices, dtype=np.float64)
         f = np.asarray(faces)
+        if f.dtype.kind in "fO" and not isinstance(faces, np.ndarray):
+            f = np.asarray(faces, dtype=object)  # Python ints past int64 stay exact
     except (ValueError, TypeError) as e:
         raise SceneError(f"{where}: vertices/faces are not numeric arrays: {e}") from None
     v = v.reshape(0, 3) if v.size == 0 else v
-    f = f.reshape(0, 3).astype(INDEX_DTYPE) if f.size == 0 else f
-    if not np.issubdtype(f.dtype, np.integer) or (f.size and f.min() < 0):
-        raise SceneError(f"{where}: face indices must be non-negative integers")
+    f = _face_indices(f, len(v), where)
     if np.isfinite(v).all() and np.abs(v).max(initial=0.0) > np.finfo(VERTEX_DTYPE).max:
         raise SceneError(f"{where}: vertex coordinates overflow float32")
-    f = np.ascontiguousarray(f, dtype=INDEX_DTYPE)
     n = None if normals is None else np.ascontiguousarray(normals, dtype=VERTEX_DTYPE)
     uv = None if uvs is None else np.ascontiguousarray(uvs, dtype=VERTEX_DTYPE)
     raw = Mesh(name, np.ascontiguousarray(v, dtype=VERTEX_DTYPE), f, n, uv, material)
@@ -99,39 +100,84 @@ def build_mesh(
     return Mesh(name, raw.vertices, kept, n, uv, material, dropped)
 
 
-def read_mesh_file(path: Path, where: str) -> dict:
-    """Read one mesh file through trimesh (multi-mesh files are flattened into one).
+def _face_indices(f: np.ndarray, n_vertices: int, where: str) -> np.ndarray:
+    """f : (f, 3) integers of any dtype (object: Python ints) -> (f, 3) uint32, refusing
+    non-integers, negatives and indices past the vertices before a cast could wrap them."""
+    if f.size == 0:
+        return f.reshape(0, 3).astype(INDEX_DTYPE)
+    if f.dtype == object:
+        flat = f.ravel().tolist()
+        if not all(isinstance(x, int | np.integer) for x in flat):
+            raise SceneError(f"{where}: face indices must be integers")
+        lo, hi = min(flat), max(flat)
+    elif np.issubdtype(f.dtype, np.integer):
+        lo, hi = f.min(), f.max()
+    else:
+        raise SceneError(f"{where}: face indices must be integers, got {f.dtype}")
+    if lo < 0:
+        raise SceneError(f"{where}: face index {int(lo)} is negative")
+    if hi >= n_vertices:
+        raise SceneError(f"{where}: face index {int(hi)} out of range for {n_vertices} vertices")
+    return np.ascontiguousarray(f.astype(np.int64), dtype=INDEX_DTYPE)
+
+
+def open_mesh_file(path: Path, where: str,
+                   refs: FileRefs | None = None) -> tuple[trimesh.Trimesh, list[Path]]:
+    """Read one mesh file through trimesh (multi-mesh files are flattened into one); `path`
+    comes from `refs.resolve`, and the files it names (MTL, textures, glTF buffers) are
+    read through `refs` too. Returns the mesh and those other files."""
+    refs = refs or FileRefs(path.parent)
+    if path.suffix.lower() not in MESH_SUFFIXES:
+        raise SceneError(f"{where}: unsupported mesh format {path.suffix!r} ({refs.show(path)})")
+    loaded, named = load_trimesh(path, refs, f"mesh file {refs.show(path)}", where,
+                                 force="scene", process=False)
+    meshes = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh)]
+    nodes = loaded.graph.nodes_geometry
+    if not meshes:
+        raise SceneError(f"{where}: {refs.show(path)} holds no triangle mesh")
+    if len(meshes) == 1 and len(nodes) == 1 and np.array_equal(loaded.graph[nodes[0]][0],
+                                                                np.eye(4)):
+        return meshes[0], named  # as loaded: concatenating would drop the file's normals
+    return loaded.to_mesh(), named
+
+
+def mesh_arrays(tm: trimesh.Trimesh) -> dict:
+    """What `build_mesh` takes from a loaded mesh file.
 
     returns : dict with vertices (v, 3), faces (f, 3), normals (v, 3) or None, uvs (v, 2) or None
     """
-    if not path.is_file():
-        raise SceneError(f"{where}: mesh file not found: {path}")
-    if path.suffix.lower() not in MESH_SUFFIXES:
-        raise SceneError(f"{where}: unsupported mesh format {path.suffix!r} ({path})")
-    try:
-        tm = trimesh.load(path, force="mesh", process=False)
-    except Exception as e:  # trimesh raises many exception types for bad files
-        raise SceneError(f"{where}: could not read mesh file {path}: {e}") from None
-    if not isinstance(tm, trimesh.Trimesh):
-        raise SceneError(f"{where}: {path} holds no triangle mesh")
     uv = getattr(tm.visual, "uv", None)
     uv = uv if uv is not None and np.shape(uv) == (len(tm.vertices), 2) else None
-    return {
-        "vertices": tm.vertices,
-        "faces": tm.faces,
-        "normals": _ply_normals(tm),
-        "uvs": uv,
-    }
+    normals = _ply_normals(tm) if "_ply_raw" in tm.metadata else file_normals(tm)
+    return {"vertices": tm.vertices, "faces": tm.faces, "normals": normals, "uvs": uv}
+
+
+def read_mesh_file(path: Path, where: str, refs: FileRefs | None = None) -> dict:
+    """`mesh_arrays` of `open_mesh_file`."""
+    return mesh_arrays(open_mesh_file(path, where, refs)[0])
+
+
+def file_normals(tm: trimesh.Trimesh) -> np.ndarray | None:
+    """Vertex normals the file carried (OBJ `vn`, glTF NORMAL), or None: trimesh keeps
+    those in its cache; computed ones are not there until asked for."""
+    if "vertex_normals" in tm._cache:
+        return np.asarray(tm.vertex_normals)
+    return None
 
 
 def _ply_normals(tm: trimesh.Trimesh) -> np.ndarray | None:
-    # trimesh recomputes normals on load; the file's own nx/ny/nz survive in the raw PLY data.
+    """The file's own nx/ny/nz as (v, 3) float32, or None. trimesh recomputes normals on
+    load; the file's survive in the raw PLY data: a structured array for binary PLY, a
+    dict of (v, 1) columns for ASCII PLY."""
     raw = tm.metadata.get("_ply_raw", {}).get("vertex", {}).get("data")
-    if raw is None or raw.dtype.names is None or not {"nx", "ny", "nz"} <= set(raw.dtype.names):
+    names = raw.keys() if isinstance(raw, dict) else getattr(getattr(raw, "dtype", None),
+                                                             "names", None)
+    if not names or not {"nx", "ny", "nz"} <= set(names):
         return None
-    if len(raw) != len(tm.vertices):
+    normals = np.column_stack([np.ravel(raw[k]) for k in ("nx", "ny", "nz")])  # (v, 3)
+    if len(normals) != len(tm.vertices):
         return None
-    return np.column_stack([raw["nx"], raw["ny"], raw["nz"]]).astype(VERTEX_DTYPE)
+    return normals.astype(VERTEX_DTYPE)
 
 
 def _write_ply(mesh: Mesh, path: Path) -> None:
@@ -153,10 +199,10 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
-def read_texture(path: Path, where: str) -> np.ndarray:
-    """An image (sRGB) or .npy (linear) as texture : (h, w, 3) float32 linear."""
-    if not path.is_file():
-        raise SceneError(f"{where}: texture file not found: {path}")
+def read_texture(path: Path, where: str, refs: FileRefs | None = None) -> np.ndarray:
+    """An image (sRGB) or .npy (linear) as texture : (h, w, 3) float32 linear; `path`
+    comes from `refs.resolve`."""
+    shown = (refs or FileRefs(path.parent)).show(path)
     try:
         if path.suffix.lower() == ".npy":
             tex = np.load(path, allow_pickle=False).astype(np.float32)
@@ -166,11 +212,11 @@ def read_texture(path: Path, where: str) -> np.ndarray:
             with Image.open(path) as img:
                 tex = srgb_to_linear(np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0)
     except Exception as e:  # PIL/numpy raise many types for bad files
-        raise SceneError(f"{where}: could not read texture {path}: {e}") from None
+        raise SceneError(f"{where}: could not read texture {shown}: {e}") from None
     if tex.ndim != 3 or tex.shape[2] != 3 or tex.shape[0] == 0 or tex.shape[1] == 0:
-        raise SceneError(f"{where}: texture {path} must have shape (h, w, 3), got {tex.shape}")
+        raise SceneError(f"{where}: texture {shown} must have shape (h, w, 3), got {tex.shape}")
     if not np.isfinite(tex).all():
-        raise SceneError(f"{where}: texture {path} has non-finite texels")
+        raise SceneError(f"{where}: texture {shown} has non-finite texels")
     return np.ascontiguousarray(tex)
 
 
@@ -198,29 +244,33 @@ _AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
 # ---------------------------------------------------------------- scene files
 
 
-def load_scene(path) -> Scene:
-    """Load a JSON scene file; mesh and texture paths are relative to it."""
-    path = Path(path)
+def load_scene(path, root: Path | None = None) -> Scene:
+    """Load a JSON scene file; mesh and texture paths are relative to it, and with `root`
+    set (an upload) they must stay inside `root`."""
+    refs = FileRefs(Path(path).parent, root)
+    path = refs.resolve(Path(path).name, "scene file", "")
+    shown = refs.show(path)
     try:
         text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise SceneError(f"scene file not found: {path}") from None
     except (OSError, UnicodeDecodeError) as e:
-        raise SceneError(f"{path}: could not read scene file: {e}") from None
+        raise SceneError(f"{shown}: could not read scene file: {e}") from None
     try:
         data = json.loads(text)
+    except RecursionError:
+        raise SceneError(f"{shown}: JSON nested too deeply to read (deeper than about "
+                         f"{sys.getrecursionlimit()} levels)") from None
     except json.JSONDecodeError as e:
         raise SceneError(
-            f"{path}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}"
+            f"{shown}: malformed JSON at line {e.lineno}, column {e.colno}: {e.msg}"
         ) from None
     try:
         spec = schema.SceneFile.model_validate(data)
     except ValidationError as e:
-        raise validation_error(e, str(path)) from None
+        raise validation_error(e, shown) from None
     try:
-        return scene_from_spec(spec, path.parent)
+        return scene_from_spec(spec, refs)
     except SceneError as e:
-        raise SceneError(f"{path}: {e}") from None
+        raise type(e)(f"{shown}: {e}") from None  # keeps UnsafePath an UnsafePath
 
 
 def validation_error(err: ValidationError, source: str) -> SceneError:
@@ -265,16 +315,14 @@ def _resolve(ref, names: list[str], kind: str, field: str) -> int:
     return hits[0]
 
 
-def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
-    """Convert a validated SceneFile; relative paths resolve against `base`."""
+def scene_from_spec(spec: schema.SceneFile, refs: FileRefs | Path) -> Scene:
+    """Convert a validated SceneFile; file paths resolve through `refs` (a bare directory:
+    relative to it, unconfined)."""
+    refs = refs if isinstance(refs, FileRefs) else FileRefs(Path(refs))
     mat_names = [m.name for m in spec.materials]
     materials = tuple(
-        Material(
-            m.name,
-            m.albedo,
-            m.emission,
-            read_texture(base / m.texture, f"materials[{i}] ({m.name!r})") if m.texture else None,
-        )
+        Material(m.name, m.albedo, m.emission, _texture(m.texture, refs, f"materials[{i}] "
+                                                        f"({m.name!r})"))
         for i, m in enumerate(spec.materials)
     ) or (Material(),)
     meshes = []
@@ -284,7 +332,7 @@ def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
             ms.material, mat_names, "material", f"{where}.material"
         )
         if ms.path is not None:
-            arrays = read_mesh_file(base / ms.path, where)
+            arrays = read_mesh_file(refs.resolve(ms.path, "mesh file", where), where, refs)
         else:
             arrays = {"vertices": ms.vertices, "faces": ms.faces,
                       "normals": ms.normals, "uvs": ms.uvs}
@@ -311,6 +359,10 @@ def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
         camera=Camera(**spec.camera.model_dump()),
         name=spec.name,
     )
+
+
+def _texture(ref: str | None, refs: FileRefs, where: str) -> np.ndarray | None:
+    return None if ref is None else read_texture(refs.resolve(ref, "texture", where), where, refs)
 
 
 def save_scene(scene: Scene, path) -> Path:
@@ -415,8 +467,9 @@ def scene_from_meshes(meshes: list[Mesh], transforms: list[tuple[int, np.ndarray
                  camera=frame_camera(bounds), name=name)
 
 
-def load_any(source, size: str = "default", seed: int = 0) -> Scene:
-    """A demo name ("forest", "city:small"), a .json scene, a .glb/.gltf file or a mesh file."""
+def load_any(source, size: str = "default", seed: int = 0, root: Path | None = None) -> Scene:
+    """A demo name ("forest", "city:small"), a .json scene, a .glb/.gltf file or a mesh file.
+    With `root` set (an upload), no file outside `root` is read."""
     from scene import demos, gltf  # deferred: both import this module
 
     if isinstance(source, str) and not source.lower().endswith((".json", *MESH_SUFFIXES)):
@@ -426,12 +479,19 @@ def load_any(source, size: str = "default", seed: int = 0) -> Scene:
     path = Path(source)
     suffix = path.suffix.lower()
     if suffix == ".json":
-        return load_scene(path)
+        return load_scene(path, root)
     if suffix in (".glb", ".gltf"):
-        return gltf.load_gltf(path)
+        return gltf.load_gltf(path, root)
     if suffix in MESH_SUFFIXES:
-        mesh = build_mesh(path.stem, where=str(path), **read_mesh_file(path, str(path)))
-        return scene_from_meshes([mesh], [(0, np.eye(4))], (Material(),), path.stem)
+        refs = FileRefs(path.parent, root)
+        path = refs.resolve(path.name, "mesh file", "")
+        where = refs.show(path)
+        tm, named = open_mesh_file(path, where, refs)
+        mesh = build_mesh(path.stem, where=where, **mesh_arrays(tm))
+        material = Material()
+        if any(p.suffix.lower() == ".mtl" for p in named):  # an OBJ whose MTL was read
+            material = gltf.file_material(tm.visual, path.stem, len(tm.vertices))
+        return scene_from_meshes([mesh], [(0, np.eye(4))], (material,), path.stem)
     if not path.exists():
         raise SceneError(
             f"unknown scene {str(source)!r}: not a demo ({', '.join(demos.DEMOS)}) "

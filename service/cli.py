@@ -9,9 +9,22 @@ import logging
 import sys
 from pathlib import Path
 
+from pydantic import ValidationError
+
 from scene.errors import SceneError
+from service.preflight import CliError
 
 log = logging.getLogger(__name__)
+# RenderSettings fields whose flag is not "--" + the field name with dashes.
+_FLAG_OF = {("proxy", "width"): "--proxy-width", ("proxy", "budget_s"): "--proxy-budget-s"}
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse, but a usage error is one line `nprt: invalid option: ...`, exit 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"nprt: invalid option: {self.prog}: {message} "
+                     f"(see {self.prog} --help)\n")
 
 
 def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
@@ -51,7 +64,7 @@ def settings_from_args(a: argparse.Namespace):
         width=a.width, height=a.height, spp=a.spp, bounces=a.bounces,
         shadow_rays=a.shadow_rays, seed=a.seed, russian_roulette=a.russian_roulette,
         shards=a.shards, mode=a.mode, tile_size=a.tile_size,
-        spp_per_pass=min(a.spp_per_pass, a.spp),
+        spp_per_pass=min(a.spp_per_pass, max(a.spp, 1)),  # a bad --spp: one error
         proxy=ProxySettings(threshold=a.threshold, band=a.band, shadow_band=a.shadow_band,
                             width=a.proxy_width, budget_s=a.proxy_budget_s))
 
@@ -73,16 +86,49 @@ def render_with_progress(scene, settings, ray_address=None, label="render"):
         bar.close()
 
 
+def option_error(err: ValidationError) -> str:
+    """One line naming the flag, its value and why: '--spp 0: Input should be ...'."""
+    errors = err.errors()
+    first = errors[0]
+    loc = tuple(str(p) for p in first["loc"])
+    if err.title == "ProxySettings":  # built on its own in settings_from_args
+        loc = ("proxy", *loc)
+    if loc:
+        flag = _FLAG_OF.get(loc, "--" + loc[-1].replace("_", "-"))
+        where = f"{flag} {first['input']}"
+    else:
+        where = "settings"
+    more = f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""
+    return f"{where}: {first['msg'].removeprefix('Value error, ')}{more}"
+
+
+def preflight(settings, ray_address: str | None, uses_ray: bool) -> None:
+    """Refuse before any work what would fail after it: a render that cannot fit in
+    memory, a Ray cluster nobody answers at."""
+    from service.preflight import check_memory
+    from service.ray_reach import check_ray_reachable
+
+    check_memory(settings)
+    if uses_ray:
+        check_ray_reachable(ray_address)
+
+
 def cmd_render(a: argparse.Namespace) -> int:
     from scene.io import load_any
+    from service.preflight import check_writable
 
     settings = settings_from_args(a)
+    check_writable(a.output, "-o", image=True)
+    if a.stats:
+        check_writable(a.stats, "--stats")
+    preflight(settings, a.ray_address, uses_ray=settings.shards > 0)
     scene = load_any(a.scene, size=a.size)
     res = render_with_progress(scene, settings, a.ray_address)
     out = res.film.save(a.output)
     print(f"wrote {out} ({settings.width}x{settings.height}, {settings.spp} spp) "
           f"in {res.info['wall_s']:.2f} s")
     if a.stats:
+        Path(a.stats).parent.mkdir(parents=True, exist_ok=True)  # as the image's is
         Path(a.stats).write_text(json.dumps(res.stats_dict(), indent=2))
         print(f"wrote {a.stats}")
     return 0
@@ -102,7 +148,7 @@ def cmd_scenes(a: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="nprt", description=__doc__)
+    ap = OneLineParser(prog="nprt", description=__doc__)
     ap.add_argument("-v", "--verbose", action="store_true")
     sub = ap.add_subparsers(dest="command", required=True)
 
@@ -137,7 +183,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _cmd_demo(a):
     from service.demo import cmd_demo
+    from service.preflight import check_directory
 
+    check_directory(a.out, "--out")
+    preflight(settings_from_args(a), a.ray_address, uses_ray=True)
     return cmd_demo(a)
 
 
@@ -147,12 +196,36 @@ def main(argv: list[str] | None = None) -> int:
                         format="%(levelname)s %(name)s: %(message)s")
     try:
         return int(args.func(args) or 0)
+    except CliError as e:
+        return _fail(str(e), 2)
     except SceneError as e:
-        print(f"nprt: scene error: {e}", file=sys.stderr)
-        return 2
-    except ValueError as e:  # pydantic ValidationError is a ValueError
-        print(f"nprt: invalid input: {e}", file=sys.stderr)
-        return 2
+        return _fail(f"scene error: {e}", 2)
+    except ValidationError as e:
+        return _fail(f"invalid option: {option_error(e)}", 2)
+    except ValueError as e:
+        return _fail(f"invalid input: {_first_line(e)}", 2)
+    except KeyboardInterrupt:
+        return _fail("interrupted", 130)
+    except MemoryError:
+        return _fail("out of memory: try a smaller --width/--height or --tile-size", 1)
+    except OSError as e:  # e.g. the disk filled while saving
+        where = e.filename if e.filename is not None else type(e).__name__
+        return _fail(f"system error: {where}: {e.strerror or e}", 1)
+    except Exception as e:  # a bug: one line, the traceback with -v
+        if args.verbose:
+            log.exception("unexpected error")
+        return _fail(f"internal error: {type(e).__name__}: {_first_line(e)} (run with -v "
+                     f"for the traceback)", 1)
+
+
+def _fail(line: str, code: int) -> int:
+    print(f"nprt: {line}", file=sys.stderr)
+    return code
+
+
+def _first_line(e: BaseException) -> str:
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
 
 
 if __name__ == "__main__":

@@ -14,10 +14,10 @@ import time
 from collections import OrderedDict
 from pathlib import Path
 
-from scene.errors import SceneError
+from scene.errors import SceneError, UnsafePath
 from scene.model import Scene
 from service.config import ServiceSettings
-from service.errors import InvalidScene, NotFound, UnknownScene
+from service.errors import BadUpload, InvalidScene, NotFound, UnknownScene
 from service.uploads import sniff, unpack
 
 log = logging.getLogger(__name__)
@@ -45,10 +45,11 @@ def is_demo(ref: str) -> bool:
     return name in demo_names() and (not colon or size in demo_sizes())
 
 
-def load_scene_ref(source: str) -> Scene:
+def load_scene_ref(source: str, root: Path | None = None) -> Scene:
+    """Load a demo name or a stored file; with `root`, no file outside it is read."""
     from scene.io import load_any
 
-    return load_any(source)
+    return load_any(source, root=root)
 
 
 class SceneStore:
@@ -99,10 +100,11 @@ class SceneStore:
 
     def _validate(self, content: Path, entry) -> Scene:
         try:
-            return load_scene_ref(str(content / entry))
+            return load_scene_ref(str(content / entry), root=content)
         except SceneError as e:
             # The client knows its own file names, not our temp directory.
-            raise InvalidScene(str(e).replace(f"{content}/", "")) from None
+            message = str(e).replace(f"{content}/", "").replace(f"{content.resolve()}/", "")
+            raise (BadUpload if isinstance(e, UnsafePath) else InvalidScene)(message) from None
         except Exception as e:  # a loader bug or an exotic file must not become a 500
             log.exception("loading uploaded scene %s failed", entry)
             raise InvalidScene(f"could not load scene {entry}: {type(e).__name__}: {e}") from None
@@ -154,7 +156,8 @@ class SceneStore:
             if ref in self._cache:
                 self._cache.move_to_end(ref)
                 return self._cache[ref]
-        scene = load_scene_ref(self.source(ref))
+        root = self.root / ref / "content" if SCENE_ID.fullmatch(ref) else None
+        scene = load_scene_ref(self.source(ref), root=root)
         self._remember(ref, scene)
         return scene
 

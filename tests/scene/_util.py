@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import numpy as np
 
 from scene.model import (
@@ -87,3 +92,31 @@ def assert_scenes_equal(a: Scene, b: Scene) -> None:
     assert a.directional_lights == b.directional_lights
     assert a.environment == b.environment
     assert a.camera == b.camera
+
+
+# ---------------------------------------------------------------- file-open audit
+
+_RECORDERS: list[list[str]] = []
+
+
+def _audit(event: str, args: tuple) -> None:
+    # The "open" audit event fires for every Python-level open (io, os.open, numpy, PIL,
+    # trimesh), in every thread: proof of what a loader read, not what it claims.
+    if event == "open" and _RECORDERS and isinstance(args[0], str | bytes | os.PathLike):
+        path = os.path.realpath(os.fsdecode(args[0]))
+        for rec in _RECORDERS:
+            rec.append(path)
+
+
+sys.addaudithook(_audit)  # hooks cannot be removed; it is idle unless recording
+
+
+@contextmanager
+def recording_opens() -> Iterator[list[str]]:
+    """Collect the real paths of every file opened inside the block."""
+    opened: list[str] = []
+    _RECORDERS.append(opened)
+    try:
+        yield opened
+    finally:
+        _RECORDERS[:] = [r for r in _RECORDERS if r is not opened]

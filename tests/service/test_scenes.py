@@ -8,9 +8,13 @@ import json
 import zipfile
 
 import httpx
+import numpy as np
 import pytest
 import trimesh
 
+from scene.errors import UnsafePath
+from service.scenes import SceneStore
+from tests.scene._util import recording_opens
 from tests.service.helpers import LiveServer, settings_for
 
 LIMIT_BYTES = 64 * 1024
@@ -34,12 +38,16 @@ def _zip(members: dict[str, bytes]) -> bytes:
     return buf.getvalue()
 
 
-def _scene_zip(extra: dict[str, bytes] | None = None, instances=None) -> bytes:
+def _scene_zip(extra: dict[str, bytes] | None = None, instances=None,
+               mesh_path: str = "meshes/ball.ply", texture: str | None = None) -> bytes:
     ply = trimesh.creation.icosphere(subdivisions=1).export(file_type="ply")
-    doc = {"name": "zipped", "meshes": [{"name": "ball", "path": "meshes/ball.ply"}],
+    doc = {"name": "zipped", "meshes": [{"name": "ball", "path": mesh_path}],
            "instances": instances if instances is not None else [
                {"mesh": "ball", "translate": [0, 0, 0]}, {"mesh": "ball", "translate": [2, 0, 0]}],
            "environment": {"kind": "constant", "radiance": [1, 1, 1]}}
+    if texture is not None:
+        doc["materials"] = [{"name": "m", "texture": texture}]
+        doc["meshes"][0]["material"] = "m"
     return _zip({"scene.json": json.dumps(doc).encode(), "meshes/ball.ply": ply,
                  **(extra or {})})
 
@@ -166,3 +174,93 @@ def test_demo_scene_has_summary_and_unknown_scene_is_404(small):
     missing = client.get("/v1/scenes/" + "0" * 64)
     assert missing.status_code == 404
     assert missing.json() == {"detail": f"no stored scene with id {'0' * 64!r}"}
+
+
+@pytest.fixture(scope="module")
+def outside(small):
+    """A valid mesh, texture and buffer beside the data dir: what an escape would read."""
+    _, root = small
+    folder = root / "outside"
+    folder.mkdir(exist_ok=True)
+    (folder / "secret.ply").write_bytes(trimesh.creation.box().export(file_type="ply"))
+    np.save(folder / "secret.npy", np.full((2, 2, 3), 0.5, np.float32))
+    return folder
+
+
+def _escapes(outside):
+    # From <data>/tmp/scene-*/content, four '..' reach the folder holding `outside`.
+    up = "../" * 4 + "outside/"
+    return [("mesh", str(outside / "secret.ply")), ("mesh", up + "secret.ply"),
+            ("mesh", "meshes/" + "../" * 5 + "outside/secret.ply"),
+            ("texture", str(outside / "secret.npy")), ("texture", up + "secret.npy")]
+
+
+@pytest.mark.parametrize("case", range(5))
+def test_scene_path_leaving_the_upload_is_400_and_nothing_outside_is_read(small, outside,
+                                                                           case):
+    client, root = small
+    field, ref = _escapes(outside)[case]
+    body = _scene_zip(mesh_path=ref) if field == "mesh" else _scene_zip(texture=ref)
+    before = _stored(root)
+    with recording_opens() as opened:
+        r = _post(client, body)
+    assert r.status_code == 400, r.text
+    detail = r.json()["detail"]
+    assert detail.startswith("scene.json: ") and repr(ref) in detail
+    assert "is absolute" in detail if ref.startswith("/") else "leaves the upload" in detail
+    assert str(root) not in detail.replace(ref, "")  # no server path but the scene's own
+    assert not [p for p in opened if p.startswith(str(outside.resolve()))]
+    assert _stored(root) == before and list((root / "data" / "tmp").iterdir()) == []
+
+
+def test_zip_member_symlink_to_a_mesh_outside_is_refused(small, outside):
+    client, root = small
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        zf.writestr("scene.json", json.dumps({"meshes": [{"name": "b", "path": "link.ply"}],
+                                              "instances": [{"mesh": "b"}]}))
+        info = zipfile.ZipInfo("link.ply")
+        info.external_attr = 0o120777 << 16
+        zf.writestr(info, str(outside / "secret.ply"))
+    with recording_opens() as opened:
+        r = _post(client, buf.getvalue())
+    assert r.status_code == 400 and "symlinks are not allowed" in r.json()["detail"]
+    assert not [p for p in opened if p.startswith(str(outside.resolve()))]
+
+
+@pytest.mark.parametrize("where", ["absolute", "dotdot"])
+def test_gltf_buffer_leaving_the_upload_is_400(small, outside, where):
+    client, _ = small
+    files = trimesh.creation.box().export(file_type="gltf")
+    doc = json.loads(files["model.gltf"])
+    (outside / "secret.bin").write_bytes(files[doc["buffers"][0]["uri"]])
+    uri = str(outside / "secret.bin") if where == "absolute" else "../" * 4 + "outside/secret.bin"
+    doc["buffers"][0]["uri"] = uri
+    with recording_opens() as opened:
+        r = client.post("/v1/scenes", params={"filename": "box.gltf"},
+                        content=json.dumps(doc).encode(),
+                        headers={"Content-Type": "model/gltf+json"})
+    assert r.status_code == 400, r.text
+    assert r.json()["detail"].startswith("box.gltf: referenced file path ")
+    assert repr(uri) in r.json()["detail"]
+    assert not [p for p in opened if p.startswith(str(outside.resolve()))]
+
+
+def test_stored_scene_with_a_planted_symlink_is_refused_at_load(tmp_path):
+    # Defence in depth: a job loads a stored scene confined to its own folder too.
+    settings = settings_for(tmp_path)
+    body = _scene_zip()
+    SceneStore(settings).ingest(_write(tmp_path / "up.zip", body), "a" * 64, len(body), None)
+    (tmp_path / "secret.ply").write_bytes(trimesh.creation.box().export(file_type="ply"))
+    mesh = settings.scenes_dir / ("a" * 64) / "content" / "meshes" / "ball.ply"
+    mesh.unlink()
+    mesh.symlink_to(tmp_path / "secret.ply")
+    store = SceneStore(settings)  # a fresh cache, as after a restart
+    with recording_opens() as opened, pytest.raises(UnsafePath, match="through a symlink"):
+        store.load("a" * 64)
+    assert str((tmp_path / "secret.ply").resolve()) not in opened
+
+
+def _write(path, data: bytes):
+    path.write_bytes(data)
+    return path
