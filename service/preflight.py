@@ -17,7 +17,6 @@ GIB = 1 << 30
 # shadow rays; PNG output peaks near 63 B per pixel beyond the film. Rounded up.
 PATH_WORK_BYTES = 1024
 OUTPUT_BYTES_PER_PIXEL = 72
-PASS_RECORD_BYTES = 256  # one Pass dataclass in the planned pass list
 EXR_SUFFIX = ".exr"
 
 
@@ -96,29 +95,31 @@ class MemoryEstimate:
 
     film_bytes: int  # per-pixel radiance sums and sample counts
     output_bytes: int  # the image and its encoding, while the film is alive
-    passes_bytes: int  # the planned pass list
+    inflight_bytes: int  # tile sums of the passes in flight (passes are never listed)
     pass_work_bytes: int  # the ray batches of one pass
 
     @property
     def total_bytes(self) -> int:
-        return self.film_bytes + self.output_bytes + self.passes_bytes + self.pass_work_bytes
+        return self.film_bytes + self.output_bytes + self.inflight_bytes + self.pass_work_bytes
 
     def describe(self) -> str:
         return (f"~{_gib(self.total_bytes)} (film {_gib(self.film_bytes)}, image output "
-                f"{_gib(self.output_bytes)}, pass list {_gib(self.passes_bytes)}, per-pass "
-                f"work {_gib(self.pass_work_bytes)})")
+                f"{_gib(self.output_bytes)}, passes in flight {_gib(self.inflight_bytes)}, "
+                f"per-pass work {_gib(self.pass_work_bytes)})")
 
 
 def estimate_memory(s: RenderSettings) -> MemoryEstimate:
     """Peak memory of rendering `s` in this process (the film lives in the driver)."""
+    from workers.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
     from workers.film import ACCUM_DTYPE
 
     pixels = s.width * s.height
     film = pixels * (3 * ACCUM_DTYPE().itemsize + 8)  # sums (3 float64) + samples (int64)
-    tiles = -(-s.width // s.tile_size) * -(-s.height // s.tile_size)
-    passes = tiles * -(-s.spp // s.spp_per_pass)
     tile_pixels = min(s.tile_size, s.width) * min(s.tile_size, s.height)
-    return MemoryEstimate(film, pixels * OUTPUT_BYTES_PER_PIXEL, passes * PASS_RECORD_BYTES,
+    k = max(s.shards, 1)
+    window = 1 if s.shards == 0 else max(MIN_WINDOW, WINDOW_PER_SHARD * k)
+    inflight = window * k * tile_pixels * 3 * ACCUM_DTYPE().itemsize  # one part per shard
+    return MemoryEstimate(film, pixels * OUTPUT_BYTES_PER_PIXEL, inflight,
                           tile_pixels * s.spp_per_pass * PATH_WORK_BYTES)
 
 
