@@ -17,6 +17,7 @@ from trimesh.exchange.ply import export_ply
 
 from scene import schema
 from scene.errors import SceneError
+from scene.instances import read_instance_file, write_instance_file
 from scene.model import (
     INDEX_DTYPE,
     TRANSFORM_DTYPE,
@@ -290,19 +291,15 @@ def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
                       "normals": ms.normals, "uvs": ms.uvs}
         meshes.append(build_mesh(ms.name, material=mat, where=where, **arrays))
     mesh_names = [m.name for m in spec.meshes]
-    instances = []
-    for i, inst in enumerate(spec.instances):
-        mi = _resolve(inst.mesh, mesh_names, "mesh", f"instances[{i}].mesh")
-        if inst.transform is not None:
-            xf = np.array(inst.transform, dtype=TRANSFORM_DTYPE)
-        else:
-            xf = trs_matrix(inst.translate, inst.rotate_deg, inst.scale)
-        validate_transform(xf, f"instances[{i}] (mesh {mesh_names[mi]!r})")
-        instances.append(Instance(mi, xf))
+    if isinstance(spec.instances, schema.InstanceFileSpec):  # arrays in an .npz
+        instances = read_instance_file(base / spec.instances.file, mesh_names,
+                                       "instances.file")
+    else:
+        instances = _listed_instances(spec.instances, mesh_names)
     lights = spec.lights
     return Scene(
         meshes=tuple(meshes),
-        instances=tuple(instances),
+        instances=instances,
         materials=materials,
         quad_lights=tuple(QuadLight(**q.model_dump()) for q in lights.quads),
         point_lights=tuple(PointLight(**p.model_dump()) for p in lights.points),
@@ -313,8 +310,22 @@ def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
     )
 
 
-def save_scene(scene: Scene, path) -> Path:
-    """Write `path` (JSON) plus one binary PLY per mesh and one .npy per texture beside it."""
+def _listed_instances(specs: list[schema.InstanceSpec], mesh_names: list[str]) -> tuple:
+    instances = []
+    for i, inst in enumerate(specs):
+        mi = _resolve(inst.mesh, mesh_names, "mesh", f"instances[{i}].mesh")
+        if inst.transform is not None:
+            xf = np.array(inst.transform, dtype=TRANSFORM_DTYPE)
+        else:
+            xf = trs_matrix(inst.translate, inst.rotate_deg, inst.scale)
+        validate_transform(xf, f"instances[{i}] (mesh {mesh_names[mi]!r})")
+        instances.append(Instance(mi, xf))
+    return tuple(instances)
+
+
+def save_scene(scene: Scene, path, instance_file: bool = False) -> Path:
+    """Write `path` (JSON) plus one binary PLY per mesh and one .npy per texture beside it;
+    with instance_file, the instances go to `<stem>.instances.npz` (`scene.instances`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     stem = path.stem
@@ -338,7 +349,8 @@ def save_scene(scene: Scene, path) -> Path:
         "name": scene.name,
         "materials": mats,
         "meshes": meshes,
-        "instances": [
+        "instances": {"file": write_instance_file(
+            path.parent / f"{stem}.instances.npz", scene.instances).name} if instance_file else [
             {"mesh": mesh_refs[inst.mesh],
              "transform": np.asarray(inst.transform, dtype=np.float64).tolist()}
             for inst in scene.instances
