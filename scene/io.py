@@ -26,6 +26,7 @@ from scene.model import (
     DirectionalLight,
     Environment,
     Instance,
+    Instances,
     Material,
     Mesh,
     PointLight,
@@ -33,7 +34,7 @@ from scene.model import (
     Scene,
     instance_world_bounds,
     validate_mesh,
-    validate_transform,
+    validate_transforms,
 )
 
 log = logging.getLogger(__name__)
@@ -310,17 +311,20 @@ def scene_from_spec(spec: schema.SceneFile, base: Path) -> Scene:
     )
 
 
-def _listed_instances(specs: list[schema.InstanceSpec], mesh_names: list[str]) -> tuple:
-    instances = []
+def _listed_instances(specs: list[schema.InstanceSpec], mesh_names: list[str]) -> Instances:
+    """The JSON list form, validated in one vectorised pass (errors name instances[i])."""
+    mesh = np.empty(len(specs), np.int64)
+    xf = np.empty((len(specs), 4, 4), TRANSFORM_DTYPE)
+    resolved: dict = {}  # ref -> mesh index, resolved once per distinct ref
     for i, inst in enumerate(specs):
-        mi = _resolve(inst.mesh, mesh_names, "mesh", f"instances[{i}].mesh")
-        if inst.transform is not None:
-            xf = np.array(inst.transform, dtype=TRANSFORM_DTYPE)
-        else:
-            xf = trs_matrix(inst.translate, inst.rotate_deg, inst.scale)
-        validate_transform(xf, f"instances[{i}] (mesh {mesh_names[mi]!r})")
-        instances.append(Instance(mi, xf))
-    return tuple(instances)
+        key = (type(inst.mesh), inst.mesh)
+        if key not in resolved:
+            resolved[key] = _resolve(inst.mesh, mesh_names, "mesh", f"instances[{i}].mesh")
+        mesh[i] = resolved[key]
+        xf[i] = inst.transform if inst.transform is not None else trs_matrix(
+            inst.translate, inst.rotate_deg, inst.scale)
+    validate_transforms(xf, lambda i: f"instances[{i}] (mesh {mesh_names[mesh[i]]!r})")
+    return Instances(mesh, xf)
 
 
 def save_scene(scene: Scene, path, instance_file: bool = False) -> Path:

@@ -73,8 +73,8 @@ class InstanceSpec(_Strict):
 
     @model_validator(mode="after")
     def _one_form(self) -> InstanceSpec:
-        trs = (self.translate, self.rotate_deg, self.scale)
-        if self.transform is not None and any(x is not None for x in trs):
+        trs = self.translate is not None or self.rotate_deg is not None or self.scale is not None
+        if self.transform is not None and trs:  # no generator: runs once per instance
             raise ValueError("give either 'transform' or translate/rotate_deg/scale, not both")
         return self
 
