@@ -90,7 +90,8 @@ class InstanceFileSpec(_Strict):
 
 
 def _instances_form(value) -> str:
-    return "array-file" if isinstance(value, dict) else "list"
+    """The union member: JSON objects (and specs being dumped) are the file form."""
+    return "array-file" if isinstance(value, dict | InstanceFileSpec) else "list"
 
 
 # A list of InstanceSpec, or {"file": ...}. The tags are dropped from error paths by
