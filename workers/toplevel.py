@@ -60,14 +60,15 @@ class InstanceTable:
 
     def __getstate__(self):
         state = self.__dict__.copy()
-        for name in ("_bvh", "_mesh", "_world_to_local"):
-            state.pop(name, None)  # copies of other fields, restored on unpickling
+        for name in ("_bvh", "_mesh", "_world_to_local", "normal_to_world"):
+            state.pop(name, None)  # derived from other fields, restored on unpickling
         state["bvh"] = self.bvh
         return state
 
     def __setstate__(self, state):
         bvh = state.pop("bvh", None)
         self.__dict__.update(state)
+        self.normal_to_world = np.transpose(self.world_to_local[:, :, :3], (0, 2, 1))
         self._owned(bvh)
 
     def __len__(self) -> int:
