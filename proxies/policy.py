@@ -6,6 +6,8 @@ from __future__ import annotations
 import logging
 from dataclasses import asdict, dataclass, field
 
+import numpy as np
+
 from proxies.cache import ProxyCache, ProxyUnavailable
 from proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
 from proxies.inference import Proxy
@@ -105,7 +107,7 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
     for held in partition.shard_meshes:
         for m in set(held):
             holders[m] += 1
-    used = {inst.mesh for inst in scene.instances}
+    used = set(np.unique(scene.instance_mesh).tolist())
     decisions, proxies, replicated = [], {}, set()
     smallest = estimate_proxy_bytes(config.with_width(min(widths)))
     for i, mesh in enumerate(scene.meshes):

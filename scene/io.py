@@ -18,6 +18,7 @@ from trimesh.exchange.ply import export_ply
 
 from scene import schema
 from scene.errors import SceneError
+from scene.instances import read_instance_file, write_instance_file
 from scene.model import (
     INDEX_DTYPE,
     TRANSFORM_DTYPE,
@@ -26,6 +27,7 @@ from scene.model import (
     DirectionalLight,
     Environment,
     Instance,
+    Instances,
     Material,
     Mesh,
     PointLight,
@@ -33,7 +35,7 @@ from scene.model import (
     Scene,
     instance_world_bounds,
     validate_mesh,
-    validate_transform,
+    validate_transforms,
 )
 from scene.paths import FileRefs, load_trimesh
 
@@ -338,19 +340,16 @@ def scene_from_spec(spec: schema.SceneFile, refs: FileRefs | Path) -> Scene:
                       "normals": ms.normals, "uvs": ms.uvs}
         meshes.append(build_mesh(ms.name, material=mat, where=where, **arrays))
     mesh_names = [m.name for m in spec.meshes]
-    instances = []
-    for i, inst in enumerate(spec.instances):
-        mi = _resolve(inst.mesh, mesh_names, "mesh", f"instances[{i}].mesh")
-        if inst.transform is not None:
-            xf = np.array(inst.transform, dtype=TRANSFORM_DTYPE)
-        else:
-            xf = trs_matrix(inst.translate, inst.rotate_deg, inst.scale)
-        validate_transform(xf, f"instances[{i}] (mesh {mesh_names[mi]!r})")
-        instances.append(Instance(mi, xf))
+    if isinstance(spec.instances, schema.InstanceFileSpec):  # arrays in an .npz
+        instances = read_instance_file(
+            refs.resolve(spec.instances.file, "instance file", "instances.file"),
+            mesh_names, "instances.file")
+    else:
+        instances = _listed_instances(spec.instances, mesh_names)
     lights = spec.lights
     return Scene(
         meshes=tuple(meshes),
-        instances=tuple(instances),
+        instances=instances,
         materials=materials,
         quad_lights=tuple(QuadLight(**q.model_dump()) for q in lights.quads),
         point_lights=tuple(PointLight(**p.model_dump()) for p in lights.points),
@@ -365,8 +364,25 @@ def _texture(ref: str | None, refs: FileRefs, where: str) -> np.ndarray | None:
     return None if ref is None else read_texture(refs.resolve(ref, "texture", where), where, refs)
 
 
-def save_scene(scene: Scene, path) -> Path:
-    """Write `path` (JSON) plus one binary PLY per mesh and one .npy per texture beside it."""
+def _listed_instances(specs: list[schema.InstanceSpec], mesh_names: list[str]) -> Instances:
+    """The JSON list form, validated in one vectorised pass (errors name instances[i])."""
+    mesh = np.empty(len(specs), np.int64)
+    xf = np.empty((len(specs), 4, 4), TRANSFORM_DTYPE)
+    resolved: dict = {}  # ref -> mesh index, resolved once per distinct ref
+    for i, inst in enumerate(specs):
+        key = (type(inst.mesh), inst.mesh)
+        if key not in resolved:
+            resolved[key] = _resolve(inst.mesh, mesh_names, "mesh", f"instances[{i}].mesh")
+        mesh[i] = resolved[key]
+        xf[i] = inst.transform if inst.transform is not None else trs_matrix(
+            inst.translate, inst.rotate_deg, inst.scale)
+    validate_transforms(xf, lambda i: f"instances[{i}] (mesh {mesh_names[mesh[i]]!r})")
+    return Instances(mesh, xf)
+
+
+def save_scene(scene: Scene, path, instance_file: bool = False) -> Path:
+    """Write `path` (JSON) plus one binary PLY per mesh and one .npy per texture beside it;
+    with instance_file, the instances go to `<stem>.instances.npz` (`scene.instances`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     stem = path.stem
@@ -390,7 +406,8 @@ def save_scene(scene: Scene, path) -> Path:
         "name": scene.name,
         "materials": mats,
         "meshes": meshes,
-        "instances": [
+        "instances": {"file": write_instance_file(
+            path.parent / f"{stem}.instances.npz", scene.instances).name} if instance_file else [
             {"mesh": mesh_refs[inst.mesh],
              "transform": np.asarray(inst.transform, dtype=np.float64).tolist()}
             for inst in scene.instances

@@ -70,6 +70,68 @@ class Instance:
     transform: np.ndarray
 
 
+MESH_INDEX_DTYPE = np.int32
+
+
+@dataclass(frozen=True, eq=False)
+class Instances:
+    """Every placement of a scene as two read-only arrays, so setup costs O(1) Python
+    objects per scene, not per instance. A sequence of `Instance` views for code that
+    wants them one at a time (slow for many instances: use the arrays there).
+
+    mesh      : (m,) int32 base mesh of each instance
+    transform : (m, 4, 4) float64 affine local -> world
+    """
+
+    mesh: np.ndarray
+    transform: np.ndarray
+
+    def __post_init__(self):
+        mesh = np.asarray(self.mesh)
+        xf = np.asarray(self.transform)
+        if mesh.ndim != 1 or (mesh.size and not np.issubdtype(mesh.dtype, np.integer)):
+            raise SceneError(f"instances: mesh must be a (m,) integer array, "
+                             f"got shape {mesh.shape} dtype {mesh.dtype}")
+        if xf.shape != (len(mesh), 4, 4) or (xf.size and not np.issubdtype(xf.dtype, np.number)):
+            raise SceneError(f"instances: transform must have shape ({len(mesh)}, 4, 4) "
+                             f"(one 4x4 matrix per mesh index), got {xf.shape}")
+        if mesh.size and (mesh.min() < np.iinfo(MESH_INDEX_DTYPE).min
+                          or mesh.max() > np.iinfo(MESH_INDEX_DTYPE).max):
+            raise SceneError(f"instances: mesh index {int(np.abs(mesh).max())} out of range")
+        mesh = np.array(mesh, MESH_INDEX_DTYPE)  # owned copies, then frozen
+        xf = np.array(xf, TRANSFORM_DTYPE)
+        mesh.setflags(write=False)
+        xf.setflags(write=False)
+        object.__setattr__(self, "mesh", mesh)
+        object.__setattr__(self, "transform", xf)
+
+    @classmethod
+    def of(cls, items) -> Instances:
+        """`Instances` as given, or built from a sequence of `Instance`; a transform that
+        is not 4x4 is named by its position."""
+        if isinstance(items, Instances):
+            return items
+        items = tuple(items)
+        xfs = [np.asarray(i.transform) for i in items]
+        for j, x in enumerate(xfs):
+            if x.shape != (4, 4):
+                raise SceneError(f"instance {j}: transform must be 4x4, got shape {x.shape}")
+        mesh = np.array([int(i.mesh) for i in items], np.int64)
+        return cls(mesh, np.stack(xfs) if xfs else np.zeros((0, 4, 4)))
+
+    def __len__(self) -> int:
+        return len(self.mesh)
+
+    def __getitem__(self, i) -> Instance:
+        if not isinstance(i, int | np.integer):
+            raise TypeError(f"Instances index must be an integer, got {type(i).__name__}")
+        return Instance(int(self.mesh[i]), self.transform[i])
+
+    def __iter__(self):
+        for i in range(len(self)):
+            yield self[i]
+
+
 @dataclass(frozen=True, eq=False)
 class Material:
     """Diffuse material. albedo : (3,) float; texture : (h, w, 3) float32 linear or None."""
@@ -135,8 +197,10 @@ class Camera:
 
 @dataclass(frozen=True, eq=False)
 class Scene:
+    """`instances` may be given as a sequence of `Instance`; it is kept as `Instances`."""
+
     meshes: tuple[Mesh, ...]
-    instances: tuple[Instance, ...]
+    instances: Instances
     materials: tuple[Material, ...] = (Material(),)
     quad_lights: tuple[QuadLight, ...] = ()
     point_lights: tuple[PointLight, ...] = ()
@@ -146,11 +210,27 @@ class Scene:
     name: str = "scene"
 
     def __post_init__(self):
+        object.__setattr__(self, "instances", Instances.of(self.instances))
         validate_scene(self)
 
     @property
+    def instance_mesh(self) -> np.ndarray:
+        """(m,) int32 base mesh of each instance (read-only)."""
+        return self.instances.mesh
+
+    @property
+    def instance_transform(self) -> np.ndarray:
+        """(m, 4, 4) float64 local -> world transform of each instance (read-only)."""
+        return self.instances.transform
+
+    def instances_of_mesh(self, mesh: int) -> np.ndarray:
+        """(k,) int64 the instances of base mesh `mesh`, ascending."""
+        return np.flatnonzero(self.instance_mesh == mesh)
+
+    @property
     def instanced_triangles(self) -> int:
-        return int(sum(len(self.meshes[i.mesh].faces) for i in self.instances))
+        faces = np.array([len(m.faces) for m in self.meshes], np.int64)
+        return int(faces[self.instance_mesh].sum())
 
     @property
     def mesh_bytes(self) -> int:
@@ -197,31 +277,48 @@ def validate_mesh(mesh: Mesh, where: str) -> None:
 def validate_transform(t: np.ndarray, where: str) -> None:
     if t.shape != (4, 4):
         raise SceneError(f"{where}: transform must be 4x4, got shape {t.shape}")
-    if not np.isfinite(t).all():
-        raise SceneError(f"{where}: transform has non-finite entries")
-    if not np.allclose(t[3], [0, 0, 0, 1]):
-        raise SceneError(f"{where}: transform is not affine (last row {t[3].tolist()})")
-    lin = t[:3, :3]
-    det = float(np.linalg.det(lin))
-    scale = float(np.abs(lin).max())
+    validate_transforms(t[None], lambda _: where)
+
+
+def validate_transforms(t: np.ndarray, where) -> None:
+    """Refuse non-finite, non-affine or singular transforms t (m, 4, 4), vectorised; the
+    error names the first bad one through where(i) -> str."""
+    t = np.asarray(t, TRANSFORM_DTYPE)
+    if len(t) == 0:
+        return
+    finite = np.isfinite(t).all(axis=(1, 2))
+    affine = np.isclose(t[:, 3], [0.0, 0.0, 0.0, 1.0]).all(axis=1)
+    lin = np.where(finite[:, None, None], t[:, :3, :3], 1.0)  # det of NaN warns
+    det = np.linalg.det(lin)
+    scale = np.abs(lin).max(axis=(1, 2))
     # Relative test: a 1e-4 uniform scale (det 1e-12) is legitimate, a rank-deficient one is not.
-    if scale == 0.0 or abs(det) <= 1e-9 * scale**3:
-        raise SceneError(f"{where}: transform is singular (det={det:.3g})")
+    singular = (scale == 0.0) | (np.abs(det) <= 1e-9 * scale**3)
+    bad = ~finite | ~affine | singular
+    if not bad.any():
+        return
+    i = int(np.flatnonzero(bad)[0])
+    if not finite[i]:
+        raise SceneError(f"{where(i)}: transform has non-finite entries")
+    if not affine[i]:
+        raise SceneError(f"{where(i)}: transform is not affine (last row {t[i, 3].tolist()})")
+    raise SceneError(f"{where(i)}: transform is singular (det={det[i]:.3g})")
 
 
 def validate_scene(scene: Scene) -> None:
     if not scene.meshes:
         raise SceneError(f"scene {scene.name!r}: no meshes")
-    if not scene.instances:
+    if not len(scene.instances):
         raise SceneError(f"scene {scene.name!r}: no instances")
     for i, m in enumerate(scene.meshes):
         validate_mesh(m, f"mesh {i} ({m.name!r})")
         if not 0 <= m.material < len(scene.materials):
             raise SceneError(f"mesh {i} ({m.name!r}): material {m.material} does not exist")
-    for i, inst in enumerate(scene.instances):
-        if not 0 <= inst.mesh < len(scene.meshes):
-            raise SceneError(f"instance {i}: mesh {inst.mesh} does not exist")
-        validate_transform(inst.transform, f"instance {i} (mesh {scene.meshes[inst.mesh].name!r})")
+    mesh = scene.instance_mesh
+    bad = np.flatnonzero((mesh < 0) | (mesh >= len(scene.meshes)))
+    if len(bad):
+        raise SceneError(f"instance {int(bad[0])}: mesh {int(mesh[bad[0]])} does not exist")
+    validate_transforms(scene.instance_transform,
+                        lambda i: f"instance {i} (mesh {scene.meshes[mesh[i]].name!r})")
 
 
 def instance_world_bounds(scene: Scene) -> np.ndarray:
@@ -229,8 +326,9 @@ def instance_world_bounds(scene: Scene) -> np.ndarray:
 
     returns : (n_instances, 2, 3) float64, [min, max] per instance
     """
-    local = np.stack([scene.meshes[i.mesh].bounds for i in scene.instances])  # (n, 2, 3)
-    xf = np.stack([i.transform for i in scene.instances]).astype(np.float64)  # (n, 4, 4)
+    mesh_bounds = np.stack([m.bounds for m in scene.meshes])  # (meshes, 2, 3)
+    local = mesh_bounds[scene.instance_mesh]  # (n, 2, 3)
+    xf = scene.instance_transform  # (n, 4, 4)
     centre, half = local.mean(axis=1), 0.5 * (local[:, 1] - local[:, 0])
     # Arvo: the box of a transformed box is centre R c + t, half-extent |R| e.
     wc = np.einsum("nij,nj->ni", xf[:, :3, :3], centre) + xf[:, :3, 3]

@@ -22,7 +22,7 @@ from workers.lights import FAR_T, LightSet
 from workers.passes import Pass
 from workers.rng import DIM_BSDF_V
 from workers.settings import RenderSettings
-from workers.surface import SurfaceTables, surface_at
+from workers.surface import SurfaceTables
 from workers.toplevel import InstanceTable
 
 RR_START_DEPTH = 3
@@ -107,16 +107,11 @@ class PathIntegrator:
         return Shaded(pixel, rgb, shadow, secondary)
 
     def _surface_at(self, rays: RayBatch, surf: np.ndarray):
-        """Surfaces of rays[surf] through the kernel, unless np.einsum's sum order for
-        this instance table's layout was not recognised."""
+        """Surfaces of rays[surf], through the kernel (bit-identical to `surface_at`)."""
         if self._surfaces is None:
             self._surfaces = SurfaceTables(self.meshes, self.materials, self.table)
-        if self._surfaces.exact:
-            return self._surfaces.at(rays.hit_inst, rays.hit_prim, rays.hit_u, rays.hit_v,
-                                     rays.direction, rows=surf)
-        r = rays.take(surf)
-        return surface_at(self.meshes, self.materials, self.table, r.hit_inst, r.hit_prim,
-                          r.hit_u, r.hit_v, r.direction)
+        return self._surfaces.at(rays.hit_inst, rays.hit_prim, rays.hit_u, rays.hit_v,
+                                 rays.direction, rows=surf)
 
     def _light_emission(self, r: RayBatch) -> np.ndarray:
         """(n, 3) f64 quad radiance, MIS-weighted against next-event sampling."""

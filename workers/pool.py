@@ -50,9 +50,8 @@ def pool_key(scene: Scene, settings: RenderSettings) -> str:
     h = hashlib.sha256()
     for m in scene.meshes:
         h.update(f"{m.content_hash}:{m.material}:{m.name}|".encode())
-    h.update(np.array([i.mesh for i in scene.instances], np.int64).tobytes())
-    if scene.instances:
-        h.update(np.stack([i.transform for i in scene.instances]).astype(np.float64).tobytes())
+    h.update(np.ascontiguousarray(scene.instance_mesh, np.int64).tobytes())
+    h.update(np.ascontiguousarray(scene.instance_transform, np.float64).tobytes())
     lights = (scene.quad_lights, scene.point_lights, scene.directional_lights,
               scene.environment, scene.camera)
     h.update(repr(lights).encode())
@@ -88,9 +87,8 @@ class ShardPool:
             self.plan = make_plan(scene, self.partition, settings, proxy_dir,
                                   train=settings.mode == "proxy")
             proxies = self.plan.proxies if settings.mode == "proxy" else {}
-            inst_mesh = np.array([i.mesh for i in scene.instances], np.int64)
             for m in self.plan.replicated:  # cheaper to copy than to model
-                owner[inst_mesh == m] = EVERYWHERE
+                owner[scene.instances_of_mesh(m)] = EVERYWHERE
                 for held in shard_meshes:
                     held.add(m)
         self.world = ShardWorld.build(scene, owner)

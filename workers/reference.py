@@ -24,7 +24,7 @@ class ReferenceRenderer:
     def __init__(self, scene: Scene, settings: RenderSettings):
         t0 = time.perf_counter()
         self.scene, self.s = scene, settings
-        world = ShardWorld.build(scene, np.zeros(len(scene.instances), np.int32))
+        world = ShardWorld.build(scene, np.zeros(len(scene.instance_mesh), np.int32))
         self.shard = Shard(ShardConfig(0, 1, settings), world, dict(enumerate(scene.meshes)))
         self.warm_s = self.shard.warm()
         self.prepare_s = time.perf_counter() - t0

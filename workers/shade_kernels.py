@@ -2,10 +2,12 @@
 and surface interactions, row by row with exactly the float operations (and their order)
 of the numpy formulas they replace, so film sums stay bit-identical.
 
-Orders that numpy fixes and these kernels copy: `np.linalg.norm(v, axis=1)` sums
-(x0² + x1²) + x2², and `np.einsum("ij,ij->i")` / `np.einsum("nij,nj->ni")` sum
-(p0 + p2) + p1 (checked in tests/workers/test_shade_kernels.py). Sines and cosines stay
-in numpy, whose SIMD versions need not round like libm.
+One fixed sum order, written out in the numpy oracles too (`workers.surface.surface_at`):
+three-term dot products, instance transforms included, sum (p0 + p2) + p1 (`_dot`), then
+add a translation; norms sum (x0² + x1²) + x2² (`_norm`). These are also the orders numpy
+2.x takes for `np.einsum("ij,ij->i")` and `np.linalg.norm(v, axis=1)` on C-ordered rows,
+which the light formulas use (checked in tests/workers/test_shade_kernels.py). Sines and
+cosines stay in numpy, whose SIMD versions need not round like libm.
 """
 
 from __future__ import annotations
@@ -92,48 +94,13 @@ def offset_rows(p, n):
 
 @njit(inline="always", **JIT)
 def _dot(a0, a1, a2, b0, b1, b2):
-    """np.einsum's order for three terms."""
+    """Three products in the fixed order (a0 b0 + a2 b2) + a1 b1."""
     return (a0 * b0 + a2 * b2) + a1 * b1
 
 
 @njit(inline="always", **JIT)
-def _dot_in(order, a0, a1, a2, b0, b1, b2):
-    """Three products summed in `order` (SUM_ORDERS): np.einsum's order depends on the
-    strides of its operands, so the caller finds it (`probe_sum_order`)."""
-    if order == 0:
-        return (a0 * b0 + a2 * b2) + a1 * b1
-    if order == 1:
-        return (a0 * b0 + a1 * b1) + a2 * b2
-    return a0 * b0 + (a1 * b1 + a2 * b2)
-
-
-# Summation orders of three products p0, p1, p2 that `_dot_in` can copy.
-SUM_ORDERS = ("(p0 + p2) + p1", "(p0 + p1) + p2", "p0 + (p1 + p2)")
-
-
-def probe_sum_order(mats: np.ndarray, seed: int = 0) -> int | None:
-    """Which of SUM_ORDERS `np.einsum("nij,nj->ni", mats[rows][:, :, :3], x)` uses for the
-    layout of mats (m, 3, k) float64, found on random x of widely spread magnitudes for
-    every matrix; None if none matches."""
-    m = len(mats)
-    if m == 0:
-        return 0
-    rng = np.random.default_rng(seed)
-    rows = np.repeat(np.arange(m), 64)
-    x = rng.normal(size=(len(rows), 3)) * 10.0 ** rng.integers(-6, 7, (len(rows), 3))
-    got = np.einsum("nij,nj->ni", mats[rows][:, :, :3], x)
-    q = mats[rows][:, :, :3] * x[:, None, :]  # (r, 3, 3) products
-    sums = ((q[..., 0] + q[..., 2]) + q[..., 1], (q[..., 0] + q[..., 1]) + q[..., 2],
-            q[..., 0] + (q[..., 1] + q[..., 2]))
-    for order, want in enumerate(sums):
-        if np.array_equal(got, want):
-            return order
-    return None
-
-
-@njit(inline="always", **JIT)
 def _norm(a0, a1, a2):
-    """np.linalg.norm's order for three terms."""
+    """The fixed order sqrt((a0² + a1²) + a2²)."""
     return np.sqrt((a0 * a0 + a1 * a1) + a2 * a2)
 
 
@@ -240,14 +207,13 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, ns, ng, albedo, t
 
 
 @njit(**JIT)
-def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, l2w_order,
-            nmat_order, verts, faces, normals, uvs, mesh_vbase, mesh_fbase, mesh_has_n,
-            mesh_has_uv, mesh_mat, mat_albedo, mat_emission, mat_tex, tex_base, tex_h, tex_w,
-            texels):
+def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, verts,
+            faces, normals, uvs, mesh_vbase, mesh_fbase, mesh_has_n, mesh_has_uv, mesh_mat,
+            mat_albedo, mat_emission, mat_tex, tex_base, tex_h, tex_w, texels):
     """Surface interactions of `workers.surface.surface_at` for `rows` (k,) int64 of the
     hit records inst, prim (n,) int32; u, v (n,) float32; direction (n, 3) float32.
     slot_of_mesh (M,) int64 base mesh -> slot here (-1: not held); inst_mesh (m,) int32;
-    l2w (m, 3, 4), nmat (m, 3, 3) float64, each with its np.einsum sum order;
+    l2w (m, 3, 4), nmat (m, 3, 3) float64 (rows applied in `_dot`'s order);
     verts, normals (V, 3) float32; uvs (V, 2) float32; faces (F, 3) int64 (vertex base
     added). Per slot: vertex / face base, has-normals / has-uvs flags, material. Per
     material: albedo, emission (3,) float64, texture (-1: none). Per texture: texel base,
@@ -310,20 +276,14 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
         for c in range(3):
             emission[i, c] = mat_emission[mat, c]
         for c in range(3):
-            p[i, c] = (_dot_in(l2w_order, l2w[it, c, 0], l2w[it, c, 1], l2w[it, c, 2],
-                               pl[0], pl[1], pl[2]) + l2w[it, c, 3])
-        g0 = _dot_in(nmat_order, nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2],
-                     gl[0], gl[1], gl[2])
-        g1 = _dot_in(nmat_order, nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2],
-                     gl[0], gl[1], gl[2])
-        g2 = _dot_in(nmat_order, nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2],
-                     gl[0], gl[1], gl[2])
-        s0 = _dot_in(nmat_order, nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2],
-                     sl[0], sl[1], sl[2])
-        s1 = _dot_in(nmat_order, nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2],
-                     sl[0], sl[1], sl[2])
-        s2 = _dot_in(nmat_order, nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2],
-                     sl[0], sl[1], sl[2])
+            p[i, c] = (_dot(l2w[it, c, 0], l2w[it, c, 1], l2w[it, c, 2], pl[0], pl[1], pl[2])
+                       + l2w[it, c, 3])
+        g0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], gl[0], gl[1], gl[2])
+        g1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], gl[0], gl[1], gl[2])
+        g2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], gl[0], gl[1], gl[2])
+        s0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], sl[0], sl[1], sl[2])
+        s1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], sl[0], sl[1], sl[2])
+        s2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], sl[0], sl[1], sl[2])
         ln = _norm(g0, g1, g2)  # normalize: zero vectors stay zero
         if not ln > 0:
             ln = 1.0

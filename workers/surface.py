@@ -10,7 +10,6 @@ import numpy as np
 
 from scene.model import Material, Mesh
 from workers import shade_kernels
-from workers.sampling import normalize
 from workers.toplevel import InstanceTable
 
 
@@ -73,11 +72,6 @@ class SurfaceTables:
         self.l2w = np.array(table.local_to_world, np.float64, order="C")
         self.nmat = np.array(table.normal_to_world, np.float64, order="C")
         self.held = held
-        # np.einsum's sum order follows the table's memory layout (a transposed view here,
-        # C order after unpickling): copy whichever surface_at would use.
-        self.l2w_order = shade_kernels.probe_sum_order(table.local_to_world)
-        self.nmat_order = shade_kernels.probe_sum_order(table.normal_to_world)
-        self.exact = self.l2w_order is not None and self.nmat_order is not None
 
     def at(self, inst: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
            direction: np.ndarray, rows: np.ndarray | None = None) -> Surface:
@@ -90,7 +84,7 @@ class SurfaceTables:
             np.ascontiguousarray(prim, np.int32),
             np.ascontiguousarray(u, np.float32), np.ascontiguousarray(v, np.float32),
             np.ascontiguousarray(direction, np.float32), self.slot_of_mesh, self.inst_mesh,
-            self.l2w, self.nmat, self.l2w_order, self.nmat_order, self.verts, self.faces,
+            self.l2w, self.nmat, self.verts, self.faces,
             self.normals, self.uvs, self.vbase, self.fbase, self.has_n, self.has_uv,
             self.mesh_mat, self.mat_albedo, self.mat_emission, self.mat_tex, self.tex_base,
             self.tex_h, self.tex_w, self.texels)
@@ -136,15 +130,34 @@ def surface_at(meshes: Mapping[int, Mesh], materials: Sequence[Material],
             albedo[sel] = mat.albedo
         emission[sel] = mat.emission
     l2w = table.local_to_world[inst]  # (n, 3, 4)
-    p = np.einsum("nij,nj->ni", l2w[:, :, :3], p_loc) + l2w[:, :, 3]
+    p = _apply(l2w, p_loc) + l2w[:, :, 3]
     nmat = table.normal_to_world[inst]
-    ng = normalize(np.einsum("nij,nj->ni", nmat, ng_loc))
-    ns = normalize(np.einsum("nij,nj->ni", nmat, ns_loc))
+    ng = _unit(_apply(nmat, ng_loc))
+    ns = _unit(_apply(nmat, ns_loc))
     d = direction.astype(np.float64)
     # Two-sided diffuse: both normals face the side the ray came from.
-    ng = np.where((np.einsum("ij,ij->i", ng, d) > 0)[:, None], -ng, ng)
-    ns = np.where((np.einsum("ij,ij->i", ns, ng) < 0)[:, None], -ns, ns)
+    ng = np.where((_dot(ng, d) > 0)[:, None], -ng, ng)
+    ns = np.where((_dot(ns, ng) < 0)[:, None], -ns, ns)
     return Surface(p, ng, ns, albedo, emission)
+
+
+# The kernels' fixed sum orders (`shade_kernels._dot`, `_norm`), written out rather than
+# left to np.einsum / np.linalg.norm, whose order may follow the operands' memory layout.
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row dot products (a0 b0 + a2 b2) + a1 b1 of a, b (n, 3) float64 -> (n,)."""
+    return (a[:, 0] * b[:, 0] + a[:, 2] * b[:, 2]) + a[:, 1] * b[:, 1]
+
+
+def _apply(m: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """m[:, :, :3] (n, 3, >= 3) float64 times x (n, 3) float64, each row by `_dot`."""
+    q = m[:, :, :3] * x[:, None, :]  # (n, 3, 3) products
+    return (q[..., 0] + q[..., 2]) + q[..., 1]
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    """(n, 3) -> unit rows, length sqrt((v0² + v1²) + v2²); zero rows stay zero."""
+    length = np.sqrt((v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]) + v[:, 2] * v[:, 2])[:, None]
+    return v / np.where(length > 0, length, 1.0)
 
 
 def _lookup(texture: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -16,17 +16,21 @@ BVH_MIN_INSTANCES = 8
 
 class InstanceTable:
     """mesh (m,) int32, local_to_world / world_to_local (m, 3, 4) float64,
-    normal_to_world (m, 3, 3) float64 (inverse transpose), world_bounds (m, 2, 3) float64."""
+    normal_to_world (m, 3, 3) float64 (inverse transpose), world_bounds (m, 2, 3) float64,
+    local_bounds (m, 2, 3) float64 (the base mesh's box).
+
+    Built from the scene's instance arrays in vectorised numpy plus one compiled BVH
+    build; the BVH travels with the table when it is pickled (built once per scene)."""
 
     def __init__(self, scene: Scene):
-        inst = scene.instances
-        self.mesh = np.array([i.mesh for i in inst], dtype=np.int32)
-        l2w = np.stack([i.transform for i in inst]).astype(np.float64)  # (m, 4, 4)
+        self.mesh = np.array(scene.instance_mesh, np.int32)
+        l2w = np.array(scene.instance_transform, np.float64)  # (m, 4, 4)
         w2l = np.linalg.inv(l2w)
         self.local_to_world = l2w[:, :3, :]
         self.world_to_local = w2l[:, :3, :]
         self.normal_to_world = np.transpose(w2l[:, :3, :3], (0, 2, 1))
-        local = np.stack([scene.meshes[m].bounds for m in self.mesh])  # (m, 2, 3)
+        mesh_bounds = np.stack([m.bounds for m in scene.meshes])  # (meshes, 2, 3)
+        local = mesh_bounds[self.mesh]  # (m, 2, 3)
         corners = _box_corners(local)  # (m, 8, 3)
         world = np.einsum("mij,mkj->mki", l2w[:, :3, :3], corners) + l2w[:, None, :3, 3]
         lo, hi = world.min(axis=1), world.max(axis=1)
@@ -34,27 +38,38 @@ class InstanceTable:
         pad = pad + 1e-7 * np.abs(np.concatenate([lo, hi], axis=1)).max(axis=1, keepdims=True)
         self.world_bounds = np.stack([lo - pad, hi + pad], axis=1)
         self.local_bounds = local
-        self._build_bvh()
-
-    def _build_bvh(self) -> None:
-        """Kernel inputs, owned and writable (arrays unpickled from Ray's object store are
-        read-only, and numba compiles read-only arrays as a separate type)."""
         boxes = np.array(self.world_bounds, np.float64, order="C")
+        bvh = kernels.bvh_build(boxes) if len(boxes) and np.isfinite(boxes).all() else None
+        self._owned(bvh)
+
+    def _owned(self, bvh) -> None:
+        """Kernel inputs, owned and writable (arrays unpickled from Ray's object store are
+        read-only, and numba compiles read-only arrays as a separate type). Copies only:
+        the BVH is never rebuilt here."""
         self._bvh = None
-        if len(boxes) and np.isfinite(boxes).all():
-            self._bvh = (boxes, *kernels.bvh_build(boxes))
+        if bvh is not None:
+            self._bvh = (np.array(self.world_bounds, np.float64, order="C"),
+                         *(np.array(a, order="C") for a in bvh))
         self._mesh = np.array(self.mesh, np.int32)
         self._world_to_local = np.array(self.world_to_local, np.float64, order="C")
 
+    @property
+    def bvh(self) -> tuple | None:
+        """`kernels.bvh_build(world_bounds)`'s arrays, or None (no boxes, or non-finite)."""
+        return None if self._bvh is None else self._bvh[1:]
+
     def __getstate__(self):
         state = self.__dict__.copy()
-        for name in ("_bvh", "_mesh", "_world_to_local"):
-            state.pop(name, None)  # rebuilt on unpickling: cheap, and then writable
+        for name in ("_bvh", "_mesh", "_world_to_local", "normal_to_world"):
+            state.pop(name, None)  # derived from other fields, restored on unpickling
+        state["bvh"] = self.bvh
         return state
 
     def __setstate__(self, state):
+        bvh = state.pop("bvh", None)
         self.__dict__.update(state)
-        self._build_bvh()
+        self.normal_to_world = np.transpose(self.world_to_local[:, :, :3], (0, 2, 1))
+        self._owned(bvh)
 
     def __len__(self) -> int:
         return len(self.mesh)

@@ -8,7 +8,7 @@ import numpy as np
 import trimesh
 
 from scene.demos._common import concat, ground, make_mesh, placement, quads, sky, sun_panel
-from scene.model import Camera, Instance, Material, Scene
+from scene.model import Camera, Instances, Material, Scene
 
 # Per size: window bay width and storey height (m), lots per side (x, z), lot pitch (m).
 SIZES = {
@@ -72,12 +72,12 @@ def build(size: str, seed: int) -> Scene:
     jitter = rng.uniform(-1.5, 1.5, size=(n, 2))
     pos = np.column_stack([gx.ravel() + jitter[:, 0], np.zeros(n), gz.ravel() + jitter[:, 1]])
     xf = placement(yaw, scale, pos)
-    instances = [Instance(0, np.eye(4))] + [Instance(int(k) + 1, t) for k, t in zip(kinds, xf,
-                                                                                 strict=True)]
+    # The ground first, then the buildings (mesh 0 is the ground).
+    instances = Instances(np.r_[0, kinds + 1], np.concatenate([np.eye(4)[None], xf]))
     half = 0.5 * cfg["pitch"] * max(cfg["lots"])
     return Scene(
         meshes=tuple(meshes),
-        instances=tuple(instances),
+        instances=instances,
         materials=tuple(MATERIALS),
         quad_lights=(sun_panel((0.5 * half, 0.3 * half), 160.0, 30.0, 3.0),),
         environment=sky(1.0),

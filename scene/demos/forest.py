@@ -17,7 +17,7 @@ from scene.demos._common import (
     sun_panel,
     tube,
 )
-from scene.model import VERTEX_DTYPE, Camera, Instance, Material, Mesh, Scene
+from scene.model import VERTEX_DTYPE, Camera, Instances, Material, Mesh, Scene
 
 # Per size: leaves per species (oak, pine, birch, bush), instances per species, half extent
 # of the planted square (m), trunk sections, branches per tree.
@@ -57,12 +57,11 @@ def build(size: str, seed: int) -> Scene:
     pos = np.column_stack([xz[:, 0], np.zeros(n), xz[:, 1]])
     s = rng.uniform(0.8, 1.25, size=n)
     xf = placement(rng.uniform(0, 2 * np.pi, n), np.repeat(s[:, None], 3, 1), pos)
-    instances = [Instance(0, np.eye(4))] + [Instance(int(k), t) for k, t in zip(kinds, xf,
-                                                                             strict=True)]
+    instances = Instances(np.r_[0, kinds], np.concatenate([np.eye(4)[None], xf]))  # ground first
     half = cfg["half"]
     return Scene(
         meshes=tuple(meshes),
-        instances=tuple(instances),
+        instances=instances,
         materials=tuple(materials),
         quad_lights=(sun_panel((0.4 * half, 0.3 * half), 60.0, 14.0, 3.0),),
         environment=sky(0.9),

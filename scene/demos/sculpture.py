@@ -8,7 +8,7 @@ import numpy as np
 import trimesh
 
 from scene.demos._common import ground, make_mesh, placement, sky, sun_panel
-from scene.model import Camera, Instance, Material, Scene
+from scene.model import Camera, Instances, Material, Scene
 
 # Per size: icosphere subdivisions, torus (major, minor) and column (around, along) segments,
 # gallery grid (columns, rows) and its pitch (m).
@@ -63,13 +63,12 @@ def build(size: str, seed: int) -> Scene:
     xf[:, :3, 3] = base + np.column_stack([np.zeros(n), PEDESTAL[1] - lowest, np.zeros(n)])
     pedestals = placement(rng.uniform(0, np.pi, n), np.ones((n, 3)), base)
     pedestal_mesh = len(meshes) - 1
-    instances = ([Instance(0, np.eye(4))]
-                 + [Instance(int(k), t) for k, t in zip(kinds, xf, strict=True)]
-                 + [Instance(pedestal_mesh, t) for t in pedestals])
+    instances = Instances(np.r_[0, kinds, np.full(n, pedestal_mesh)],
+                          np.concatenate([np.eye(4)[None], xf, pedestals]))  # ground first
     extent = 0.5 * cfg["pitch"] * max(nx, nz)
     return Scene(
         meshes=tuple(meshes),
-        instances=tuple(instances),
+        instances=instances,
         materials=tuple(MATERIALS),
         quad_lights=(sun_panel((2.0, 3.0), 14.0, 4.0, 4.0),),
         environment=sky(0.7),

@@ -1,5 +1,6 @@
 """The top-level slab test (`InstanceTable.box_entries`, BVH and plain-loop kernels)
-against a plain numpy oracle: same crossings, order, dtypes and t values."""
+against a plain numpy oracle: same crossings, order, dtypes and t values; the compiled
+BVH builder on awkward boxes, and the BVH shipped (not rebuilt) with a pickled table."""
 
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ def _oracle(boxes, origin, direction, tmax, instances):
     """
     b = boxes[np.asarray(instances, np.int64)]  # (k, 2, 3)
     o = np.asarray(origin, np.float64)[:, None, :]  # (n, 1, 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         inv = (1.0 / np.asarray(direction, np.float64))[:, None, :]
         t0 = (b[None, :, 0, :] - o) * inv  # (n, k, 3)
         t1 = (b[None, :, 1, :] - o) * inv
@@ -189,6 +190,113 @@ def test_bvh_kernel_equals_oracle_on_unpadded_flat_boxes(seed):
             np.ascontiguousarray(boxes[instances]))
         got = (ray, instances[col].astype(np.int32), t_enter, t_exit)
         _assert_same(got, _oracle(boxes, o, d, tmax, instances))
+
+
+def _awkward_boxes(kind: str, rng) -> np.ndarray:
+    """(m, 2, 3) float64 boxes that stress the binned builder."""
+    if kind == "one":
+        return _raw_boxes(rng, 1)
+    if kind == "three":
+        return _raw_boxes(rng, 3)
+    if kind == "identical":  # every centroid equal: no bin split exists anywhere
+        return np.repeat(_raw_boxes(rng, 1), 40, axis=0)
+    if kind == "points":  # zero-volume boxes, several exact duplicates
+        p = np.round(rng.uniform(-4, 4, (60, 3)) * 2) / 2
+        p[::3] = p[0]
+        return np.stack([p, p], axis=1)
+    if kind == "line":  # centroids spread along x only, and clustered
+        lo = np.zeros((70, 3))
+        lo[:, 0] = np.repeat(rng.uniform(-5, 5, 7), 10)
+        return np.stack([lo, lo + 0.5], axis=1)
+    if kind == "nested":  # one huge box around many tiny ones, and far outliers
+        b = _raw_boxes(rng, 50) * 1e-3
+        b[0] = [[-1e6, -1e6, -1e6], [1e6, 1e6, 1e6]]
+        b[1] = [[1e300, 0, 0], [1.5e300, 1, 1]]
+        b[2] = [[-1.7e308, -1.7e308, 0], [-1e308, -1e308, 1]]
+        return b
+    return _raw_boxes(rng, 200)
+
+
+def _check_tree(boxes, bvh):
+    """The structure `_bvh_fill` relies on: children hold what is below them, leaves of
+    1..BVH_LEAF_SIZE prims tile prim, which lists every box once."""
+    node_box, node_child, node_start, node_count, prim = bvh
+    m = len(boxes)
+    assert prim.dtype == np.int32 and np.array_equal(np.sort(prim), np.arange(m))
+    leaf = node_child < 0
+    assert len(node_child) == 2 * leaf.sum() - 1 and node_child.dtype == np.int32  # binary
+    assert ((node_count[leaf] >= 1) & (node_count[leaf] <= kernels.BVH_LEAF_SIZE)).all()
+    order = np.argsort(node_start[leaf])
+    starts, counts = node_start[leaf][order], node_count[leaf][order]
+    assert starts[0] == 0 and np.array_equal(starts[1:], np.cumsum(counts)[:-1])
+    assert counts.sum() == m
+    inner = np.flatnonzero(~leaf)
+    assert (node_child[inner] > inner).all() and (node_child[inner] + 1 < len(node_child)).all()
+    for c in (node_child[inner], node_child[inner] + 1):
+        assert (node_box[inner, 0] <= node_box[c, 0]).all()
+        assert (node_box[inner, 1] >= node_box[c, 1]).all()
+        assert (node_count[inner] >= node_count[c]).all()
+    for node in np.flatnonzero(leaf):
+        b = boxes[prim[node_start[node]:node_start[node] + node_count[node]]]
+        assert (node_box[node, 0] < b[:, 0]).all() and (node_box[node, 1] > b[:, 1]).all()
+
+
+@pytest.mark.parametrize("kind", ["one", "three", "identical", "points", "line", "nested",
+                                  "random"])
+def test_compiled_bvh_builder_equals_brute_force(kind):
+    """The binned-SAH builder on degenerate and flat boxes: a valid tree, and traversal
+    through it finds exactly the brute-force crossings."""
+    rng = np.random.default_rng(len(kind))
+    boxes = _awkward_boxes(kind, rng)
+    bvh = kernels.bvh_build(boxes)
+    _check_tree(boxes, bvh)
+    finite = np.isfinite(boxes).all() and np.abs(boxes).max() < 1e10
+    o, d, tmax = _rays(rng, boxes if finite else boxes[3:], 3000, 8.0)
+    m = len(boxes)
+    for instances in (np.arange(m), rng.permutation(m)[: max(1, m // 2)]):
+        col_of = np.full(m, -1, np.int32)
+        col_of[instances] = np.arange(len(instances), dtype=np.int32)
+        ray, col, t_enter, t_exit = kernels.bvh_slab(
+            o.astype(np.float64), d.astype(np.float64), tmax.astype(np.float64), boxes,
+            *bvh, col_of)
+        got = (ray, instances[col].astype(np.int32), t_enter, t_exit)
+        _assert_same(got, _oracle(boxes, o, d, tmax, instances), kind)
+
+
+def test_bvh_builder_refuses_bad_shapes():
+    for bad in (np.zeros((0, 2, 3)), np.zeros((4, 3, 3)), np.zeros((2, 3))):
+        with pytest.raises(ValueError, match="shape"):
+            kernels.bvh_build(bad)
+
+
+def test_unpickling_a_table_ships_its_bvh_and_never_rebuilds_it(monkeypatch):
+    rng = np.random.default_rng(12)
+    table = InstanceTable(_random_scene(rng, 60))
+    o, d, tmax = _rays(rng, table.world_bounds, 1000, 10.0)
+    want = table.box_entries(o, d, tmax, np.arange(60))
+    blob = pickle.dumps(table)
+
+    def no_build(boxes):
+        raise AssertionError("bvh_build called while unpickling")
+
+    monkeypatch.setattr(kernels, "bvh_build", no_build)
+    copy = pickle.loads(blob)
+    for a, b in zip(copy.bvh, table.bvh, strict=True):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert all(a.flags.writeable and a.flags.c_contiguous for a in copy.bvh)
+    _assert_same(copy.box_entries(o, d, tmax, np.arange(60)), want)
+
+
+def test_single_instance_table_uses_its_bvh():
+    table = InstanceTable(Scene((plane_mesh(half=1.0),), (Instance(0, trs((1, 2, 3))),)))
+    assert len(table.bvh[1]) == 1 and table.bvh[1][0] == -1  # one leaf
+    rng = np.random.default_rng(13)
+    o, d, tmax = _rays(rng, table.world_bounds, 500, 4.0)
+    col_of = np.zeros(1, np.int32)
+    got = kernels.bvh_slab(o.astype(np.float64), d.astype(np.float64),
+                           tmax.astype(np.float64), table.world_bounds, *table.bvh, col_of)
+    want = _oracle(table.world_bounds, o, d, tmax, np.arange(1))
+    _assert_same((got[0], got[1], got[2], got[3]), want)
 
 
 def test_pairs_by_mesh_groups_stably_and_equals_to_local():
