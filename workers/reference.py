@@ -32,7 +32,12 @@ class ReferenceRenderer:
 
     @property
     def geometry(self):
+        """The whole scene's LocalGeometry (tests swap in an instrumented one)."""
         return self.shard.local
+
+    @geometry.setter
+    def geometry(self, value) -> None:
+        self.shard.local = value
 
     def __repr__(self) -> str:
         return f"ReferenceRenderer({self.scene.name!r}, {self.shard.local})"
