@@ -5,11 +5,13 @@ moves shard to shard through the object store.
 
 Pipelining (why a window of passes): a pass is a wavefront whose last bounces hold few
 rays on few shards, so one pass at a time leaves shards idle. Up to `window` pass
-attempts are in flight; whatever work is waiting for a shard (camera rays of new passes,
-parcels of any pass) goes out together in one call as soon as the shard has fewer than
-MAX_QUEUED_CALLS calls queued, so a shard never idles while work for it exists, and
-calls stay few and large. Shard-to-shard sends were the alternative; they would put
-pass accounting and retry in every shard, while here one loop sees every pass end.
+attempts are in flight; the work waiting for a shard (camera rays of new passes, parcels
+of any pass), oldest pass first and up to MAX_CALL_RAYS rays, goes out together in one
+call as soon as the shard has fewer than MAX_QUEUED_CALLS calls queued, so a shard never
+idles while work for it exists, calls stay few and large, and the oldest pass (the next
+tile a user sees) is never starved by newer ones. Shard-to-shard sends were the
+alternative; they would put pass accounting and retry in every shard, while here one loop
+sees every pass end.
 
 Failure: a shard that dies loses the partial films of every pass attempt it held, so
 all live attempts are dropped and re-run under new tokens; a shard that restarted unseen
@@ -42,6 +44,9 @@ log = logging.getLogger(__name__)
 
 MAX_PASS_ATTEMPTS = 4
 MAX_QUEUED_CALLS = 2  # per shard: one running, one waiting, so it never idles
+# Rays one call takes at most (camera rays count one per path): oldest passes go first, so
+# the first tile shows early and a call's batches stay a few MB.
+MAX_CALL_RAYS = 1 << 16
 WINDOW_PER_SHARD = 3  # pass attempts in flight per shard
 MIN_WINDOW = 4
 CANCEL_POLL_S = 0.25
@@ -135,7 +140,8 @@ class Coordinator:
         live: dict[int, _Attempt] = {}
         retry: deque[Pass] = deque()
         attempts: dict[int, int] = {}
-        inbox: list[list] = [[] for _ in range(k)]  # (token, parcel ref or None = generate)
+        # (token, rays, parcel ref or None = generate) waiting for each shard
+        inbox: list[list] = [[] for _ in range(k)]
         queued = [0] * k  # calls in flight per shard
         waiting: dict = {}  # ref -> ("work", shard, tokens, outs) | ("collect", shard, tokens)
         exhausted = False
@@ -152,11 +158,10 @@ class Coordinator:
                     token = next(self._tokens)
                     live[token] = _Attempt(p, pending=k, sent=np.zeros(k, np.int64))
                     for sid in range(k):
-                        inbox[sid].append((token, None))
+                        inbox[sid].append((token, p.n_paths, None))
                 for sid in range(k):
                     if inbox[sid] and queued[sid] < MAX_QUEUED_CALLS:
-                        waiting.update(self._send(sid, inbox[sid], live))
-                        inbox[sid] = []
+                        inbox[sid] = self._send(sid, inbox[sid], live, waiting)
                         queued[sid] += 1
                 if not waiting:
                     if stop or (exhausted and not live):
@@ -194,10 +199,16 @@ class Coordinator:
             if live:  # canceled or failed: free what the shards hold for this job
                 self._abort(list(live), wait=False)
 
-    def _send(self, sid: int, entries: list, live: dict) -> dict:
-        """One call to shard sid with everything in its inbox, grouped by token."""
+    def _send(self, sid: int, entries: list, live: dict, waiting: dict) -> list:
+        """One call to shard sid with its oldest waiting work, up to MAX_CALL_RAYS rays
+        (at least one entry); returns the entries left for a later call."""
+        entries = sorted(entries, key=lambda e: e[0])  # tokens grow with pass age
+        take, rays = 0, 0
+        while take < len(entries) and (take == 0 or rays + entries[take][1] <= MAX_CALL_RAYS):
+            rays += entries[take][1]
+            take += 1
         by_token: dict[int, list] = {}
-        for token, ref in entries:
+        for token, _, ref in entries[:take]:
             by_token.setdefault(token, []).append(ref)
         items, parcels = [], []
         for token, refs in by_token.items():
@@ -209,7 +220,8 @@ class Coordinator:
             parcels += got
         self.calls[sid] += 1
         m_ref, outs = self._dispatch(sid, items, parcels)
-        return {m_ref: ("work", sid, list(by_token), outs)}
+        waiting[m_ref] = ("work", sid, list(by_token), outs)
+        return entries[take:]
 
     def _on_work(self, ref, what, live: dict, inbox: list) -> None:
         _, sid, tokens, outs = what
@@ -224,7 +236,7 @@ class Coordinator:
             att.pending -= 1
             for target, count in enumerate(manifest.counts.get(token, ())):
                 if count:
-                    inbox[target].append((token, outs[target]))
+                    inbox[target].append((token, count, outs[target]))
                     att.pending += 1
 
     def _on_collect(self, ref, what, live: dict, retry: deque, attempts: dict):
