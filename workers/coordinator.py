@@ -201,14 +201,21 @@ class Coordinator:
 
     def _send(self, sid: int, entries: list, live: dict, waiting: dict) -> list:
         """One call to shard sid with its oldest waiting work, up to MAX_CALL_RAYS rays
-        (at least one entry); returns the entries left for a later call."""
-        entries = sorted(entries, key=lambda e: e[0])  # tokens grow with pass age
-        take, rays = 0, 0
-        while take < len(entries) and (take == 0 or rays + entries[take][1] <= MAX_CALL_RAYS):
-            rays += entries[take][1]
-            take += 1
+        (at least one entry) and one pass per tile; returns the entries left over."""
+        chosen, left, rays, tiles = [], [], 0, {}
+        for entry in sorted(entries, key=lambda e: e[0]):  # tokens grow with pass age
+            token, n, _ = entry
+            p = live[token].pass_
+            # A shard merges a call into one wavefront and finds a ray's pass by its
+            # pixel, so a call holds one pass per tile.
+            if tiles.setdefault((p.x0, p.y0), token) != token or \
+                    (chosen and rays + n > MAX_CALL_RAYS):
+                left.append(entry)
+                continue
+            chosen.append(entry)
+            rays += n
         by_token: dict[int, list] = {}
-        for token, _, ref in entries[:take]:
+        for token, _, ref in chosen:
             by_token.setdefault(token, []).append(ref)
         items, parcels = [], []
         for token, refs in by_token.items():
@@ -221,7 +228,7 @@ class Coordinator:
         self.calls[sid] += 1
         m_ref, outs = self._dispatch(sid, items, parcels)
         waiting[m_ref] = ("work", sid, list(by_token), outs)
-        return entries[take:]
+        return left
 
     def _on_work(self, ref, what, live: dict, inbox: list) -> None:
         _, sid, tokens, outs = what

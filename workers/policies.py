@@ -16,7 +16,7 @@ from workers.local import LocalGeometry
 from workers.proxy_query import predict
 from workers.routing import DONE, route_exact, route_shadow_exact
 from workers.settings import RenderSettings
-from workers.stats import RenderStats
+from workers.stats import SplitStats
 from workers.world import EVERYWHERE, ShardWorld
 
 
@@ -24,10 +24,10 @@ class ExactPolicy:
     def __init__(self, world: ShardWorld, shard: int, remote: np.ndarray):
         self.world, self.shard, self.remote = world, shard, remote
 
-    def route_rays(self, rays: RayBatch, stats: RenderStats) -> tuple[RayBatch, np.ndarray]:
+    def route_rays(self, rays: RayBatch, stats: SplitStats) -> tuple[RayBatch, np.ndarray]:
         return rays, route_exact(self.world, self.shard, self.remote, rays)
 
-    def route_shadow(self, shadow: ShadowRayBatch, stats: RenderStats):
+    def route_shadow(self, shadow: ShadowRayBatch, stats: SplitStats):
         """Returns (shadow rays still live, their targets)."""
         return shadow, route_shadow_exact(self.world, self.remote, shadow)
 
@@ -57,7 +57,7 @@ class ProxyPolicy(ExactPolicy):
         # Arrived where a proxy sent it: a real hit here is final, a miss is a misprediction.
         arrived = (flags & FLAG_TARGETED) != 0
         missed = arrived & ((rays.hit_inst < 0) | (self._owner_of(rays.hit_inst) != DONE))
-        stats.counters["proxy_mispredictions"] += int(missed.sum())
+        stats.count("proxy_mispredictions", missed)
         flags[missed] |= FLAG_EXACT
         flags &= np.uint8(~FLAG_TARGETED & 0xFF)
         fresh = secondary & ~arrived & ((flags & FLAG_EXACT) == 0)
@@ -67,8 +67,8 @@ class ProxyPolicy(ExactPolicy):
                 pred = predict(self.world, self.proxies, self.modeled, rays.origin[f],
                                rays.direction[f], rays.tmax[f], self.threshold, self.band,
                                self.known)
-            stats.counters["proxy_queries"] += len(f)
-            stats.counters["proxy_uncertain"] += int(pred.uncertain.sum())
+            stats.count("proxy_queries", f)
+            stats.count("proxy_uncertain", f[pred.uncertain])
             flags[f[pred.uncertain]] |= FLAG_EXACT
             go = ~pred.uncertain & (pred.inst >= 0)
             target[f[go]] = self.world.owner[pred.inst[go]]
@@ -89,14 +89,14 @@ class ProxyPolicy(ExactPolicy):
             pred = predict(self.world, self.proxies, self.modeled, shadow.origin,
                            shadow.direction, shadow.tmax, self.threshold, self.shadow_band,
                            self.known)
-        stats.counters["proxy_queries"] += len(shadow)
+        stats.count("proxy_queries")
         occluded = pred.inst >= 0
-        stats.counters["proxy_shadow_occluded"] += int(occluded.sum())
-        stats.count_hops(shadow.hops[occluded])  # they finish here
+        stats.count("proxy_shadow_occluded", occluded)
+        stats.count_hops(shadow.hops, occluded)  # they finish here
+        stats.count("proxy_shadow_uncertain", np.flatnonzero(~occluded)[pred.uncertain[~occluded]])
         shadow = shadow.take(~occluded)
         target = np.full(len(shadow), DONE, np.int32)
         unknown = pred.uncertain[~occluded]
-        stats.counters["proxy_shadow_uncertain"] += int(unknown.sum())
         if unknown.any():
             target[unknown] = route_shadow_exact(self.world, self.remote, shadow.take(unknown))
         return shadow, target

@@ -28,7 +28,7 @@ from workers.passes import Pass
 from workers.policies import ExactPolicy, OraclePolicy, ProxyPolicy
 from workers.routing import DONE, nearest_unvisited, visited_bit
 from workers.settings import RenderSettings
-from workers.stats import RenderStats
+from workers.stats import RenderStats, SplitStats
 from workers.tracer import resolve_closest
 from workers.world import EVERYWHERE, ShardWorld
 
@@ -85,9 +85,55 @@ class Manifest:
 
 @dataclass
 class _PassState:
+    token: int
     sums: np.ndarray  # (n_pixels, 3) float64
     stats: RenderStats = field(default_factory=RenderStats)
     calls: int = 0  # calls seen for this token; fewer than sent means a restart lost state
+
+
+class _Call:
+    """The pass attempts of one call. A ray's pixel names its tile, and a call holds one
+    attempt per tile, so `tok` finds each ray's attempt without a column on the wire."""
+
+    def __init__(self, s: RenderSettings, passes: list[Pass], states: list[_PassState]):
+        self.s, self.passes, self.states = s, passes, states
+        self.tokens = [st.token for st in states]
+        self.stats = SplitStats([st.stats for st in states])
+        self.tiles_x = -(-s.width // s.tile_size)
+        tiles = self.tiles_x * -(-s.height // s.tile_size)
+        self.lookup = np.full(tiles, -1, np.int64)  # tile -> index into states
+        for i, p in enumerate(passes):
+            tile = (p.y0 // s.tile_size) * self.tiles_x + p.x0 // s.tile_size
+            if self.lookup[tile] >= 0:
+                raise ValueError(f"passes {passes[self.lookup[tile]].index} and {p.index} "
+                                 f"share tile {tile}: one call takes one pass per tile")
+            self.lookup[tile] = i
+
+    def tok(self, pixel: np.ndarray) -> np.ndarray:
+        """pixel (n,) uint32 -> (n,) int64 index of its attempt in this call."""
+        pixel = pixel.astype(np.int64)
+        ts = self.s.tile_size
+        tile = (pixel // self.s.width // ts) * self.tiles_x + (pixel % self.s.width) // ts
+        return self.lookup[tile]
+
+    def split(self, batch) -> list:
+        """(t,) the rows of batch belonging to each attempt."""
+        if len(self.states) == 1:
+            return [batch]
+        tok = self.tok(batch.pixel)
+        return [batch.take(tok == i) for i in range(len(self.states))]
+
+    def splat(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
+        """Add rgb (n, 3) float64 to each attempt's tile film."""
+        if len(pixel) == 0:
+            return
+        tok = self.tok(pixel)
+        for i in np.unique(tok):
+            st, p = self.states[i], self.passes[i]
+            mine = tok == i
+            idx = p.local_index(pixel[mine], self.s.width)
+            for c in range(3):
+                st.sums[:, c] += np.bincount(idx, weights=rgb[mine, c], minlength=p.n_pixels)
 
 
 class Shard:
@@ -169,35 +215,36 @@ class Shard:
 
     def work(self, settings: RenderSettings, items: list[WorkItem],
              *parcels: dict[int, Parcel]) -> list:
-        """Run each item's rays as far as they go here. Returns [Manifest, out_0 ..
-        out_{k-1}], out_t a {token: Parcel} of the rays going to shard t (None if none)."""
+        """Run every item's rays, merged into one wavefront (batches as large as the call
+        allows), as far as they go here. Items must be on distinct tiles: a ray's pixel
+        names its pass. Returns [Manifest, out_0 .. out_{k-1}], out_t a {token: Parcel} of
+        the rays going to shard t (None if none)."""
         t0 = time.perf_counter()
         self.configure(settings)
-        out: list[dict] = [{} for _ in range(self.k)]
-        counts: dict[int, list[int]] = {}
-        bytes_in = bytes_out = 0
+        states = [self._state(item) for item in items]
+        call = _Call(self.s, [item.pass_ for item in items], states)
+        rays, got = [], []
         at = 0
-        for item in items:
+        for item, st in zip(items, states, strict=True):
+            if item.generate:
+                with st.stats.phase("generate"):
+                    rays.append(self._generate(item.pass_))
             # Each argument is one shard's {token: Parcel} output; a call may get it once
             # per token it holds.
-            mine = [x[item.token] for x in parcels[at:at + item.n_parcels]]
+            got += [x[item.token] for x in parcels[at:at + item.n_parcels]]
             at += item.n_parcels
-            st = self._state(item)
-            rays, shadow = RayBatch.empty(), ShadowRayBatch.empty()
-            if item.generate:
-                rays = self._generate(item.pass_, st)
-            if mine:
-                now = time.time()
-                st.stats.phase_s["transfer_wait"] += max(0.0, now - min(x.sent_at for x in mine))
-                bytes_in += sum(x.nbytes for x in mine)
-                rays = RayBatch.concat([rays] + [x.rays for x in mine])
-                shadow = ShadowRayBatch.concat([x.shadow for x in mine])
-            sent = self._run(item.pass_, st, rays, shadow)
-            counts[item.token] = [0 if x is None else len(x) for x in sent]
-            for t, parcel in enumerate(sent):
-                if parcel is not None:
-                    out[t][item.token] = parcel
-                    bytes_out += parcel.nbytes
+        bytes_in = sum(x.nbytes for x in got)
+        if got:
+            call.stats.times.phase_s["transfer_wait"] += max(
+                0.0, time.time() - min(x.sent_at for x in got))
+        out = self._run(call, RayBatch.concat(rays + [x.rays for x in got]),
+                        ShadowRayBatch.concat([x.shadow for x in got]))
+        counts = {item.token: [0] * self.k for item in items}
+        bytes_out = 0
+        for t, by_token in enumerate(out):
+            for token, parcel in by_token.items():
+                counts[token][t] = len(parcel)
+                bytes_out += parcel.nbytes
         manifest = Manifest(self.id, counts, time.perf_counter() - t0, bytes_in, bytes_out)
         return [manifest, *[o or None for o in out]]
 
@@ -218,42 +265,42 @@ class Shard:
         for token in tokens:
             self.passes.pop(token, None)
 
-    def _generate(self, p: Pass, st: _PassState) -> RayBatch:
+    def _generate(self, p: Pass) -> RayBatch:
         """This shard's share of a tile's camera rays.
 
         Every shard generates the whole tile (deterministic and cheap) and keeps the rays
         whose first instance box it owns, so no camera ray moves just to reach its first
         candidate; rays that enter no owned box start on the tile's shard, p.index % k."""
-        with st.stats.phase("generate"):
-            rays = self.integrator.primary(p)
-            if self.k == 1:
-                return rays
-            first = nearest_unvisited(self.world, self.owned, rays.origin, rays.direction,
-                                      rays.tmax, np.zeros(len(rays), np.uint64))
-            mine = (first == self.id) | ((first == DONE) & (p.index % self.k == self.id))
-            return rays.take(mine)
+        rays = self.integrator.primary(p)
+        if self.k == 1:
+            return rays
+        first = nearest_unvisited(self.world, self.owned, rays.origin, rays.direction,
+                                  rays.tmax, np.zeros(len(rays), np.uint64))
+        mine = (first == self.id) | ((first == DONE) & (p.index % self.k == self.id))
+        return rays.take(mine)
 
     # -- the wavefront inside one call ---------------------------------------------
 
     def _state(self, item: WorkItem) -> _PassState:
         st = self.passes.get(item.token)
         if st is None:
-            st = self.passes[item.token] = _PassState(np.zeros((item.pass_.n_pixels, 3)))
+            st = self.passes[item.token] = _PassState(item.token,
+                                                      np.zeros((item.pass_.n_pixels, 3)))
         st.calls += 1
         return st
 
-    def _run(self, p: Pass, st: _PassState, rays: RayBatch, shadow: ShadowRayBatch) -> list:
+    def _run(self, call: _Call, rays: RayBatch, shadow: ShadowRayBatch) -> list:
         """The wavefront: intersect locally, route (top level, proxies), shade what ends
         here, trace its shadow rays; repeat until every ray has ended or left. Returns
-        (k,) Parcel or None per target shard. With one shard this is the reference."""
-        stats = st.stats
+        (k,) {token: Parcel} per target shard. With one shard this is the reference."""
+        stats = call.stats
         out_rays = [[] for _ in range(self.k)]
         out_shadow = [[] for _ in range(self.k)]
         while len(rays) or len(shadow):
             if len(rays):
                 settled = (rays.flags & FLAG_SHADE) != 0
                 arrived, rays = rays.take(settled), rays.take(~settled)
-                stats.count_rays(rays.kind)
+                stats.bind(call.tok(rays.pixel)).count_rays(rays.kind)
                 rays = rays.replace(visited=rays.visited | self.bit)
                 with stats.phase("local_intersect"):
                     rays = resolve_closest(rays, self.local, self.world.lights)
@@ -267,35 +314,42 @@ class Shard:
                 self._send(rays, target, out_rays)
                 done = RayBatch.concat([arrived, rays.take(target == DONE)])
                 done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
-                stats.count_hops(done.hops)
+                stats.bind(call.tok(done.pixel)).count_hops(done.hops)
                 with stats.phase("shade"):
                     shaded = self.integrator.shade(done)
-                self._splat(p, st, shaded.pixel, shaded.rgb)
+                call.splat(shaded.pixel, shaded.rgb)
                 shadow = ShadowRayBatch.concat([shadow, shaded.shadow])
                 rays = shaded.secondary
             if len(shadow):
-                stats.count_rays(SHADOW, len(shadow))
+                stats.bind(call.tok(shadow.pixel)).count_rays(np.full(len(shadow), SHADOW))
                 shadow = shadow.replace(visited=shadow.visited | self.bit)
                 with stats.phase("local_intersect"):
                     free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
                                                           shadow.tmax)
-                stats.count_hops(shadow.hops[~free])  # occluded here: these rays finish too
+                stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
                 shadow = shadow.take(free)
                 with stats.phase("top_level"):
-                    shadow, target = self.policy.route_shadow(shadow, stats)
+                    shadow, target = self.policy.route_shadow(
+                        shadow, stats.bind(call.tok(shadow.pixel)))
                 self._send(shadow, target, out_shadow)
                 done = shadow.take(target == DONE)
-                stats.count_hops(done.hops)
-                self._splat(p, st, done.pixel, done.contribution.astype(np.float64))
+                stats.bind(call.tok(done.pixel)).count_hops(done.hops)
+                call.splat(done.pixel, done.contribution.astype(np.float64))
                 shadow = ShadowRayBatch.empty()
-        parcels = []
+        out = []
         for t in range(self.k):
-            parcel = Parcel(RayBatch.concat(out_rays[t]), ShadowRayBatch.concat(out_shadow[t]))
-            for kind, batch in (("rays", parcel.rays), ("shadow", parcel.shadow)):
-                if len(batch):
-                    self._count_transfer(stats, kind, batch)
-            parcels.append(parcel if len(parcel) else None)
-        return parcels
+            moving = (RayBatch.concat(out_rays[t]), ShadowRayBatch.concat(out_shadow[t]))
+            by_token = {}
+            for i, (r, sh) in enumerate(zip(*(call.split(b) for b in moving), strict=True)):
+                if len(r) + len(sh):
+                    st = call.states[i].stats
+                    for kind, batch in (("rays", r), ("shadow", sh)):
+                        if len(batch):
+                            self._count_transfer(st, kind, batch)
+                    by_token[call.tokens[i]] = Parcel(r, sh)
+            out.append(by_token)
+        stats.finish()
+        return out
 
     def _send(self, batch, target: np.ndarray, out: list) -> None:
         away = target != DONE
@@ -316,10 +370,3 @@ class Shard:
         for k, c in enumerate(np.bincount(batch.kind, minlength=2)[:2]):
             if c:
                 stats.count_transfer(KIND_NAMES[k], int(c), int(c) * per_row)
-
-    def _splat(self, p: Pass, st: _PassState, pixel: np.ndarray, rgb: np.ndarray) -> None:
-        if len(pixel) == 0:
-            return
-        idx = p.local_index(pixel, self.s.width)
-        for c in range(3):
-            st.sums[:, c] += np.bincount(idx, weights=rgb[:, c], minlength=p.n_pixels)

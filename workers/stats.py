@@ -80,3 +80,55 @@ class RenderStats:
         h = d.get("hops_histogram", [])
         s.hops[:len(h)] = h
         return s
+
+
+class SplitStats:
+    """Statistics of one merged wavefront over several pass attempts. Counts go to the
+    attempt of each ray (a retried pass drops exactly its own); stage times cannot be
+    separated, so `finish` shares them out by rays traced.
+
+    parts : (t,) RenderStats, one per attempt; `bind(tok)` names the attempt index
+    (n,) int of every row of the batch that the next calls count (rows index it)."""
+
+    def __init__(self, parts: list[RenderStats]):
+        self.parts = parts
+        self.times = RenderStats()
+        self.tok = np.zeros(0, np.int64)
+        self._rays = np.zeros(len(parts))
+
+    def bind(self, tok: np.ndarray) -> SplitStats:
+        self.tok = tok
+        return self
+
+    def phase(self, name: str):
+        return self.times.phase(name)
+
+    def _per_part(self, rows) -> np.ndarray:
+        """(t,) int64 rows of the bound batch per attempt (rows: mask, indices or all)."""
+        tok = self.tok if rows is None else self.tok[rows]
+        return np.bincount(tok, minlength=len(self.parts))
+
+    def count(self, name: str, rows=None) -> None:
+        for part, c in zip(self.parts, self._per_part(rows), strict=True):
+            if c:
+                part.counters[name] += int(c)
+
+    def count_rays(self, kind: np.ndarray) -> None:
+        """kind : (n,) uint8 of the bound batch."""
+        for i, part in enumerate(self.parts):
+            part.count_rays(kind[self.tok == i])
+        self._rays += self._per_part(None)
+
+    def count_hops(self, hops: np.ndarray, rows=None) -> None:
+        """hops : (n,) of the bound batch; rows: which of them finished."""
+        tok = self.tok if rows is None else self.tok[rows]
+        hops = hops if rows is None else hops[rows]
+        for i, part in enumerate(self.parts):
+            part.count_hops(hops[tok == i])
+
+    def finish(self) -> None:
+        share = self._rays / self._rays.sum() if self._rays.sum() else \
+            np.full(len(self.parts), 1.0 / max(len(self.parts), 1))
+        for part, w in zip(self.parts, share, strict=True):
+            for name, s in self.times.phase_s.items():
+                part.phase_s[name] += float(s * w)
