@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import hmac
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
+from service.auth import bearer_error
 from service.config import ServiceSettings
 from service.manager import JobManager
 from service.scenes import SceneStore
@@ -32,16 +32,16 @@ ManagerDep = Annotated[JobManager, Depends(get_manager)]
 ScenesDep = Annotated[SceneStore, Depends(get_scenes)]
 
 
-def require_token(settings: SettingsDep,
-                  creds: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
-    """Writing endpoints need `Authorization: Bearer <NPRT_API_TOKEN>` when a token is set."""
+def require_token(settings: SettingsDep, request: Request,
+                  _: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+    """Writing endpoints need `Authorization: Bearer <NPRT_API_TOKEN>` when a token is set.
+    service.auth.TokenMiddleware enforces it before the body is read; this dependency
+    declares the scheme in the OpenAPI schema and checks again."""
     if settings.api_token is None:
         return
-    if creds is None:
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "missing bearer token",
-                            headers={"WWW-Authenticate": "Bearer"})
-    if not hmac.compare_digest(creds.credentials.encode(), settings.api_token.encode()):
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "wrong bearer token",
+    why = bearer_error(request.headers.get("authorization"), settings.api_token)
+    if why is not None:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, why,
                             headers={"WWW-Authenticate": "Bearer"})
 
 

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 import ray
-from ray.exceptions import RayActorError
+from ray.exceptions import GetTimeoutError, RayActorError
 from ray.util.placement_group import placement_group, remove_placement_group
 from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
@@ -26,6 +26,19 @@ from workers.world import EVERYWHERE, ShardWorld
 log = logging.getLogger(__name__)
 
 MAX_PASS_ATTEMPTS = 4
+# A shard killed mid-render restarts; one that keeps dying (in its constructor, say out of
+# memory) must fail the job rather than restart for ever.
+MAX_SHARD_RESTARTS = 3
+READY_TIMEOUT_S = 300.0  # placement group and shard start-up, seconds
+
+
+class ShardsLost(RuntimeError):
+    """Shards did not come back after restarts: a node was lost. The job manager retries
+    the render from its checkpoint on fresh shards."""
+
+
+class ShardStartError(RuntimeError):
+    """The shards could not be started; the message says which and why."""
 
 
 class ShardStateLost(RuntimeError):
@@ -101,18 +114,32 @@ class Coordinator:
                 for held in shard_meshes:
                     held.add(m)
         self.world = ShardWorld.build(scene, owner)
+        self.pg, self.actors, self._holds_ray = None, [], False
+        try:
+            self._start_shards(scene, settings, ray_address, proxies, shard_meshes,
+                               shard_options)
+        except BaseException:  # leave no placement group, actor or Ray reference behind
+            self.close()
+            raise
+        self.prepare_s = time.perf_counter() - t0
+        self.fetched: list[type] = []  # what this coordinator read back, for the tests
+        log.info("started %d shards in %.2f s", self.k, self.prepare_s)
+
+    def _start_shards(self, scene: Scene, settings: RenderSettings, ray_address, proxies,
+                      shard_meshes, shard_options) -> None:
+        """Put the world in the object store and start the K shards; close() undoes it."""
         _acquire_ray(ray_address)
+        self._holds_ray = True
         world_ref = ray.put(self.world)
         all_ref = ray.put(dict(enumerate(scene.meshes))) if settings.mode == "oracle" else None
         cpus = ray.cluster_resources().get("CPU", 1.0)
         per_shard_cpu = min(1.0, cpus / self.k)
         # Gang-schedule the K shards: with several jobs at once, partial placements of
         # two jobs would otherwise wait on each other forever.
-        self.pg = None
         if shard_options is None:
             self.pg = placement_group([{"CPU": per_shard_cpu}] * self.k, strategy="SPREAD")
-            ray.get(self.pg.ready())
-        self.actors = []
+            self._wait_ready(self.pg.ready(), f"a placement group of {self.k} x "
+                             f"{per_shard_cpu:g} CPU ({cpus:g} CPUs in the cluster)")
         # A restarted actor re-reads its constructor arguments from the object store, so
         # they must outlive __init__ (ray-project/ray#53727).
         self._init_refs = [world_ref, all_ref]
@@ -120,7 +147,8 @@ class Coordinator:
             meshes_ref = ray.put({i: scene.meshes[i] for i in sorted(shard_meshes[sid])})
             # Only the proxies of meshes this shard does not hold.
             proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in shard_meshes[sid]})
-            opts = dict(max_restarts=-1, max_task_retries=0, num_cpus=per_shard_cpu)
+            opts = dict(max_restarts=MAX_SHARD_RESTARTS, max_task_retries=0,
+                        num_cpus=per_shard_cpu)
             if self.pg is not None:
                 opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
                     self.pg, placement_group_bundle_index=sid)
@@ -129,10 +157,20 @@ class Coordinator:
                 ShardConfig(sid, self.k, settings), world_ref, meshes_ref, proxies_ref, all_ref)
             self.actors.append(actor)
             self._init_refs += [meshes_ref, proxies_ref]
-        self.shard_info = ray.get([a.ready.remote() for a in self.actors])
-        self.prepare_s = time.perf_counter() - t0
-        self.fetched: list[type] = []  # what this coordinator read back, for the tests
-        log.info("started %d shards in %.2f s", self.k, self.prepare_s)
+        self.shard_info = [self._wait_ready(a.ready.remote(), f"shard {sid}")
+                           for sid, a in enumerate(self.actors)]
+
+    @staticmethod
+    def _wait_ready(ref, what: str):
+        """ray.get with a deadline: a shard that cannot start (dead node, out of memory in
+        its constructor) fails the job with the reason instead of holding it forever."""
+        try:
+            return ray.get(ref, timeout=READY_TIMEOUT_S)
+        except GetTimeoutError:
+            raise ShardStartError(f"{what} was not ready within {READY_TIMEOUT_S:g} s"
+                                  ) from None
+        except RayActorError as e:
+            raise ShardStartError(f"{what} did not start: {e}") from e
 
     @staticmethod
     def world_mesh_instances(scene: Scene, mesh: int) -> np.ndarray:
@@ -154,7 +192,7 @@ class Coordinator:
                 log.warning("pass %d attempt %d lost a shard (%s); re-running it",
                             p.index, attempt, type(e).__name__)
                 self._abort(p)
-        raise RuntimeError(f"pass {p.index} failed {MAX_PASS_ATTEMPTS} times; giving up")
+        raise ShardsLost(f"pass {p.index} failed {MAX_PASS_ATTEMPTS} times; giving up")
 
     def _abort(self, p: Pass) -> None:
         """Drop the pass's partial films everywhere; restarted actors come back empty."""
@@ -164,7 +202,7 @@ class Coordinator:
                 return
             except RayActorError:
                 time.sleep(0.5)
-        raise RuntimeError(f"shards did not come back while aborting pass {p.index}")
+        raise ShardsLost(f"shards did not come back while aborting pass {p.index}")
 
     def _call(self, shard: int, method: str, *args):
         """Start an actor call; returns (manifest ref, parcel refs (k,))."""
@@ -233,4 +271,5 @@ class Coordinator:
         self.actors = None
         if self.pg is not None:
             remove_placement_group(self.pg)
-        _release_ray()
+        if self._holds_ray:
+            _release_ray()

@@ -50,3 +50,12 @@ def plan_passes(s: RenderSettings) -> list[Pass]:
                 out.append(Pass(len(out), x0, y0, min(s.width, x0 + s.tile_size),
                                 min(s.height, y0 + s.tile_size), s0, s1))
     return out
+
+
+def count_passes(s: RenderSettings) -> int:
+    """len(plan_passes(s)) in O(1): sample chunks times tiles."""
+    def ceil_div(a: int, b: int) -> int:
+        return -(-a // b)
+
+    return (ceil_div(s.spp, s.spp_per_pass) * ceil_div(s.height, s.tile_size)
+            * ceil_div(s.width, s.tile_size))
