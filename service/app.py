@@ -109,8 +109,8 @@ def _json_safe(errors) -> list:
     """Validation errors as strict JSON: non-finite floats as strings, undecodable bytes
     as their repr."""
     def fix(x):
-        if isinstance(x, float) and not math.isfinite(x):
-            return str(x)
+        if isinstance(x, float) and not math.isfinite(x):  # as the client wrote it
+            return "NaN" if math.isnan(x) else ("Infinity" if x > 0 else "-Infinity")
         if isinstance(x, bytes):
             return repr(x)
         if isinstance(x, dict):

@@ -108,7 +108,8 @@ def _time(t: float | None) -> datetime | None:
 
 
 _ERRORS = {
-    400: "malformed or unsafe upload; the detail names the zip member",
+    400: "a body that does not parse, or a malformed or unsafe upload (the detail names "
+         "the zip member)",
     401: "missing or wrong bearer token (only when the server sets NPRT_API_TOKEN)",
     404: "no such job or scene",
     409: "the request does not fit the job's state, or an Idempotency-Key reused for "

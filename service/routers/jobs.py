@@ -29,7 +29,7 @@ MAX_OFFSET = (1 << 31) - 1  # SQLite takes 64-bit offsets; nobody pages past 2^3
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep],
-             responses=error_responses(401, 409))
+             responses=error_responses(400, 401, 409))
 async def create_job(body: JobCreate, manager: ManagerDep, response: Response,
                      idempotency_key: Annotated[str | None, Header(
                          min_length=1, max_length=200,
