@@ -14,16 +14,19 @@ from service.scenes import SceneStore
 
 _bearer = HTTPBearer(auto_error=False, description="NPRT_API_TOKEN, when the server sets one")
 
+# Every dependency is `async def`: FastAPI runs a plain `def` one on a worker thread, and a
+# thread hop per dependency costs more than the dependency itself, most of all under load.
 
-def get_settings(request: Request) -> ServiceSettings:
+
+async def get_settings(request: Request) -> ServiceSettings:
     return request.app.state.settings
 
 
-def get_manager(request: Request) -> JobManager:
+async def get_manager(request: Request) -> JobManager:
     return request.app.state.manager
 
 
-def get_scenes(request: Request) -> SceneStore:
+async def get_scenes(request: Request) -> SceneStore:
     return request.app.state.scenes
 
 
@@ -32,7 +35,7 @@ ManagerDep = Annotated[JobManager, Depends(get_manager)]
 ScenesDep = Annotated[SceneStore, Depends(get_scenes)]
 
 
-def require_token(settings: SettingsDep, request: Request,
+async def require_token(settings: SettingsDep, request: Request,
                   _: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
     """Writing endpoints need `Authorization: Bearer <NPRT_API_TOKEN>` when a token is set.
     service.auth.TokenMiddleware enforces it before the body is read; this dependency

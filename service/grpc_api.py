@@ -1,5 +1,6 @@
 """The RenderService servicer (grpc.aio): a thin adapter from gRPC onto the JobManager.
-Manager calls touch SQLite and the disk, so they run on worker threads; a WatchJob stream
+Job records are SQLite rows that take well under a millisecond, so those calls run on the
+event loop (as in the REST routers); encoding images goes to a thread. A WatchJob stream
 waits on the event loop and holds no thread."""
 
 from __future__ import annotations
@@ -34,10 +35,11 @@ _CODES = {NotFound: grpc.StatusCode.NOT_FOUND, Conflict: grpc.StatusCode.FAILED_
 _FORMATS = {pb.IMAGE_FORMAT_PNG: "png", pb.IMAGE_FORMAT_EXR: "exr"}
 
 
-async def _call(context: grpc.aio.ServicerContext, fn, *args):
-    """fn(*args) on a worker thread; a ServiceError ends the rpc with its status code."""
+async def _call(context: grpc.aio.ServicerContext, fn, *args, thread: bool = False):
+    """fn(*args), on a worker thread if `thread`; a ServiceError ends the rpc with its
+    status code."""
     try:
-        return await asyncio.to_thread(fn, *args)
+        return await asyncio.to_thread(fn, *args) if thread else fn(*args)
     except ServiceError as e:
         code = next((c for t, c in _CODES.items() if isinstance(e, t)),
                     grpc.StatusCode.INVALID_ARGUMENT)
@@ -84,7 +86,8 @@ class RenderServicer(nprt_pb2_grpc.RenderServiceServicer):
         if fmt is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT,
                                 f"unknown image format {request.format}")
-        data, partial = await _call(context, self.manager.image, request.job_id, fmt)
+        data, partial = await _call(context, self.manager.image, request.job_id, fmt,
+                                    thread=True)
         rec = await _call(context, self.manager.get, request.job_id)
         if len(data) > self.max_message_bytes - 1024:
             await context.abort(
@@ -107,8 +110,9 @@ class RenderServicer(nprt_pb2_grpc.RenderServiceServicer):
             while rec.state not in TERMINAL:
                 for ev in await watch.next_events():
                     if ev["type"] == "tile":
-                        tile = await asyncio.to_thread(tile_to_pb, ev, request.tile_format,
-                                                       self.max_message_bytes)
+                        args = (ev, request.tile_format, self.max_message_bytes)
+                        tile = (await asyncio.to_thread(tile_to_pb, *args)
+                                if request.tile_format == pb.TILE_FORMAT_PNG else tile_to_pb(*args))
                         yield pb.JobEvent(tile=tile)
                     else:
                         rec = ev["job"]

@@ -129,8 +129,7 @@ class JobManager:
                 raise Conflict(f"Idempotency-Key {idempotency_key!r} was used for job {rec.id} "
                                "with a different request")
             return rec, False
-        self.job_dir(rec.id).mkdir(parents=True, exist_ok=True)
-        self._enqueue(rec.id)
+        self._enqueue(rec.id)  # the worker makes the job directory
         log.info("job %s queued: scene %r, %dx%d, %d spp, mode %s, shards %d", rec.id, scene,
                  settings.width, settings.height, settings.spp, settings.mode, settings.shards)
         return rec, True

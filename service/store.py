@@ -98,19 +98,21 @@ class JobStore:
                idempotency_key: str | None = None) -> JobRecord:
         """Store a queued job. With an idempotency key that is already stored, nothing is
         inserted and the stored job is returned (compare its id to tell)."""
+        now = time.time()
         with self._lock:
-            self._db.execute(
+            cur = self._db.execute(
                 "INSERT INTO jobs (id, scene, settings, state, created_at, passes_total, "
                 "idempotency_key) VALUES (?, ?, ?, 'queued', ?, ?, ?) "
                 "ON CONFLICT (idempotency_key) DO NOTHING",
-                (job_id, scene, json.dumps(settings), time.time(), passes_total,
-                 idempotency_key))
-            if idempotency_key is None:
-                row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
-            else:
+                (job_id, scene, json.dumps(settings), now, passes_total, idempotency_key))
+            if cur.rowcount == 0:  # the key was stored already
                 row = self._db.execute("SELECT * FROM jobs WHERE idempotency_key = ?",
                                        (idempotency_key,)).fetchone()
-        return _record(row)
+                return _record(row)
+        return JobRecord(seq=cur.lastrowid, id=job_id, scene=scene, settings=settings,
+                         state="queued", created_at=now, started_at=None, finished_at=None,
+                         passes_done=0, passes_total=passes_total, error=None, stats=None,
+                         pixel_samples=None, idempotency_key=idempotency_key)
 
     def get(self, job_id: str) -> JobRecord | None:
         with self._lock:
