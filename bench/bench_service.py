@@ -1,7 +1,8 @@
 """Service load benchmark: N concurrent job submissions while SSE watchers and gRPC
 WatchJob streams are open on running jobs and clients poll; checks every job is accepted
 once and completed, and reports latency percentiles of the REST calls and of gRPC health
-during the burst.
+during the burst. The client is aiohttp (httpx spent 4x the service's CPU per request,
+and client and service share the machine).
 
     python bench/bench_service.py [--jobs 500] [--sse-watchers 100] [--grpc-streams 40]
 """
@@ -23,6 +24,7 @@ import uuid
 from collections import defaultdict
 from pathlib import Path
 
+import aiohttp
 import grpc
 import httpx
 import numpy as np
@@ -78,13 +80,14 @@ class Latency:
         return out
 
 
-async def sse_watch(client: httpx.AsyncClient, job_id: str, counts: dict) -> None:
+async def sse_watch(session: aiohttp.ClientSession, job_id: str, counts: dict) -> None:
     """Follow one job's SSE stream to its `end` event, counting events."""
-    async with client.stream("GET", f"/v1/jobs/{job_id}/events") as r:
-        counts["opened"] += r.status_code == 200
-        async for line in r.aiter_lines():
-            if line.startswith("event:"):
-                counts[line[6:].strip()] += 1
+    async with session.get(f"/v1/jobs/{job_id}/events",
+                           timeout=aiohttp.ClientTimeout(total=None, sock_read=600)) as r:
+        counts["opened"] += r.status == 200
+        async for line in r.content:
+            if line.startswith(b"event:"):
+                counts[line[6:].strip().decode()] += 1
     counts["closed"] += 1
 
 
@@ -96,35 +99,48 @@ async def grpc_watch(stub, job_id: str, counts: dict) -> None:
     counts["closed"] += 1
 
 
-async def list_all(client: httpx.AsyncClient) -> list[dict]:
+async def list_all(session: aiohttp.ClientSession) -> list[dict]:
     jobs, offset = [], 0
     while True:
-        page = (await client.get("/v1/jobs", params={"limit": 500, "offset": offset})).json()
+        async with session.get("/v1/jobs", params={"limit": 500, "offset": offset}) as r:
+            page = await r.json()
         jobs += page["data"]
         offset += len(page["data"])
         if not page["data"] or offset >= page["count"]:
             return jobs
 
 
-async def run(url: str, target: str, args: argparse.Namespace, job: dict,
+def process_cpu_s(pid: int) -> float | None:
+    """User + system CPU seconds of a process so far (Linux), else None."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: dict,
               watched_job: dict) -> dict:
     lat = Latency()
-    limits = httpx.Limits(max_connections=args.jobs + args.pollers + 16)
     stop = asyncio.Event()
     sse_counts: dict = defaultdict(int)
     grpc_counts: dict = defaultdict(int)
-    async with httpx.AsyncClient(base_url=url, timeout=60.0, limits=limits) as client, \
-            httpx.AsyncClient(base_url=url, timeout=httpx.Timeout(60.0, read=600.0),
-                              limits=httpx.Limits(max_connections=args.sse_watchers + 4)
-                              ) as sse, \
+    connector = aiohttp.TCPConnector(limit=args.jobs + args.pollers + args.sse_watchers + 16)
+    async with aiohttp.ClientSession(url, connector=connector,
+                                     timeout=aiohttp.ClientTimeout(total=120)) as session, \
             grpc.aio.insecure_channel(target) as channel:
         stub = nprt_pb2_grpc.RenderServiceStub(channel)
         health = health_pb2_grpc.HealthStub(channel)
+
+        async def request(method: str, path: str, **kw) -> tuple[int, dict]:
+            async with session.request(method, path, **kw) as r:
+                return r.status, await r.json()
+
         # Long jobs already rendering, watched by every stream, so the burst lands on a
-        # busy service that fans tiles out.
-        warm = [(await client.post("/v1/jobs", json=watched_job)).json()["id"]
+        # busy service that fans tiles out; they are canceled after the burst.
+        warm = [(await request("POST", "/v1/jobs", json=watched_job))[1]["id"]
                 for _ in range(args.warm_jobs)]
-        watchers = [asyncio.create_task(sse_watch(sse, warm[i % len(warm)], sse_counts))
+        watchers = [asyncio.create_task(sse_watch(session, warm[i % len(warm)], sse_counts))
                     for i in range(args.sse_watchers)]
         watchers += [asyncio.create_task(grpc_watch(stub, warm[i % len(warm)], grpc_counts))
                      for i in range(args.grpc_streams)]
@@ -135,11 +151,11 @@ async def run(url: str, target: str, args: argparse.Namespace, job: dict,
         async def poller() -> None:
             while not stop.is_set():
                 if random.random() < 0.8:
-                    await lat.timed("GET /v1/jobs/{id}", client.get(
-                        f"/v1/jobs/{random.choice(ids)}"))
+                    await lat.timed("GET /v1/jobs/{id}", request(
+                        "GET", f"/v1/jobs/{random.choice(ids)}"))
                 else:
-                    await lat.timed("GET /v1/jobs", client.get("/v1/jobs",
-                                                               params={"limit": 20}))
+                    await lat.timed("GET /v1/jobs", request("GET", "/v1/jobs",
+                                                            params={"limit": 20}))
                 await asyncio.sleep(0.005)
 
         async def health_loop() -> None:
@@ -149,35 +165,39 @@ async def run(url: str, target: str, args: argparse.Namespace, job: dict,
                 assert reply.status == health_pb2.HealthCheckResponse.SERVING
                 await asyncio.sleep(HEALTH_INTERVAL_S)
 
-        async def submit() -> httpx.Response:
+        async def submit() -> tuple[int, dict]:
             # One key per submission, reused on a retry: a retried POST cannot duplicate.
             key = {"Idempotency-Key": uuid.uuid4().hex}
             for attempt in range(3):
                 try:
-                    return await client.post("/v1/jobs", json=job, headers=key)
-                except httpx.TransportError:
+                    return await request("POST", "/v1/jobs", json=job, headers=key)
+                except aiohttp.ClientConnectionError:
                     if attempt == 2:
                         raise
             raise AssertionError("unreachable")
 
         background = [asyncio.create_task(poller()) for _ in range(args.pollers)]
         background.append(asyncio.create_task(health_loop()))
-        await asyncio.sleep(0.2)  # pollers and health running before the burst
+        await asyncio.sleep(0.5)  # pollers and health running before the burst
+        cpu0 = process_cpu_s(pid)
         t_burst = time.perf_counter()
         burst = await asyncio.gather(*(lat.timed("POST /v1/jobs", submit())
                                        for _ in range(args.jobs)))
         burst_s = time.perf_counter() - t_burst
+        cpu1 = process_cpu_s(pid)
         open_after_burst = {"sse": sse_counts["opened"] - sse_counts["closed"],
                             "grpc": grpc_counts["opened"] - grpc_counts["closed"]}
         stop.set()
         await asyncio.gather(*background)
-        statuses = [r.status_code for r in burst]
-        accepted = [r.json() for r in burst if r.status_code == 202]
+        for job_id in warm:
+            await request("POST", f"/v1/jobs/{job_id}/cancel")
+        statuses = [status for status, _ in burst]
+        accepted = [body for status, body in burst if status == 202]
         ids += [j["id"] for j in accepted]
 
         t_drain = time.perf_counter()
         while True:
-            jobs = await list_all(client)
+            jobs = await list_all(session)
             states = {j["id"]: j["state"] for j in jobs}
             if all(states.get(i) in TERMINAL for i in ids):
                 break
@@ -194,6 +214,7 @@ async def run(url: str, target: str, args: argparse.Namespace, job: dict,
         "duplicated": len(jobs) - len(set(ids)),
         "succeeded": sum(states.get(i) == "succeeded" for i in burst_ids),
         "burst_s": round(burst_s, 3), "drain_s": round(drain_s, 2),
+        "service_cpu_s_during_burst": None if cpu0 is None else round(cpu1 - cpu0, 2),
         "streams_open_after_burst": open_after_burst,
         "sse_events": dict(sse_counts), "grpc_events": dict(grpc_counts),
         "latency_ms": {k: _percentiles(v) for k, v in sorted(lat.samples_s.items())},
@@ -223,6 +244,8 @@ def markdown(r: dict, args: argparse.Namespace) -> str:
              f"{r['streams_open_after_burst']['sse']}, "
              f"{r['streams_open_after_burst']['grpc']} | all |",
              f"| burst wall time | {r['burst_s']} s | |",
+             f"| service CPU during the burst (renders included) | "
+             f"{r['service_cpu_s_during_burst']} s | |",
              f"| drain time | {r['drain_s']} s | |", "",
              "| request (during the burst) | n | p50 ms | p99 ms | max ms |",
              "| --- | ---: | ---: | ---: | ---: |"]
@@ -248,13 +271,15 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     job = {"scene": args.scene, "width": args.width, "height": args.height, "spp": args.spp,
            "bounces": 2, "shadow_rays": 1, "tile_size": 16, "spp_per_pass": 1}
-    watched_job = {**job, "width": 64, "height": 64, "spp": 256, "tile_size": 64,
-                   "spp_per_pass": 4}
+    # Long enough to outlast the burst (canceled after it): 512 passes of 64x64 x 2 spp.
+    watched_job = {**job, "width": 64, "height": 64, "spp": 1024, "tile_size": 64,
+                   "spp_per_pass": 2}
 
+    load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
         proc, url, target = start_service(Path(tmp) / "data", args.max_jobs)
         try:
-            result = asyncio.run(run(url, target, args, job, watched_job))
+            result = asyncio.run(run(url, target, proc.pid, args, job, watched_job))
         finally:
             proc.terminate()
             proc.wait(30)
@@ -266,6 +291,7 @@ def main(argv: list[str] | None = None) -> int:
                                     "host": {"cpus": os.cpu_count(),
                                              "python": platform.python_version(),
                                              "platform": platform.platform(),
+                                             "load_average_before": load_before,
                                              "load_average_after": os.getloadavg()},
                                     "markdown": table}, indent=1))
     print(f"\nwrote {args.out}")
@@ -279,9 +305,10 @@ def main(argv: list[str] | None = None) -> int:
                         "service (REST and gRPC) on loopback, starts long jobs and opens the "
                         "SSE and gRPC watchers on them, then fires the submissions at once "
                         "(each with its own Idempotency-Key) while pollers list and read jobs "
-                        "and a gRPC client checks health; waits for every job, then audits "
-                        f"the job list. Client and service share the machine's "
-                        f"{os.cpu_count()} cores.\n\n{table}")
+                        "and a gRPC client checks health; cancels the long jobs, waits for "
+                        "every job, then audits the job list. The aiohttp client and the "
+                        f"service share the machine's {os.cpu_count()} cores (load average "
+                        f"{load_before[0]:.1f} before the run).\n\n{table}")
     ok = (result["succeeded"] == result["accepted_202"] == args.jobs and result["lost"] == 0
           and result["duplicated"] == 0)
     return 0 if ok else 1

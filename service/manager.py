@@ -316,8 +316,8 @@ class JobManager:
                 try:
                     if ensure_ray(address):
                         self._started_ray = True
-                        log.info("started a local Ray for this service" if not address
-                                 else "joined Ray at %s", address)
+                        where = f"joined Ray at {address}" if address else "started a local Ray"
+                        log.info("%s for this service", where)
                     return
                 except Exception as e:
                     error = e
