@@ -99,11 +99,27 @@ async def grpc_watch(stub, job_id: str, counts: dict) -> None:
     counts["closed"] += 1
 
 
+async def request(session: aiohttp.ClientSession, method: str, path: str,
+                  retries: dict | None = None, **kw) -> tuple[int, dict]:
+    """(status, JSON body). A pooled connection the server closed as idle is retried once
+    on a fresh one (POSTs carry an Idempotency-Key, so a retry cannot duplicate a job)."""
+    for attempt in range(2):
+        try:
+            async with session.request(method, path, **kw) as r:
+                return r.status, await r.json()
+        except aiohttp.ServerDisconnectedError:
+            if attempt == 1:
+                raise
+            if retries is not None:
+                retries[method] = retries.get(method, 0) + 1
+    raise AssertionError("unreachable")
+
+
 async def list_all(session: aiohttp.ClientSession) -> list[dict]:
     jobs, offset = [], 0
     while True:
-        async with session.get("/v1/jobs", params={"limit": 500, "offset": offset}) as r:
-            page = await r.json()
+        _, page = await request(session, "GET", "/v1/jobs",
+                                params={"limit": 500, "offset": offset})
         jobs += page["data"]
         offset += len(page["data"])
         if not page["data"] or offset >= page["count"]:
@@ -132,30 +148,34 @@ async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: di
         stub = nprt_pb2_grpc.RenderServiceStub(channel)
         health = health_pb2_grpc.HealthStub(channel)
 
-        async def request(method: str, path: str, **kw) -> tuple[int, dict]:
-            async with session.request(method, path, **kw) as r:
-                return r.status, await r.json()
+        retries: dict = {}
+
+        def call(method: str, path: str, **kw):
+            return request(session, method, path, retries, **kw)
 
         # Long jobs already rendering, watched by every stream, so the burst lands on a
         # busy service that fans tiles out; they are canceled after the burst.
-        warm = [(await request("POST", "/v1/jobs", json=watched_job))[1]["id"]
+        warm = [(await call("POST", "/v1/jobs", json=watched_job))[1]["id"]
                 for _ in range(args.warm_jobs)]
         watchers = [asyncio.create_task(sse_watch(session, warm[i % len(warm)], sse_counts))
                     for i in range(args.sse_watchers)]
         watchers += [asyncio.create_task(grpc_watch(stub, warm[i % len(warm)], grpc_counts))
                      for i in range(args.grpc_streams)]
-        while sse_counts["opened"] + grpc_counts["opened"] < len(watchers):
+        # Steady state before the burst: every stream open, the long jobs past preparing
+        # (loading the scene) and streaming tiles.
+        while (sse_counts["opened"] + grpc_counts["opened"] < len(watchers)
+               or sse_counts["tile"] < args.sse_watchers):
             await asyncio.sleep(0.05)
         ids: list[str] = list(warm)
 
         async def poller() -> None:
             while not stop.is_set():
                 if random.random() < 0.8:
-                    await lat.timed("GET /v1/jobs/{id}", request(
+                    await lat.timed("GET /v1/jobs/{id}", call(
                         "GET", f"/v1/jobs/{random.choice(ids)}"))
                 else:
-                    await lat.timed("GET /v1/jobs", request("GET", "/v1/jobs",
-                                                            params={"limit": 20}))
+                    await lat.timed("GET /v1/jobs", call("GET", "/v1/jobs",
+                                                         params={"limit": 20}))
                 await asyncio.sleep(0.005)
 
         async def health_loop() -> None:
@@ -166,15 +186,8 @@ async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: di
                 await asyncio.sleep(HEALTH_INTERVAL_S)
 
         async def submit() -> tuple[int, dict]:
-            # One key per submission, reused on a retry: a retried POST cannot duplicate.
-            key = {"Idempotency-Key": uuid.uuid4().hex}
-            for attempt in range(3):
-                try:
-                    return await request("POST", "/v1/jobs", json=job, headers=key)
-                except aiohttp.ClientConnectionError:
-                    if attempt == 2:
-                        raise
-            raise AssertionError("unreachable")
+            return await call("POST", "/v1/jobs", json=job,
+                              headers={"Idempotency-Key": uuid.uuid4().hex})
 
         background = [asyncio.create_task(poller()) for _ in range(args.pollers)]
         background.append(asyncio.create_task(health_loop()))
@@ -190,7 +203,7 @@ async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: di
         stop.set()
         await asyncio.gather(*background)
         for job_id in warm:
-            await request("POST", f"/v1/jobs/{job_id}/cancel")
+            await call("POST", f"/v1/jobs/{job_id}/cancel")
         statuses = [status for status, _ in burst]
         accepted = [body for status, body in burst if status == 202]
         ids += [j["id"] for j in accepted]
@@ -216,6 +229,7 @@ async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: di
         "burst_s": round(burst_s, 3), "drain_s": round(drain_s, 2),
         "service_cpu_s_during_burst": None if cpu0 is None else round(cpu1 - cpu0, 2),
         "streams_open_after_burst": open_after_burst,
+        "client_retries_after_idle_disconnect": retries,
         "sse_events": dict(sse_counts), "grpc_events": dict(grpc_counts),
         "latency_ms": {k: _percentiles(v) for k, v in sorted(lat.samples_s.items())},
     }
@@ -251,6 +265,14 @@ def markdown(r: dict, args: argparse.Namespace) -> str:
              "| --- | ---: | ---: | ---: | ---: |"]
     for kind, p in r["latency_ms"].items():
         lines.append(f"| {kind} | {p['n']} | {p['p50']} | {p['p99']} | {p['max']} |")
+    lines += ["", f"All {r['submitted']} submissions arrive together and one event loop "
+              "answers them in turn, so a POST's latency is mostly its wait in that line: the "
+              f"p99 is close to the burst's wall time ({r['burst_s']} s), in which the service "
+              f"process used {r['service_cpu_s_during_burst']} s of CPU, its renders and the "
+              "tile fan-out to the streams included. A POST costs the service about 1.5-2 ms "
+              "of CPU (measured in process, apart from this run), so a burst of 500 takes "
+              "0.75 s or more on an idle core: the 200 ms p99 target needs more service "
+              "processes or admission control, not a faster handler."]
     return "\n".join(lines)
 
 
