@@ -88,7 +88,7 @@ class RenderSettings(_message.Message):
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., spp: _Optional[int] = ..., bounces: _Optional[int] = ..., shadow_rays: _Optional[int] = ..., seed: _Optional[int] = ..., russian_roulette: _Optional[bool] = ..., mode: _Optional[str] = ..., shards: _Optional[int] = ..., tile_size: _Optional[int] = ..., spp_per_pass: _Optional[int] = ..., proxy: _Optional[_Union[ProxySettings, _Mapping]] = ...) -> None: ...
 
 class Job(_message.Message):
-    __slots__ = ("id", "scene", "state", "settings", "passes_done", "passes_total", "progress", "error", "created_at_unix_s", "started_at_unix_s", "finished_at_unix_s", "stats")
+    __slots__ = ("id", "scene", "state", "settings", "passes_done", "passes_total", "progress", "error", "created_at_unix_s", "started_at_unix_s", "finished_at_unix_s", "stats", "cancel_requested", "retries")
     ID_FIELD_NUMBER: _ClassVar[int]
     SCENE_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
@@ -101,6 +101,8 @@ class Job(_message.Message):
     STARTED_AT_UNIX_S_FIELD_NUMBER: _ClassVar[int]
     FINISHED_AT_UNIX_S_FIELD_NUMBER: _ClassVar[int]
     STATS_FIELD_NUMBER: _ClassVar[int]
+    CANCEL_REQUESTED_FIELD_NUMBER: _ClassVar[int]
+    RETRIES_FIELD_NUMBER: _ClassVar[int]
     id: str
     scene: str
     state: JobState
@@ -113,7 +115,9 @@ class Job(_message.Message):
     started_at_unix_s: float
     finished_at_unix_s: float
     stats: _struct_pb2.Struct
-    def __init__(self, id: _Optional[str] = ..., scene: _Optional[str] = ..., state: _Optional[_Union[JobState, str]] = ..., settings: _Optional[_Union[RenderSettings, _Mapping]] = ..., passes_done: _Optional[int] = ..., passes_total: _Optional[int] = ..., progress: _Optional[float] = ..., error: _Optional[str] = ..., created_at_unix_s: _Optional[float] = ..., started_at_unix_s: _Optional[float] = ..., finished_at_unix_s: _Optional[float] = ..., stats: _Optional[_Union[_struct_pb2.Struct, _Mapping]] = ...) -> None: ...
+    cancel_requested: bool
+    retries: int
+    def __init__(self, id: _Optional[str] = ..., scene: _Optional[str] = ..., state: _Optional[_Union[JobState, str]] = ..., settings: _Optional[_Union[RenderSettings, _Mapping]] = ..., passes_done: _Optional[int] = ..., passes_total: _Optional[int] = ..., progress: _Optional[float] = ..., error: _Optional[str] = ..., created_at_unix_s: _Optional[float] = ..., started_at_unix_s: _Optional[float] = ..., finished_at_unix_s: _Optional[float] = ..., stats: _Optional[_Union[_struct_pb2.Struct, _Mapping]] = ..., cancel_requested: _Optional[bool] = ..., retries: _Optional[int] = ...) -> None: ...
 
 class SubmitJobRequest(_message.Message):
     __slots__ = ("scene", "settings")

@@ -93,7 +93,9 @@ class RenderServiceServicer:
 
     def WatchJob(self, request, context):
         """A Job snapshot first, then one Tile per finished pass and a Job per state change;
-        the stream ends after the job reaches a terminal state. NOT_FOUND for an unknown id.
+        the stream ends after the job reaches a terminal state. NOT_FOUND for an unknown id;
+        RESOURCE_EXHAUSTED when the server's limit of open streams is reached. A slow reader
+        gets the latest tile of each rectangle, not every tile.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
@@ -101,6 +103,7 @@ class RenderServiceServicer:
 
     def CancelJob(self, request, context):
         """Ask a queued or running job to stop (between passes); returns the job as it is now.
+        The cancel is stored first: it survives a restart, and the job ends CANCELED.
         FAILED_PRECONDITION if the job already finished; UNAUTHENTICATED without the token.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)

@@ -4,14 +4,19 @@ manager (and optionally the gRPC server) in the same process."""
 from __future__ import annotations
 
 import logging
+import math
+import shutil
 from contextlib import asynccontextmanager
 from pathlib import Path
 
 from fastapi import FastAPI, Request
+from fastapi.encoders import jsonable_encoder
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.formparsers import MultiPartException
 
+from service.auth import TokenMiddleware
 from service.config import ServiceSettings
 from service.errors import (
     BadUpload,
@@ -21,7 +26,9 @@ from service.errors import (
     NotFound,
     ServiceError,
     TooLarge,
+    TooManyWatchers,
     UnknownScene,
+    redact_paths,
 )
 from service.manager import JobManager
 from service.routers import jobs, scenes
@@ -31,7 +38,7 @@ log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
 _STATUS = {NotFound: 404, Conflict: 409, BadUpload: 400, TooLarge: 413, InvalidScene: 422,
-           InvalidJob: 422, UnknownScene: 422}
+           InvalidJob: 422, UnknownScene: 422, TooManyWatchers: 503}
 
 
 def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = None,
@@ -39,9 +46,12 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
     """grpc_port None = REST only; 0 = any free port (see app.state.grpc_port)."""
     settings = settings or ServiceSettings()
     settings.data_dir.mkdir(parents=True, exist_ok=True)
+    roots = [str(settings.data_dir.absolute()), str(settings.data_dir.resolve())]
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        # Uploads a killed process left half-spooled; no request is running yet.
+        shutil.rmtree(settings.tmp_dir, ignore_errors=True)
         scene_store = SceneStore(settings)
         manager = JobManager(settings, scene_store)
         app.state.settings, app.state.scenes, app.state.manager = settings, scene_store, manager
@@ -50,31 +60,38 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
         if grpc_port is not None:
             from service.grpc_server import start_grpc_server
 
-            grpc_server, app.state.grpc_port = start_grpc_server(manager, settings,
-                                                                 grpc_host, grpc_port)
+            grpc_server, app.state.grpc_port = await start_grpc_server(manager, settings,
+                                                                       grpc_host, grpc_port)
         log.info("nprt service up: data dir %s, %d job slot(s)", settings.data_dir,
                  settings.max_concurrent_jobs)
         try:
             yield
         finally:
             if grpc_server is not None:
-                grpc_server.stop(grace=1.0).wait()
+                await grpc_server.stop(1.0)
             manager.stop()
 
     app = FastAPI(title="nprt render service", version="1", lifespan=lifespan,
                   description="Distributed path tracing jobs: upload scenes, submit renders, "
                               "follow tiles over SSE, fetch PNG/EXR. gRPC: protos/nprt.proto.")
     app.state.settings = settings
+    app.add_middleware(TokenMiddleware, token=settings.api_token)
     app.include_router(scenes.router)
     app.include_router(jobs.router)
 
     @app.exception_handler(ServiceError)
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=_STATUS.get(type(exc), 400))
+        return JSONResponse({"detail": redact_paths(str(exc), roots)},
+                            status_code=_STATUS.get(type(exc), 400))
 
     @app.exception_handler(MultiPartException)
     async def multipart_error(_: Request, exc: MultiPartException) -> JSONResponse:
         return JSONResponse({"detail": f"bad multipart upload: {exc.message}"}, status_code=400)
+
+    @app.exception_handler(RequestValidationError)
+    async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
+        """FastAPI's 422, able to echo NaN and Infinity (strict JSON has neither)."""
+        return JSONResponse({"detail": _json_safe(exc.errors())}, status_code=422)
 
     @app.get("/", include_in_schema=False)
     async def dashboard() -> FileResponse:
@@ -86,3 +103,20 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app
+
+
+def _json_safe(errors) -> list:
+    """Validation errors as strict JSON: non-finite floats as strings, undecodable bytes
+    as their repr."""
+    def fix(x):
+        if isinstance(x, float) and not math.isfinite(x):  # as the client wrote it
+            return "NaN" if math.isnan(x) else ("Infinity" if x > 0 else "-Infinity")
+        if isinstance(x, bytes):
+            return repr(x)
+        if isinstance(x, dict):
+            return {str(k): fix(v) for k, v in x.items()}
+        if isinstance(x, list | tuple):
+            return [fix(v) for v in x]
+        return x
+
+    return jsonable_encoder(fix(errors))

@@ -23,6 +23,9 @@ class ServiceSettings(BaseSettings):
     max_image_pixels: int = Field(4096 * 4096, ge=1,
                                   description="largest width * height of a job; the film "
                                               "takes 32 bytes per pixel")
+    max_job_samples: int = Field(1 << 32, ge=1,
+                                 description="largest width * height * spp of a job, samples; "
+                                             "refused at submission with 422")
     api_token: str | None = Field(None, min_length=1,
                                   description="Bearer token for writing endpoints; unset = open")
     grpc_max_message_bytes: int = Field(64 << 20, ge=1 << 20,
@@ -36,6 +39,16 @@ class ServiceSettings(BaseSettings):
         5.0, ge=0.0, le=3600.0,
         description="seconds between film checkpoints of a running job (0 = every pass); a "
                     "restart loses at most this much work")
+    max_watchers: int = Field(1_000, ge=1, description="SSE and gRPC event streams open at "
+                                                       "once; more get 503 / RESOURCE_EXHAUSTED")
+    watcher_tile_bytes: int = Field(8 << 20, ge=0,
+                                    description="tile pixels a slow watcher may have pending, "
+                                                "bytes; older tiles beyond it are dropped")
+    max_job_retries: int = Field(2, ge=0, le=100,
+                                 description="times a job that lost its Ray shards (a node "
+                                             "died) is re-queued from its checkpoint")
+    ray_start_attempts: int = Field(3, ge=1, le=20,
+                                    description="tries at starting or joining Ray per job")
 
     @property
     def db_path(self) -> Path:

@@ -41,3 +41,16 @@ class UnknownScene(InvalidJob):
 
     def __init__(self, message: str):
         super().__init__("scene", message)
+
+
+class TooManyWatchers(ServiceError):
+    """More event streams open than NPRT_MAX_WATCHERS (503, RESOURCE_EXHAUSTED)."""
+
+
+def redact_paths(message: str, roots: list[str]) -> str:
+    """The message without the server's directories: a client knows its own file names,
+    and absolute server paths tell an attacker the layout."""
+    for root in sorted({r.rstrip("/") for r in roots if r and r != "/"}, key=len,
+                       reverse=True):
+        message = message.replace(root + "/", "").replace(root, "<server>")
+    return message

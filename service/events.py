@@ -1,50 +1,165 @@
 """Per-job event fan-out from render threads to SSE streams and gRPC watchers.
 
-Subscribers are plain callables; each adapter decides how to hop threads (an asyncio
-loop's call_soon_threadsafe, or a queue.Queue's put).
+Each watcher holds a Subscription: state events queue in order and are never dropped (a
+job has a handful), tiles coalesce by rectangle (a newer tile of a rect replaces the pending
+one, since it holds every sample so far) and are bounded in bytes, so a slow watcher costs
+bounded memory and gets the latest image rather than every tile.
 """
 
 from __future__ import annotations
 
+import asyncio
+import itertools
 import logging
 import threading
-from collections import defaultdict
+from collections import OrderedDict
 from collections.abc import Callable
+
+from service.errors import TooManyWatchers
 
 log = logging.getLogger(__name__)
 
-Deliver = Callable[[dict], None]
+Notify = Callable[[], None]
+
+
+def _tile_bytes(event: dict) -> int:
+    rgb = event.get("rgb")
+    return 0 if rgb is None else int(rgb.nbytes)
+
+
+class Subscription:
+    """One watcher's pending events. put() runs on render threads, drain() on the
+    watcher's; notify() is called after every put, outside the lock."""
+
+    def __init__(self, notify: Notify, max_tile_bytes: int, on_close: Callable[[], None]):
+        self._lock = threading.Lock()
+        # ("state", seq) -> event keeps order; ("tile", rect) -> the latest tile of a rect.
+        self._pending: OrderedDict[tuple, dict] = OrderedDict()
+        self._pending_tile_bytes = 0
+        self._seq = itertools.count()
+        self._notify = notify
+        self._on_close = on_close
+        self.max_tile_bytes = max_tile_bytes
+        self.coalesced_tiles = 0  # replaced by a newer tile of the same rect
+        self.dropped_tiles = 0  # evicted over max_tile_bytes
+
+    def put(self, event: dict) -> None:
+        with self._lock:
+            if event["type"] == "tile":
+                key = ("tile", tuple(event["rect"]))
+                old = self._pending.pop(key, None)
+                if old is not None:
+                    self._pending_tile_bytes -= _tile_bytes(old)
+                    self.coalesced_tiles += 1
+                self._pending[key] = event
+                self._pending_tile_bytes += _tile_bytes(event)
+                self._evict_tiles(keep=key)
+            else:
+                self._pending[("state", next(self._seq))] = event
+        self._notify()
+
+    def _evict_tiles(self, keep: tuple) -> None:
+        """Drop the oldest pending tiles while over the byte bound, never the newest."""
+        if self._pending_tile_bytes <= self.max_tile_bytes:
+            return
+        for key in [k for k in self._pending if k[0] == "tile" and k != keep]:
+            self._pending_tile_bytes -= _tile_bytes(self._pending.pop(key))
+            self.dropped_tiles += 1
+            if self._pending_tile_bytes <= self.max_tile_bytes:
+                return
+
+    def drain(self) -> list[dict]:
+        """Every pending event, oldest first."""
+        with self._lock:
+            out = list(self._pending.values())
+            self._pending.clear()
+            self._pending_tile_bytes = 0
+        return out
+
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._pending)
+
+    def close(self) -> None:
+        self._on_close()
 
 
 class EventBroker:
-    def __init__(self):
+    """Subscriptions by job id, and the bound on how many are open at once."""
+
+    def __init__(self, max_watchers: int = 1_000, max_tile_bytes: int = 8 << 20):
         self._lock = threading.Lock()
-        self._subs: dict[str, list[Deliver]] = defaultdict(list)
+        self._subs: dict[str, list[Subscription]] = {}
+        self.max_watchers = max_watchers
+        self.max_tile_bytes = max_tile_bytes
 
-    def subscribe(self, job_id: str, deliver: Deliver) -> Callable[[], None]:
-        """Start delivering `job_id`'s events; returns the unsubscribe function."""
+    def check_capacity(self) -> None:
+        """TooManyWatchers when max_watchers are open."""
         with self._lock:
-            self._subs[job_id].append(deliver)
+            self._check_capacity()
 
-        def unsubscribe() -> None:
-            with self._lock:
-                subs = self._subs.get(job_id, [])
-                if deliver in subs:
-                    subs.remove(deliver)
-                if not subs:
-                    self._subs.pop(job_id, None)
+    def _check_capacity(self) -> None:
+        total = sum(len(s) for s in self._subs.values())
+        if total >= self.max_watchers:
+            raise TooManyWatchers(f"{total} event streams are open, the limit "
+                                  "(NPRT_MAX_WATCHERS); try again later")
 
-        return unsubscribe
+    def subscribe(self, job_id: str, notify: Notify) -> Subscription:
+        """Start collecting `job_id`'s events; TooManyWatchers beyond max_watchers in all."""
+        with self._lock:
+            self._check_capacity()
+            sub = Subscription(notify, self.max_tile_bytes,
+                               on_close=lambda: self._unsubscribe(job_id, sub))
+            self._subs.setdefault(job_id, []).append(sub)
+        return sub
+
+    def _unsubscribe(self, job_id: str, sub: Subscription) -> None:
+        with self._lock:
+            subs = self._subs.get(job_id, [])
+            if sub in subs:
+                subs.remove(sub)
+            if not subs:
+                self._subs.pop(job_id, None)
 
     def publish(self, job_id: str, event: dict) -> None:
         with self._lock:
             subs = list(self._subs.get(job_id, ()))
-        for deliver in subs:
+        for sub in subs:
             try:
-                deliver(event)
-            except Exception:  # one broken subscriber must not stop a render
+                sub.put(event)
+            except Exception:  # one broken watcher must not stop a render
                 log.exception("event subscriber for job %s failed", job_id)
 
     def subscribers(self, job_id: str) -> int:
         with self._lock:
             return len(self._subs.get(job_id, ()))
+
+
+class AsyncWatch:
+    """A Subscription for a coroutine on the running loop (SSE, grpc.aio): no thread is
+    held while it waits. Use as an async context manager."""
+
+    def __init__(self, subscribe: Callable[[Notify], Subscription]):
+        loop = asyncio.get_running_loop()
+        self._wake = asyncio.Event()
+
+        def notify() -> None:
+            try:
+                loop.call_soon_threadsafe(self._wake.set)
+            except RuntimeError:  # the loop closed under a late event
+                pass
+
+        self.sub = subscribe(notify)
+
+    async def next_events(self) -> list[dict]:
+        """The pending events, waiting for at least one."""
+        while not (events := self.sub.drain()):
+            await self._wake.wait()
+            self._wake.clear()
+        return events
+
+    async def __aenter__(self) -> AsyncWatch:
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        self.sub.close()

@@ -1,33 +1,49 @@
-"""The RenderService servicer: a thin adapter from gRPC onto the JobManager."""
+"""The RenderService servicer (grpc.aio): a thin adapter from gRPC onto the JobManager.
+Job records are SQLite rows that take well under a millisecond, so those calls run on the
+event loop (as in the REST routers); encoding images goes to a thread. A WatchJob stream
+waits on the event loop and holds no thread."""
 
 from __future__ import annotations
 
-import queue
+import asyncio
 
 import grpc
 from pydantic import ValidationError
 
 from protos import nprt_pb2 as pb
 from protos import nprt_pb2_grpc
-from service.errors import Conflict, InvalidJob, InvalidScene, NotFound, ServiceError
+from service.errors import (
+    Conflict,
+    InvalidJob,
+    InvalidScene,
+    NotFound,
+    ServiceError,
+    TooManyWatchers,
+)
+from service.events import AsyncWatch
 from service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
 from service.manager import JobManager
 from service.store import TERMINAL
 
 DEFAULT_PAGE = 50
 MAX_PAGE = 500
-WATCH_POLL_S = 0.5  # how often a watcher notices its client went away
 
 _CODES = {NotFound: grpc.StatusCode.NOT_FOUND, Conflict: grpc.StatusCode.FAILED_PRECONDITION,
           InvalidJob: grpc.StatusCode.INVALID_ARGUMENT,
-          InvalidScene: grpc.StatusCode.INVALID_ARGUMENT}
+          InvalidScene: grpc.StatusCode.INVALID_ARGUMENT,
+          TooManyWatchers: grpc.StatusCode.RESOURCE_EXHAUSTED}
 _FORMATS = {pb.IMAGE_FORMAT_PNG: "png", pb.IMAGE_FORMAT_EXR: "exr"}
 
 
-def _abort(context: grpc.ServicerContext, exc: ServiceError):
-    code = next((c for t, c in _CODES.items() if isinstance(exc, t)),
-                grpc.StatusCode.INVALID_ARGUMENT)
-    context.abort(code, str(exc))
+async def _call(context: grpc.aio.ServicerContext, fn, *args, thread: bool = False):
+    """fn(*args), on a worker thread if `thread`; a ServiceError ends the rpc with its
+    status code."""
+    try:
+        return await asyncio.to_thread(fn, *args) if thread else fn(*args)
+    except ServiceError as e:
+        code = next((c for t, c in _CODES.items() if isinstance(e, t)),
+                    grpc.StatusCode.INVALID_ARGUMENT)
+        await context.abort(code, str(e))
 
 
 def _validation_message(e: ValidationError) -> str:
@@ -40,76 +56,66 @@ class RenderServicer(nprt_pb2_grpc.RenderServiceServicer):
         self.manager = manager
         self.max_message_bytes = max_message_bytes
 
-    def SubmitJob(self, request, context):
+    async def SubmitJob(self, request, context):
         try:
             settings = settings_from_pb(request.settings)
         except ValidationError as e:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT,
-                          f"invalid settings: {_validation_message(e)}")
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT,
+                                f"invalid settings: {_validation_message(e)}")
         if not request.scene:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT, "scene is required (got '')")
-        try:
-            return job_to_pb(self.manager.submit(request.scene, settings))
-        except ServiceError as e:
-            _abort(context, e)
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "scene is required (got '')")
+        rec, _ = await _call(context, self.manager.submit, request.scene, settings)
+        return job_to_pb(rec)
 
-    def GetJob(self, request, context):
-        try:
-            return job_to_pb(self.manager.get(request.job_id))
-        except ServiceError as e:
-            _abort(context, e)
+    async def GetJob(self, request, context):
+        return job_to_pb(await _call(context, self.manager.get, request.job_id))
 
-    def ListJobs(self, request, context):
+    async def ListJobs(self, request, context):
         limit = request.limit or DEFAULT_PAGE
         if limit > MAX_PAGE:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT,
-                          f"limit must be at most {MAX_PAGE} (got {limit})")
-        recs, total = self.manager.list(request.offset, limit)
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT,
+                                f"limit must be at most {MAX_PAGE} (got {limit})")
+        recs, total = await _call(context, self.manager.list, request.offset, limit)
         return pb.ListJobsResponse(jobs=[job_to_pb(r) for r in recs], total=total)
 
-    def CancelJob(self, request, context):
-        try:
-            return job_to_pb(self.manager.cancel(request.job_id))
-        except ServiceError as e:
-            _abort(context, e)
+    async def CancelJob(self, request, context):
+        return job_to_pb(await _call(context, self.manager.cancel, request.job_id))
 
-    def GetImage(self, request, context):
+    async def GetImage(self, request, context):
         fmt = _FORMATS.get(request.format)
         if fmt is None:
-            context.abort(grpc.StatusCode.INVALID_ARGUMENT,
-                          f"unknown image format {request.format}")
-        try:
-            data, partial = self.manager.image(request.job_id, fmt)
-            rec = self.manager.get(request.job_id)
-        except ServiceError as e:
-            _abort(context, e)
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT,
+                                f"unknown image format {request.format}")
+        data, partial = await _call(context, self.manager.image, request.job_id, fmt,
+                                    thread=True)
+        rec = await _call(context, self.manager.get, request.job_id)
         if len(data) > self.max_message_bytes - 1024:
-            context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED,
-                          f"the {fmt} image is {len(data)} bytes, over the gRPC message limit "
-                          f"of {self.max_message_bytes}; fetch /v1/jobs/{rec.id}/image.{fmt}")
+            await context.abort(
+                grpc.StatusCode.RESOURCE_EXHAUSTED,
+                f"the {fmt} image is {len(data)} bytes, over the gRPC message limit of "
+                f"{self.max_message_bytes}; fetch /v1/jobs/{rec.id}/image.{fmt}")
         return pb.Image(job_id=rec.id, format=request.format, data=data, partial=partial,
                         width=rec.settings["width"], height=rec.settings["height"])
 
-    def WatchJob(self, request, context):
-        events: queue.Queue[dict] = queue.Queue()
-        # Subscribe before the snapshot so no event falls between them.
-        unsubscribe = self.manager.subscribe(request.job_id, events.put)
+    async def WatchJob(self, request, context):
+        job_id = request.job_id
         try:
-            try:
-                rec = self.manager.get(request.job_id)
-            except ServiceError as e:
-                _abort(context, e)
+            # Subscribe before the snapshot so no event falls between them.
+            watch = AsyncWatch(lambda notify: self.manager.watch(job_id, notify))
+        except TooManyWatchers as e:
+            await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))
+        async with watch:
+            rec = await _call(context, self.manager.get, job_id)
             yield pb.JobEvent(job=job_to_pb(rec))
-            while rec.state not in TERMINAL and context.is_active():
-                try:
-                    ev = events.get(timeout=WATCH_POLL_S)
-                except queue.Empty:
-                    continue
-                if ev["type"] == "tile":
-                    yield pb.JobEvent(tile=tile_to_pb(ev, request.tile_format,
-                                                          self.max_message_bytes))
-                else:
-                    rec = ev["job"]
-                    yield pb.JobEvent(job=job_to_pb(rec))
-        finally:
-            unsubscribe()
+            while rec.state not in TERMINAL:
+                for ev in await watch.next_events():
+                    if ev["type"] == "tile":
+                        args = (ev, request.tile_format, self.max_message_bytes)
+                        tile = (await asyncio.to_thread(tile_to_pb, *args)
+                                if request.tile_format == pb.TILE_FORMAT_PNG else tile_to_pb(*args))
+                        yield pb.JobEvent(tile=tile)
+                    else:
+                        rec = ev["job"]
+                        yield pb.JobEvent(job=job_to_pb(rec))
+                        if rec.state in TERMINAL:
+                            break

@@ -43,7 +43,8 @@ def job_to_pb(r: JobRecord) -> pb.Job:
                   settings=settings_to_pb(r.settings), passes_done=r.passes_done,
                   passes_total=r.passes_total, progress=r.progress, error=r.error or "",
                   created_at_unix_s=r.created_at, started_at_unix_s=r.started_at or 0.0,
-                  finished_at_unix_s=r.finished_at or 0.0, stats=stats)
+                  finished_at_unix_s=r.finished_at or 0.0, stats=stats,
+                  cancel_requested=r.cancel_requested, retries=r.retries)
 
 
 # Room for the Tile's other fields inside the message limit.

@@ -1,13 +1,16 @@
 """The job manager: stores every job before it runs, renders FIFO on a bounded pool of
 threads on warm shard pools, checkpoints every few seconds, and re-queues unfinished jobs
-on startup."""
+on startup.
+
+State changes are compare-and-set in the store: a cancel is stored before it is acted on
+and wins over a late success, and nothing leaves a terminal state."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import queue
+import sys
 import threading
 import time
 import uuid
@@ -19,11 +22,11 @@ import numpy as np
 from scene.errors import SceneError
 from service import checkpoint, images
 from service.config import ServiceSettings
-from service.errors import Conflict, InvalidJob, NotFound
-from service.events import Deliver, EventBroker
+from service.errors import Conflict, InvalidJob, NotFound, redact_paths
+from service.events import EventBroker, Notify, Subscription
 from service.joblog import job_log
 from service.scenes import SceneStore
-from service.store import TERMINAL, JobRecord, JobStore
+from service.store import TERMINAL, UNFINISHED, JobRecord, JobStore
 from workers.film import Film
 from workers.passes import count_passes
 from workers.pool import PoolRegistry
@@ -32,6 +35,14 @@ from workers.settings import RenderSettings
 from workers.stats import RenderStats
 
 log = logging.getLogger(__name__)
+
+REPO = Path(__file__).resolve().parents[1]
+SLOT_POLL_S = 0.5  # how often a job waiting for a sharded-job slot looks for its cancel
+RAY_RETRY_S = 2.0  # back-off between tries at starting Ray, times the attempt number
+
+
+class RayUnavailable(RuntimeError):
+    """Starting or joining Ray failed every attempt; the message names the address."""
 
 
 @dataclass
@@ -53,7 +64,7 @@ class JobManager:
         self.settings = settings
         self.scenes = scenes
         self.store = store or JobStore(settings.db_path)
-        self.broker = broker or EventBroker()
+        self.broker = broker or EventBroker(settings.max_watchers, settings.watcher_tile_bytes)
         self._queue: queue.Queue[str | None] = queue.Queue()
         self._live: dict[str, _Live] = {}
         self._lock = threading.Lock()
@@ -68,17 +79,23 @@ class JobManager:
         self._sharded_slots = threading.BoundedSemaphore(settings.max_sharded_jobs)
         self.pools = PoolRegistry(settings.pool_max_bytes, settings.pool_max_count)
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
+        self._server_roots = [str(REPO), str(settings.data_dir.absolute()),
+                              str(settings.data_dir.resolve())]
 
     # ------------------------------------------------------------ lifecycle
 
     def start(self) -> None:
         for rec in self.store.unfinished():
+            if rec.cancel_requested:  # stored, but the last process died before acting on it
+                log.info("job %s: canceled (the cancel was stored before a restart)", rec.id)
+                self._end(rec.id, "canceled", finished_at=time.time())
+                continue
             ck = checkpoint.load_checkpoint(self.job_dir(rec.id))
             log.info("re-queueing job %s (was %s, resumes at pass %d of %d)", rec.id, rec.state,
                      ck.next_pass if ck else 0, rec.passes_total)
-            self.store.update(rec.id, state="queued",
-                              passes_done=ck.next_pass + len(ck.done) if ck else 0)
-            self._enqueue(rec.id)
+            if self.store.transition(rec.id, "queued", UNFINISHED,
+                                     passes_done=ck.next_pass + len(ck.done) if ck else 0):
+                self._enqueue(rec.id)
         for i in range(self.settings.max_concurrent_jobs):
             t = threading.Thread(target=self._worker, name=f"nprt-worker-{i}", daemon=True)
             t.start()
@@ -114,20 +131,36 @@ class JobManager:
 
     # ------------------------------------------------------------ API
 
-    def submit(self, scene: str, settings: RenderSettings) -> JobRecord:
-        pixels, limit = settings.width * settings.height, self.settings.max_image_pixels
-        if pixels > limit:
-            raise InvalidJob("width", f"{settings.width}x{settings.height} = {pixels} pixels is "
-                             f"over the service limit of {limit} (NPRT_MAX_IMAGE_PIXELS)")
+    def submit(self, scene: str, settings: RenderSettings,
+               idempotency_key: str | None = None) -> tuple[JobRecord, bool]:
+        """Store a queued job in O(1) time and memory; returns (job, created). A stored
+        idempotency key returns its job again (created False), Conflict if the request
+        differs."""
+        self._check_cost(settings)
         self.scenes.check(scene)
+        stored = settings.model_dump(mode="json")
         job_id = uuid.uuid4().hex
-        self.job_dir(job_id).mkdir(parents=True, exist_ok=True)
-        rec = self.store.insert(job_id, scene, settings.model_dump(mode="json"),
-                                count_passes(settings))
-        self._enqueue(job_id)
-        log.info("job %s queued: scene %r, %dx%d, %d spp, mode %s, shards %d", job_id, scene,
+        rec = self.store.insert(job_id, scene, stored, count_passes(settings), idempotency_key)
+        if rec.id != job_id:  # the key was stored already
+            if (rec.scene, rec.settings) != (scene, stored):
+                raise Conflict(f"Idempotency-Key {idempotency_key!r} was used for job {rec.id} "
+                               "with a different request")
+            return rec, False
+        self._enqueue(rec.id)  # the worker makes the job directory
+        log.info("job %s queued: scene %r, %dx%d, %d spp, mode %s, shards %d", rec.id, scene,
                  settings.width, settings.height, settings.spp, settings.mode, settings.shards)
-        return rec
+        return rec, True
+
+    def _check_cost(self, s: RenderSettings) -> None:
+        """InvalidJob naming the field when a job is over a configured limit."""
+        pixels, limit = s.width * s.height, self.settings.max_image_pixels
+        if pixels > limit:
+            raise InvalidJob("width", f"{s.width}x{s.height} = {pixels} pixels is over the "
+                             f"service limit of {limit} (NPRT_MAX_IMAGE_PIXELS)")
+        samples, limit = pixels * s.spp, self.settings.max_job_samples
+        if samples > limit:
+            raise InvalidJob("spp", f"{s.width}x{s.height} x {s.spp} spp = {samples} samples "
+                             f"is over the service limit of {limit} (NPRT_MAX_JOB_SAMPLES)")
 
     def get(self, job_id: str) -> JobRecord:
         rec = self.store.get(job_id)
@@ -139,21 +172,24 @@ class JobManager:
         return self.store.list(offset, limit, state)
 
     def cancel(self, job_id: str) -> JobRecord:
-        rec = self.get(job_id)
-        if rec.state in TERMINAL:
+        """Store the cancel, then act on it: a queued job is canceled at once, a running one
+        stops at its next pass boundary. Conflict if the job already finished."""
+        if not self.store.request_cancel(job_id):
+            rec = self.get(job_id)
             raise Conflict(f"job {job_id} already {rec.state}; nothing to cancel")
         with self._lock:
             live = self._live.get(job_id)
         if live is not None:
             live.cancel.set()
-        if rec.state == "queued":
-            # The worker skips it when dequeued; mark it now so clients see it at once.
-            self._set_state(job_id, "canceled", finished_at=time.time())
-        log.info("job %s: cancel requested (was %s)", job_id, rec.state)
-        return self.get(job_id)
+        rec = self.get(job_id)
+        if rec.state == "canceled":
+            self.broker.publish(job_id, {"type": "state", "job": rec})
+        log.info("job %s: cancel requested (now %s)", job_id, rec.state)
+        return rec
 
-    def subscribe(self, job_id: str, deliver: Deliver):
-        return self.broker.subscribe(job_id, deliver)
+    def watch(self, job_id: str, notify: Notify) -> Subscription:
+        """Collect `job_id`'s events for one watcher (TooManyWatchers over the limit)."""
+        return self.broker.subscribe(job_id, notify)
 
     def image(self, job_id: str, fmt: str) -> tuple[bytes, bool]:
         """(encoded image, partial): the final file once succeeded, else the latest pass."""
@@ -192,10 +228,11 @@ class JobManager:
         while (job_id := self._queue.get()) is not None:
             if self._stopping.is_set():
                 return
+            requeue = False
             with self._lock:
                 self._active += 1
             try:
-                self._run(job_id)
+                requeue = self._run(job_id)
             except Exception:  # keep the worker alive for the next job
                 log.exception("job %s: unexpected error in the job manager", job_id)
             finally:
@@ -203,83 +240,121 @@ class JobManager:
                     self._live.pop(job_id, None)
                     self._active -= 1
                     self._idle.notify_all()
+            if requeue:
+                self._enqueue(job_id)
 
-    def _run(self, job_id: str) -> None:
+    def _run(self, job_id: str) -> bool:
+        """Render one job; True when it went back to the queue (its shards were lost)."""
         rec = self.store.get(job_id)
         if rec is None or rec.state in TERMINAL:
-            return
+            return False
         job_dir = self.job_dir(job_id)
         job_dir.mkdir(parents=True, exist_ok=True)
         settings = RenderSettings.model_validate(rec.settings)
-        with job_log(job_dir / "job.log"):
-            if settings.shards == 0:
-                self._render(rec, job_dir, settings)
-                return
-            log.info("job %s: waiting for a sharded-job slot", job_id)
-            with self._sharded_slots:  # the job stays queued (and cancellable) meanwhile
-                rec = self.store.get(job_id)
-                if rec.state not in TERMINAL and not self._stopping.is_set():
-                    self._render(rec, job_dir, settings)
-
-    def _render(self, rec: JobRecord, job_dir: Path, settings: RenderSettings) -> None:
-        job_id = rec.id
         with self._lock:
             live = self._live[job_id]
+        with job_log(job_dir / "job.log"):
+            if settings.shards == 0:
+                return self._render(rec, job_dir, settings, live)
+            log.info("job %s: waiting for a sharded-job slot", job_id)
+            # The job stays queued (and cancellable) meanwhile.
+            while not self._sharded_slots.acquire(timeout=SLOT_POLL_S):
+                if live.cancel.is_set() or self._stopping.is_set():
+                    return False
+            try:
+                rec = self.store.get(job_id)
+                if rec.state in TERMINAL or self._stopping.is_set():
+                    return False
+                return self._render(rec, job_dir, settings, live)
+            finally:
+                self._sharded_slots.release()
+
+    def _render(self, rec: JobRecord, job_dir: Path, settings: RenderSettings,
+                live: _Live) -> bool:
+        job_id = rec.id
+        if not self._move(job_id, "preparing", ("queued",),
+                          started_at=rec.started_at or time.time()):
+            return False  # canceled while queued
         resume = checkpoint.load_checkpoint(job_dir)
-        self._set_state(job_id, "preparing", started_at=rec.started_at or time.time())
         log.info("job %s: preparing scene %r%s", job_id, rec.scene,
                  f" (resuming at pass {resume.next_pass})" if resume else "")
+        renderer = None
         try:
             scene = self.scenes.load(rec.scene)
+            _check_cancel(live, "loading the scene")
             if settings.shards > 0:
                 self._ensure_ray()
-            with self._pool_for(scene, settings) as pool:
-                renderer = make_renderer(scene, settings, ray_address=self.settings.ray_address,
-                                         proxy_dir=self.settings.proxies_dir, pool=pool)
-                try:
-                    if live.cancel.is_set():
-                        raise RenderCanceled("canceled while preparing")
-                    self._set_state(job_id, "running")
-                    result = render(scene, settings, resume=resume, cancel=live.cancel,
-                                    renderer=renderer,
-                                    on_pass=lambda p: self._on_pass(job_id, job_dir, live, p))
-                finally:
-                    renderer.close()
+                _check_cancel(live, "starting Ray")
+            renderer = make_renderer(scene, settings, ray_address=self.settings.ray_address,
+                                     proxy_dir=self.settings.proxies_dir, pools=self.pools)
+            _check_cancel(live, "starting the renderer")
+            self._move(job_id, "running", ("preparing",))
+            result = render(scene, settings, resume=resume, cancel=live.cancel,
+                            renderer=renderer,
+                            on_pass=lambda p: self._on_pass(job_id, job_dir, live, p))
+            renderer.close()
+            renderer = None
             self._finish(job_id, job_dir, result)
         except RenderCanceled as e:
-            if self._stopping.is_set():
+            if self._stopping.is_set() and not self.store.get(job_id).cancel_requested:
                 self._checkpoint(job_dir, live)
                 log.info("job %s: interrupted by shutdown; resumes on next start", job_id)
-                return
+                return False
             log.info("job %s: %s", job_id, e)
-            self._set_state(job_id, "canceled", finished_at=time.time())
+            self._end(job_id, "canceled", finished_at=time.time())
         except SceneError as e:
             log.error("job %s: scene %r failed to load: %s", job_id, rec.scene, e)
-            self._set_state(job_id, "failed", error=str(e), finished_at=time.time())
+            self._end(job_id, "failed", error=self._redact(str(e)), finished_at=time.time())
         except Exception as e:
+            if _shards_lost(e) and self._requeue(job_id, e):
+                return True
             log.exception("job %s failed", job_id)
-            self._set_state(job_id, "failed", error=f"{type(e).__name__}: {e}",
-                            finished_at=time.time())
+            self._end(job_id, "failed", error=self._redact(f"{type(e).__name__}: {e}"),
+                      finished_at=time.time())
+        finally:
+            if renderer is not None:
+                renderer.close()
+        return False
+
+    def _requeue(self, job_id: str, exc: Exception) -> bool:
+        """Send a job whose Ray node was lost back to the queue; it resumes from its
+        checkpoint on fresh shards, at most max_job_retries times."""
+        limit = self.settings.max_job_retries
+        if not self.store.requeue(job_id, limit):
+            return False
+        rec = self.store.get(job_id)
+        log.warning("job %s: lost its shards (%s); re-queued from pass %d, retry %d of %d",
+                    job_id, exc, rec.passes_done, rec.retries, limit)
+        self.broker.publish(job_id, {"type": "state", "job": rec})
+        return True
 
     def _ensure_ray(self) -> None:
-        """Start or join Ray once for the whole service. A Coordinator that started Ray
-        itself would shut it down when its job ends, under any other sharded job, and every
-        job would pay the start-up again."""
+        """Start or join Ray once for the whole service, retrying a failed start. A
+        Coordinator that started Ray itself would shut it down when its job ends, under any
+        other sharded job, and every job would pay the start-up again."""
+        import ray
+
         from workers.raysession import ensure_ray
 
+        address, attempts = self.settings.ray_address, self.settings.ray_start_attempts
         with self._ray_lock:
-            if ensure_ray(self.settings.ray_address):
-                self._started_ray = True
-                log.info("started a local Ray for this service" if not
-                         self.settings.ray_address else "joined Ray at %s",
-                         self.settings.ray_address)
-
-    def _pool_for(self, scene, settings: RenderSettings):
-        """A warm shard pool for a sharded job (none for the reference renderer)."""
-        if settings.shards == 0:
-            return contextlib.nullcontext()
-        return self.pools.lease(scene, settings, ray_address=self.settings.ray_address,
-                                proxy_dir=self.settings.proxies_dir)
+            for attempt in range(1, attempts + 1):
+                try:
+                    if ensure_ray(address):
+                        self._started_ray = True
+                        where = f"joined Ray at {address}" if address else "started a local Ray"
+                        log.info("%s for this service", where)
+                    return
+                except Exception as e:
+                    error = e
+                    log.warning("starting Ray (%s) failed, attempt %d of %d: %s",
+                                address or "local", attempt, attempts, e)
+                    ray.shutdown()  # a half-made connection would make the next try a no-op
+                if attempt < attempts:
+                    time.sleep(RAY_RETRY_S * attempt)
+        where = f"join the Ray cluster at {address}" if address else "start a local Ray"
+        raise RayUnavailable(f"could not {where} in {attempts} attempts: "
+                             f"{type(error).__name__}: {error}") from error
 
     def _checkpoint(self, job_dir: Path, live: _Live) -> None:
         """Save the film and the set of passes it holds (O(film); every few seconds)."""
@@ -333,12 +408,38 @@ class JobManager:
         checkpoint.atomic_save_npy(job_dir / "sums.npy", film.sums)
         checkpoint.atomic_save_npy(job_dir / "samples.npy", film.samples)
         pixel_samples = {"min": int(film.samples.min()), "max": int(film.samples.max())}
-        self._set_state(job_id, "succeeded", finished_at=time.time(),
-                        stats=json.loads(json.dumps(stats, default=str)),
-                        pixel_samples=pixel_samples, passes_done=result.info["passes"])
+        state = self._end(job_id, "succeeded", finished_at=time.time(),
+                          stats=json.loads(json.dumps(stats, default=str)),
+                          pixel_samples=pixel_samples, passes_done=result.info["passes"])
         checkpoint.clear_checkpoint(job_dir)
-        log.info("job %s succeeded in %.2f s", job_id, result.info.get("wall_s", 0.0))
+        log.info("job %s %s in %.2f s", job_id, state or "finished already",
+                 result.info.get("wall_s", 0.0))
 
-    def _set_state(self, job_id: str, state: str, **fields) -> None:
-        self.store.update(job_id, state=state, **fields)
-        self.broker.publish(job_id, {"type": "state", "job": self.store.get(job_id)})
+    def _move(self, job_id: str, state: str, from_states: tuple[str, ...], **fields) -> bool:
+        """Compare-and-set to a non-terminal state; watchers hear of it when it happened."""
+        moved = self.store.transition(job_id, state, from_states, **fields)
+        if moved:
+            self.broker.publish(job_id, {"type": "state", "job": self.store.get(job_id)})
+        return moved
+
+    def _end(self, job_id: str, state: str, **fields) -> str | None:
+        """Enter a terminal state unless the job has one already; returns the state it got
+        (a stored cancel turns success into canceled)."""
+        got = self.store.finish(job_id, state, **fields)
+        if got is not None:
+            self.broker.publish(job_id, {"type": "state", "job": self.store.get(job_id)})
+        return got
+
+    def _redact(self, message: str) -> str:
+        return redact_paths(message, self._server_roots)
+
+
+def _check_cancel(live: _Live, stage: str) -> None:
+    if live.cancel.is_set():
+        raise RenderCanceled(f"canceled while {stage}")
+
+
+def _shards_lost(exc: BaseException) -> bool:
+    """Whether a render failed because Ray lost its shards (a node died), not by a bug."""
+    coordinator = sys.modules.get("workers.coordinator")  # never imported: no shards to lose
+    return coordinator is not None and isinstance(exc, coordinator.ShardsLost)

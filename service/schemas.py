@@ -44,6 +44,10 @@ class JobPublic(BaseModel):
     stats: dict | None = Field(None, description="rays, transfers, bytes by kind; phase_s "
                                                  "in seconds; final stats add scene info")
     pixel_samples: PixelSamples | None = Field(None, description="set once succeeded")
+    cancel_requested: bool = Field(False, description="a cancel is stored: the job ends "
+                                                      "canceled at its next pass boundary")
+    retries: int = Field(0, ge=0, description="times the job was re-queued from its "
+                                              "checkpoint after losing a Ray node")
 
     @classmethod
     def from_record(cls, r: JobRecord) -> JobPublic:
@@ -51,7 +55,14 @@ class JobPublic(BaseModel):
                    progress=r.progress, passes_done=r.passes_done, passes_total=r.passes_total,
                    created_at=_time(r.created_at), started_at=_time(r.started_at),
                    finished_at=_time(r.finished_at), error=r.error, stats=r.stats,
-                   pixel_samples=r.pixel_samples)
+                   pixel_samples=r.pixel_samples, cancel_requested=r.cancel_requested,
+                   retries=r.retries)
+
+
+class ErrorPublic(BaseModel):
+    """Every error answer: what went wrong, for a person (422s carry FastAPI's list)."""
+
+    detail: str | list[dict]
 
 
 class JobsPublic(BaseModel):
@@ -94,3 +105,21 @@ class ScenesPublic(BaseModel):
 
 def _time(t: float | None) -> datetime | None:
     return None if t is None else datetime.fromtimestamp(t, tz=UTC)
+
+
+_ERRORS = {
+    400: "a body that does not parse, or a malformed or unsafe upload (the detail names "
+         "the zip member)",
+    401: "missing or wrong bearer token (only when the server sets NPRT_API_TOKEN)",
+    404: "no such job or scene",
+    409: "the request does not fit the job's state, or an Idempotency-Key reused for "
+         "another request",
+    413: "over NPRT_MAX_UPLOAD_BYTES or NPRT_MAX_EXTRACTED_BYTES",
+    422: "invalid parameters, or a job over a service limit (the detail names the field)",
+    503: "NPRT_MAX_WATCHERS event streams are open; try again later",
+}
+
+
+def error_responses(*codes: int) -> dict:
+    """`responses=` for a route: the error codes it can answer, in the OpenAPI schema."""
+    return {c: {"model": ErrorPublic, "description": _ERRORS[c]} for c in codes}

@@ -35,7 +35,12 @@ from ray.exceptions import ActorUnavailableError, RayActorError
 
 from scene.model import Scene
 from workers.passes import Pass
-from workers.pool import ShardPool
+from workers.pool import (  # noqa: F401 (ShardStartError re-exported)
+    PoolRegistry,
+    ShardPool,
+    ShardsLost,
+    ShardStartError,
+)
 from workers.settings import RenderSettings
 from workers.shard import Manifest, WorkItem
 from workers.stats import RenderStats
@@ -69,14 +74,19 @@ class _Attempt:
 
 
 class Coordinator:
-    """One job on a pool. Without `pool` it starts a private one and closes it with itself."""
+    """One job on a pool of shards: a warm one from `pools`, or else a private one that it
+    closes with itself."""
 
     def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
                  proxy_dir=None, shard_options: list[dict] | None = None,
-                 pool: ShardPool | None = None):
+                 pools: PoolRegistry | None = None):
         self.scene, self.s, self.k = scene, settings, settings.shards
-        self._own_pool = pool is None
-        self.pool = pool or ShardPool(scene, settings, ray_address, proxy_dir, shard_options)
+        self._pools = pools
+        if pools is not None:  # a warm pool, handed back on close
+            self.pool = pools.acquire(scene, settings, ray_address=ray_address,
+                                      proxy_dir=proxy_dir, shard_options=shard_options)
+        else:
+            self.pool = ShardPool(scene, settings, ray_address, proxy_dir, shard_options)
         if (self.pool.k, self.pool.mode) != (self.k, settings.mode):
             raise ValueError(f"{self.pool!r} cannot run a K={self.k} {settings.mode!r} job")
         self.pool.jobs += 1
@@ -275,7 +285,7 @@ class Coordinator:
 
     def _requeue(self, p: Pass, retry: deque, attempts: dict) -> None:
         if attempts.get(p.index, 0) >= MAX_PASS_ATTEMPTS:
-            raise RuntimeError(f"pass {p.index} failed {MAX_PASS_ATTEMPTS} times; giving up")
+            raise ShardsLost(f"pass {p.index} failed {MAX_PASS_ATTEMPTS} times; giving up")
         retry.append(p)
 
     def _abort(self, tokens: list[int], wait: bool = True) -> None:
@@ -291,7 +301,7 @@ class Coordinator:
                 time.sleep(0.5)
             except ray.exceptions.GetTimeoutError:
                 break
-        raise RuntimeError(f"shards did not come back while dropping {len(tokens)} passes")
+        raise ShardsLost(f"shards did not come back while dropping {len(tokens)} passes")
 
     def info(self) -> dict:
         wall = max(self.wall_s, 1e-9)
@@ -319,6 +329,10 @@ class Coordinator:
         }
 
     def close(self) -> None:
-        if self._own_pool and self.pool is not None:
+        if self.pool is None:
+            return
+        if self._pools is not None:
+            self._pools.release(self.pool)
+        else:
             self.pool.close()
-        self.pool = None if self._own_pool else self.pool
+        self.pool = None

@@ -26,10 +26,30 @@ from workers.world import EVERYWHERE, ShardWorld
 
 log = logging.getLogger(__name__)
 
-# A shard that keeps dying (out of memory in its constructor, say) fails the job instead of
-# restarting for ever.
-MAX_SHARD_RESTARTS = 4
-READY_TIMEOUT_S = 600.0  # loading, planning and warming one shard
+# A shard killed mid-render restarts; one that keeps dying (in its constructor, say out of
+# memory) must fail the job rather than restart for ever.
+MAX_SHARD_RESTARTS = 3
+READY_TIMEOUT_S = 300.0  # placement group, and each shard's start-up and warm-up, seconds
+
+
+class ShardsLost(RuntimeError):
+    """Shards did not come back after restarts: a node was lost. The job manager retries
+    the render from its checkpoint on fresh shards."""
+
+
+class ShardStartError(RuntimeError):
+    """The shards could not be started; the message says which and why."""
+
+
+def _wait_ready(ref, what: str):
+    """ray.get with a deadline: a shard that cannot start (dead node, out of memory in its
+    constructor) fails the job with the reason instead of holding it forever."""
+    try:
+        return ray.get(ref, timeout=READY_TIMEOUT_S)
+    except ray.exceptions.GetTimeoutError:
+        raise ShardStartError(f"{what} was not ready within {READY_TIMEOUT_S:g} s") from None
+    except ray.exceptions.RayActorError as e:
+        raise ShardStartError(f"{what} did not start: {e}") from e
 
 
 def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None, train=True):
@@ -76,6 +96,7 @@ class ShardPool:
         t0 = time.perf_counter()
         self.key = pool_key(scene, settings)
         self.jobs = 0  # coordinators that ran on it
+        self.registered = False  # kept by a PoolRegistry
         self.scene_name, self.k, self.mode = scene.name, settings.shards, settings.mode
         self.partition = partition(scene, self.k)
         owner = np.asarray(self.partition.instance_shard, np.int32).copy()
@@ -93,7 +114,7 @@ class ShardPool:
                     held.add(m)
         self.world = ShardWorld.build(scene, owner)
         acquire_ray(ray_address)
-        self.pg, self.actors = None, []
+        self.pg, self.actors, self.warm_s = None, [], [0.0]
         try:
             self._start(scene, settings, shard_meshes, proxies, shard_options)
         except BaseException:
@@ -113,7 +134,8 @@ class ShardPool:
         # two jobs would otherwise wait on each other forever.
         if shard_options is None:
             self.pg = placement_group([{"CPU": per_shard_cpu}] * self.k, strategy="SPREAD")
-            ray.get(self.pg.ready(), timeout=READY_TIMEOUT_S)
+            _wait_ready(self.pg.ready(), f"a placement group of {self.k} x "
+                        f"{per_shard_cpu:g} CPU ({cpus:g} CPUs in the cluster)")
         # A restarted actor re-reads its constructor arguments from the object store, so
         # they must outlive the constructor (ray-project/ray#53727).
         self._init_refs = [world_ref, all_ref]
@@ -131,9 +153,10 @@ class ShardPool:
                 ShardConfig(sid, self.k, settings), world_ref, meshes_ref, proxies_ref, all_ref)
             self.actors.append(actor)
             self._init_refs += [meshes_ref, proxies_ref]
-        self.shard_info = ray.get([a.ready.remote() for a in self.actors],
-                                  timeout=READY_TIMEOUT_S)
-        self.warm_s = ray.get([a.warm.remote() for a in self.actors], timeout=READY_TIMEOUT_S)
+        self.shard_info = [_wait_ready(a.ready.remote(), f"shard {sid}")
+                           for sid, a in enumerate(self.actors)]
+        self.warm_s = [_wait_ready(a.warm.remote(), f"shard {sid} (warming its kernels)")
+                       for sid, a in enumerate(self.actors)]
 
     def __repr__(self) -> str:
         return f"ShardPool({self.scene_name!r}, k={self.k}, mode={self.mode!r})"
@@ -179,7 +202,16 @@ class PoolRegistry:
     @contextmanager
     def lease(self, scene: Scene, settings: RenderSettings, **pool_kwargs):
         """A warm pool for (scene, placement), exclusive while the block runs."""
-        key, shared = pool_key(scene, settings), False
+        pool = self.acquire(scene, settings, **pool_kwargs)
+        try:
+            yield pool
+        finally:
+            self.release(pool)
+
+    def acquire(self, scene: Scene, settings: RenderSettings, **pool_kwargs) -> ShardPool:
+        """A warm pool for (scene, placement), exclusive until `release`: the registered
+        one if it is idle and alive, else a new one (registered unless the key is busy)."""
+        key = pool_key(scene, settings)
         with self._lock:
             pool = self._pools.get(key)
             reuse = pool is not None and key not in self._busy
@@ -190,25 +222,26 @@ class PoolRegistry:
             log.warning("%r lost its shards; starting a new one", pool)
             self._drop(key)
             reuse = False
-        if not reuse:
-            self._make_room(settings)
-            pool = ShardPool(scene, settings, **pool_kwargs)
-            self.started += 1
-            with self._lock:
-                shared = key not in self._pools
-                if shared:  # a second job on a busy pool gets a private one
-                    self._pools[key] = pool
-                    self._busy.add(key)
-        try:
-            yield pool
-        finally:
-            pool.last_used = time.monotonic()
-            if reuse or shared:
-                with self._lock:
-                    self._busy.discard(key)
-                self._evict(keep_bytes=self.max_bytes, keep_pools=self.max_pools)
-            else:
-                pool.close()
+        if reuse:
+            return pool
+        self._make_room(settings)
+        pool = ShardPool(scene, settings, **pool_kwargs)
+        self.started += 1
+        with self._lock:
+            pool.registered = key not in self._pools  # else a private pool for this job
+            if pool.registered:
+                self._pools[key] = pool
+                self._busy.add(key)
+        return pool
+
+    def release(self, pool: ShardPool) -> None:
+        pool.last_used = time.monotonic()
+        if not pool.registered:
+            pool.close()
+            return
+        with self._lock:
+            self._busy.discard(pool.key)
+        self._evict(keep_bytes=self.max_bytes, keep_pools=self.max_pools)
 
     def _make_room(self, settings: RenderSettings) -> None:
         """Evict idle pools until the new one fits the bounds and the free CPUs."""

@@ -79,15 +79,16 @@ class RenderResult:
 
 
 def make_renderer(scene: Scene, settings: RenderSettings, ray_address: str | None = None,
-                  proxy_dir=None, pool=None):
-    """The reference renderer for shards == 0, else a coordinator (on `pool` if given)."""
+                  proxy_dir=None, pools=None):
+    """The reference renderer for shards == 0, else a coordinator (on a warm pool from the
+    PoolRegistry `pools` if given)."""
     if settings.shards == 0:
         from workers.reference import ReferenceRenderer
 
         return ReferenceRenderer(scene, settings)
     from workers.coordinator import Coordinator
 
-    return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir, pool=pool)
+    return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir, pools=pools)
 
 
 def render(scene: Scene, settings: RenderSettings, *,

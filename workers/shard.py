@@ -191,6 +191,8 @@ class Shard:
         return ExactPolicy(self.world, self.id, self.remote)
 
     def __repr__(self) -> str:
+        if "local" not in self.__dict__:  # Ray prints a shard whose __init__ raised
+            return f"Shard({self.__dict__.get('id', '?')}, not started)"
         return (f"Shard({self.id}/{self.k}, {len(self.meshes)} meshes, "
                 f"{len(self.local.instances)} local instances)")
 

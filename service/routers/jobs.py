@@ -2,59 +2,80 @@
 
 from __future__ import annotations
 
-import asyncio
 from typing import Annotated
 
-from fastapi import APIRouter, HTTPException, Query, Response, status
+from fastapi import APIRouter, Header, HTTPException, Query, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sse_starlette.sse import EventSourceResponse
 
 from service.deps import ManagerDep, TokenDep
-from service.errors import InvalidJob
-from service.schemas import JobCreate, JobPublic, JobsPublic, JobState, TileEvent
+from service.errors import InvalidJob, TooManyWatchers
+from service.events import AsyncWatch
+from service.schemas import (
+    JobCreate,
+    JobPublic,
+    JobsPublic,
+    JobState,
+    TileEvent,
+    error_responses,
+)
 from service.store import TERMINAL
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 _MEDIA = {"png": "image/png", "exr": "image/x-exr"}
 SSE_PING_S = 15
+# Job records are SQLite rows read or written in well under a millisecond: those calls run
+# on the event loop. A hop to a worker thread would cost more, and would wait behind the
+# render threads for the GIL under load. Image encoding does go to a thread.
+MAX_OFFSET = (1 << 31) - 1  # SQLite takes 64-bit offsets; nobody pages past 2^31 jobs
 
 
-@router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep])
-async def create_job(body: JobCreate, manager: ManagerDep, response: Response) -> JobPublic:
+@router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep],
+             responses=error_responses(400, 401, 409))
+async def create_job(body: JobCreate, manager: ManagerDep, response: Response,
+                     idempotency_key: Annotated[str | None, Header(
+                         min_length=1, max_length=200,
+                         description="a retried request with the same key returns the job "
+                                     "the first one created (header Idempotent-Replayed)")
+                     ] = None) -> JobPublic:
     """Store the job and queue it; rendering starts when a slot is free."""
     try:
-        rec = await run_in_threadpool(manager.submit, body.scene, body.render_settings())
+        rec, created = manager.submit(body.scene, body.render_settings(), idempotency_key)
     except InvalidJob as e:
         # Same shape as FastAPI's own validation errors, so clients see the field.
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, [
             {"type": "value_error", "loc": ["body", e.field], "msg": str(e),
              "input": getattr(body, e.field)}]) from None
     response.headers["Location"] = f"/v1/jobs/{rec.id}"
+    if not created:
+        response.headers["Idempotent-Replayed"] = "true"
     return JobPublic.from_record(rec)
 
 
 @router.get("")
 async def list_jobs(manager: ManagerDep,
-                    offset: Annotated[int, Query(ge=0)] = 0,
+                    offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
                     limit: Annotated[int, Query(ge=1, le=500)] = 50,
                     state: JobState | None = None) -> JobsPublic:
     """Jobs, newest first."""
-    recs, count = await run_in_threadpool(manager.list, offset, limit, state)
+    recs, count = manager.list(offset, limit, state)
     return JobsPublic(data=[JobPublic.from_record(r) for r in recs], count=count,
                       offset=offset, limit=limit)
 
 
-@router.get("/{job_id}")
+@router.get("/{job_id}", responses=error_responses(404))
 async def get_job(job_id: str, manager: ManagerDep) -> JobPublic:
-    return JobPublic.from_record(await run_in_threadpool(manager.get, job_id))
+    return JobPublic.from_record(manager.get(job_id))
 
 
-@router.post("/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep])
+@router.post("/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep],
+             responses=error_responses(401, 404, 409))
 async def cancel_job(job_id: str, manager: ManagerDep) -> JobPublic:
-    """Queued jobs cancel at once; running ones stop at the next pass boundary (409 if the
-    job already finished)."""
-    return JobPublic.from_record(await run_in_threadpool(manager.cancel, job_id))
+    """The cancel is stored first (it survives a restart): a queued job is canceled at
+    once, a running one stops at its next pass boundary and ends canceled (409 if the job
+    already finished)."""
+    return JobPublic.from_record(manager.cancel(job_id))
 
 
 async def _image(manager, job_id: str, fmt: str) -> Response:
@@ -67,14 +88,15 @@ async def _image(manager, job_id: str, fmt: str) -> Response:
 @router.get("/{job_id}/image.png", response_class=Response,
             responses={200: {"content": {"image/png": {}},
                              "description": "sRGB PNG; partial while running "
-                                            "(header X-Nprt-Partial)"}})
+                                            "(header X-Nprt-Partial)"}} | error_responses(404))
 async def get_image_png(job_id: str, manager: ManagerDep) -> Response:
     return await _image(manager, job_id, "png")
 
 
 @router.get("/{job_id}/image.exr", response_class=Response,
             responses={200: {"content": {"image/x-exr": {}},
-                             "description": "linear float32 OpenEXR; partial while running"}})
+                             "description": "linear float32 OpenEXR; partial while running"}}
+            | error_responses(404))
 async def get_image_exr(job_id: str, manager: ManagerDep) -> Response:
     return await _image(manager, job_id, "exr")
 
@@ -82,38 +104,37 @@ async def get_image_exr(job_id: str, manager: ManagerDep) -> Response:
 @router.get("/{job_id}/events", response_class=EventSourceResponse,
             responses={200: {"content": {"text/event-stream": {}}, "description":
                              "`state` events (JobPublic JSON) on connect and on every change, "
-                             "`tile` events (TileEvent JSON) per finished pass, then `end`"}})
+                             "`tile` events (TileEvent JSON) per finished pass, then `end`; "
+                             "a slow reader gets the latest tile of each rectangle"}}
+            | error_responses(404, 503))
 async def job_events(job_id: str, manager: ManagerDep) -> EventSourceResponse:
-    await run_in_threadpool(manager.get, job_id)  # 404 before the stream starts
+    manager.get(job_id)  # 404 before the stream starts
+    manager.broker.check_capacity()  # 503 likewise
     return EventSourceResponse(_events(manager, job_id), ping=SSE_PING_S)
 
 
 async def _events(manager, job_id: str):
-    loop = asyncio.get_running_loop()
-    q: asyncio.Queue[dict] = asyncio.Queue()
-
-    def deliver(event: dict) -> None:
-        try:
-            loop.call_soon_threadsafe(q.put_nowait, event)
-        except RuntimeError:  # the loop closed under a late event
-            pass
-
-    # Subscribe before the snapshot so nothing falls between them (duplicates are harmless).
-    unsubscribe = manager.subscribe(job_id, deliver)
     try:
-        rec = await run_in_threadpool(manager.get, job_id)
-        while True:
-            if rec is not None:
-                yield {"event": "state", "data": JobPublic.from_record(rec).model_dump_json()}
-                if rec.state in TERMINAL:
-                    yield {"event": "end", "data": rec.state}
-                    return
-            ev = await q.get()
-            rec = None
-            if ev["type"] == "tile":
-                tile = TileEvent(**{k: ev[k] for k in TileEvent.model_fields})
-                yield {"event": "tile", "data": tile.model_dump_json()}
-            else:
-                rec = ev["job"]
-    finally:
-        unsubscribe()
+        # Subscribe before the snapshot so nothing falls between them (duplicates are harmless).
+        watch = AsyncWatch(lambda notify: manager.watch(job_id, notify))
+    except TooManyWatchers as e:  # the limit filled up since the check
+        yield {"event": "error", "data": str(e)}
+        return
+    async with watch:
+        rec = manager.get(job_id)
+        yield _state(rec)
+        while rec.state not in TERMINAL:
+            for ev in await watch.next_events():
+                if ev["type"] == "tile":
+                    tile = TileEvent(**{k: ev[k] for k in TileEvent.model_fields})
+                    yield {"event": "tile", "data": tile.model_dump_json()}
+                else:
+                    rec = ev["job"]
+                    yield _state(rec)
+                    if rec.state in TERMINAL:
+                        break
+        yield {"event": "end", "data": rec.state}
+
+
+def _state(rec) -> dict:
+    return {"event": "state", "data": JobPublic.from_record(rec).model_dump_json()}

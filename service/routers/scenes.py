@@ -15,7 +15,7 @@ from starlette.formparsers import MultiPartParser
 from service.deps import ScenesDep, SettingsDep, TokenDep
 from service.errors import BadUpload, TooLarge
 from service.scenes import demo_names
-from service.schemas import ScenePublic, ScenesPublic
+from service.schemas import ErrorPublic, ScenePublic, ScenesPublic, error_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
 
@@ -73,10 +73,11 @@ async def _spool(request: Request, dest: Path, max_bytes: int) -> tuple[str, int
 
 @router.post("", status_code=status.HTTP_201_CREATED, dependencies=[TokenDep],
              openapi_extra=_UPLOAD_BODY,
-             responses={200: {"description": "identical upload already stored"},
-                        400: {"description": "unknown format or unsafe zip"},
-                        413: {"description": "over NPRT_MAX_UPLOAD_BYTES"},
-                        422: {"description": "the scene does not load (SceneError message)"}})
+             responses={200: {"model": ScenePublic,
+                              "description": "identical upload already stored"}}
+             | error_responses(400, 401, 413)
+             | {422: {"model": ErrorPublic,
+                      "description": "the scene does not load (SceneError message)"}})
 async def upload_scene(request: Request, response: Response, scenes: ScenesDep,
                        settings: SettingsDep,
                        filename: Annotated[str | None, Query(max_length=200, description=
@@ -106,7 +107,7 @@ async def list_scenes(scenes: ScenesDep) -> ScenesPublic:
     return ScenesPublic(data=demos + uploads, count=len(demos) + len(uploads))
 
 
-@router.get("/{scene_id}")
+@router.get("/{scene_id}", responses=error_responses(404))
 async def get_scene(scene_id: str, scenes: ScenesDep) -> ScenePublic:
     """One scene with its summary (a demo is built on first request, then cached)."""
     return ScenePublic.from_meta(await run_in_threadpool(scenes.describe, scene_id))

@@ -132,3 +132,14 @@ class HeldSlots:
             wait_for(lambda j=job_id: self.client.get(f"/v1/jobs/{j}").json()["state"]
                      == "canceled", 30, what=f"blocker {job_id} canceled")
         self.client.close()
+
+
+def stored_queued_job(server: LiveServer, settings: dict | None = None) -> str:
+    """A job stored as queued but never handed to a worker: it stays queued, and watchers
+    stay open on it, until the test cancels it. Costs no rendering."""
+    import uuid
+
+    job_id = uuid.uuid4().hex
+    manager = server.app.state.manager
+    manager.store.insert(job_id, "forest:tiny", {**TINY, **(settings or {})}, passes_total=8)
+    return job_id

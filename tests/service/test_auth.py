@@ -60,3 +60,28 @@ def test_grpc_writes_need_the_token_in_metadata(guarded):
             assert e.value.details() == "missing or wrong bearer token"
         job = stub.SubmitJob(request, metadata=(("authorization", f"Bearer {TOKEN}"),))
         assert stub.GetJob(pb.GetJobRequest(job_id=job.id)).id == job.id  # reads stay open
+
+
+@pytest.mark.parametrize("scheme", ["bearer", "BEARER", "Bearer"])
+def test_bearer_scheme_is_case_insensitive_on_rest_and_grpc(anon, guarded, scheme):
+    r = anon.post("/v1/jobs", json={"scene": "forest:tiny", **TINY},
+                  headers={"Authorization": f"{scheme} {TOKEN}"})
+    assert r.status_code == 202, r.text
+    with grpc.insecure_channel(guarded.grpc_target) as ch:
+        stub = nprt_pb2_grpc.RenderServiceStub(ch)
+        job = stub.CancelJob(pb.CancelJobRequest(job_id=r.json()["id"]),
+                             metadata=(("authorization", f"{scheme} {TOKEN}"),), timeout=10)
+        assert job.id == r.json()["id"] and job.cancel_requested
+
+
+@pytest.mark.parametrize("body", [b"{not json", b"\xff\xfe", b'{"scene": ' + b"[" * 10_000])
+def test_token_is_checked_before_the_body_is_parsed(anon, body):
+    r = anon.post("/v1/jobs", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 401 and r.json() == {"detail": "missing bearer token"}
+    r = anon.post("/v1/jobs", content=body, headers={"Content-Type": "application/json",
+                                                     "Authorization": "Bearer wrong"})
+    assert r.status_code == 401 and r.json() == {"detail": "wrong bearer token"}
+    ok = anon.post("/v1/jobs", content=body, headers={"Content-Type": "application/json",
+                                                      "Authorization": f"Bearer {TOKEN}"})
+    # With the token the body is read: 422 for bad JSON, 400 for JSON nested too deeply.
+    assert ok.status_code in (400, 422) and "detail" in ok.json()

@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 import grpc
+import httpx
 import numpy as np
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from protos import nprt_pb2 as pb
 from protos import nprt_pb2_grpc
-from tests.service.helpers import TINY, HeldSlots, png_pixels
+from tests.service.helpers import (
+    TINY,
+    HeldSlots,
+    LiveServer,
+    png_pixels,
+    settings_for,
+    stored_queued_job,
+)
 from workers.film import read_exr, tonemap_srgb
 
 
@@ -120,3 +128,48 @@ def test_tile_over_message_limit_is_sent_without_pixels():
     dropped = tile_to_pb(ev, pb.TILE_FORMAT_RGB_F32, max_bytes=16 * 1024)
     assert dropped.format == pb.TILE_FORMAT_NONE and dropped.pixels == b""
     assert (dropped.rect.x1, dropped.rect.y1, dropped.progress) == (64, 32, 1.0)
+
+
+STREAMS = 40
+ANSWER_DEADLINE_S = 1.0
+
+
+def test_open_watch_streams_do_not_starve_health_or_get_job(live, channel, stub):
+    """Each WatchJob stream once held one of 32 server threads: 40 of them starved every
+    other rpc. Now they wait on the event loop."""
+    job_id = stored_queued_job(live)
+    streams = [stub.WatchJob(pb.WatchJobRequest(job_id=job_id), timeout=60)
+               for _ in range(STREAMS)]
+    firsts = [next(s) for s in streams]  # every stream is open and subscribed
+    assert all(f.job.state == pb.JOB_STATE_QUEUED for f in firsts)
+    health = health_pb2_grpc.HealthStub(channel)
+    for _ in range(5):
+        reply = health.Check(health_pb2.HealthCheckRequest(service=""),
+                             timeout=ANSWER_DEADLINE_S)
+        assert reply.status == health_pb2.HealthCheckResponse.SERVING
+        assert stub.GetJob(pb.GetJobRequest(job_id=job_id),
+                           timeout=ANSWER_DEADLINE_S).state == pb.JOB_STATE_QUEUED
+    assert live.app.state.manager.broker.subscribers(job_id) == STREAMS
+    stub.CancelJob(pb.CancelJobRequest(job_id=job_id), timeout=10)
+    for s in streams:  # each ends with the terminal state
+        assert [e.job.state for e in s] == [pb.JOB_STATE_CANCELED]
+
+
+def test_watch_streams_over_the_limit_get_resource_exhausted(tmp_path):
+    with LiveServer(settings_for(tmp_path, max_watchers=2), grpc=True) as server, \
+            grpc.insecure_channel(server.grpc_target) as ch:
+        stub = nprt_pb2_grpc.RenderServiceStub(ch)
+        job_id = stored_queued_job(server)
+        streams = [stub.WatchJob(pb.WatchJobRequest(job_id=job_id), timeout=60)
+                   for _ in range(2)]
+        assert all(next(s).job.state == pb.JOB_STATE_QUEUED for s in streams)
+        with pytest.raises(grpc.RpcError) as e:
+            next(stub.WatchJob(pb.WatchJobRequest(job_id=job_id), timeout=10))
+        assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
+        assert "NPRT_MAX_WATCHERS" in e.value.details()
+        sse = httpx.get(f"{server.url}/v1/jobs/{job_id}/events", timeout=10)
+        assert sse.status_code == 503 and "NPRT_MAX_WATCHERS" in sse.json()["detail"]
+        stub.CancelJob(pb.CancelJobRequest(job_id=job_id), timeout=10)
+        for s in streams:
+            assert [ev.job.state for ev in s] == [pb.JOB_STATE_CANCELED]
+        assert server.app.state.manager.broker.subscribers(job_id) == 0

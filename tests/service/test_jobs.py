@@ -158,3 +158,83 @@ def test_dashboard_and_openapi_are_served(client):
     assert client.get("/docs").status_code == 200
     paths = client.get("/openapi.json").json()["paths"]
     assert {"/v1/jobs", "/v1/jobs/{job_id}/events", "/v1/scenes"} <= set(paths)
+
+
+@pytest.mark.parametrize("field,value", [
+    ("spp", "NaN"), ("width", "Infinity"), ("seed", "-Infinity"),
+    ("proxy.threshold", "NaN"), ("proxy.budget_s", "Infinity")])
+def test_non_finite_numbers_are_422_naming_the_field(client, field, value):
+    """Python's JSON reader takes NaN and Infinity; the 422 must still encode them."""
+    head, _, sub = field.partition(".")
+    literal = f'{{"{sub}": {value}}}' if sub else value
+    body = f'{{"scene": "forest:tiny", "mode": "proxy", "shards": 2, "{head}": {literal}}}'
+    r = client.post("/v1/jobs", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422, r.text
+    err = r.json()["detail"][0]
+    assert err["loc"] == ["body", *field.split(".")] and err["input"] == value
+
+
+@pytest.mark.parametrize("offset", [2**31, 2**63, 10**30])
+def test_out_of_range_paging_is_422(client, offset):
+    r = client.get("/v1/jobs", params={"offset": offset})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["query", "offset"]
+
+
+def test_job_over_the_sample_cap_is_refused_at_once_naming_the_limit(client, live):
+    """4096x4096 in 8-pixel tiles at 4096 spp: within every other limit, 1.07e9 passes and
+    6.9e10 samples. Refused without building anything; the service keeps answering."""
+    limit = live.settings.max_job_samples
+    job = {"scene": "forest:tiny", "width": 4096, "height": 4096, "spp": 4096,
+           "tile_size": 8, "spp_per_pass": 1}
+    r = client.post("/v1/jobs", json=job)
+    assert r.status_code == 422
+    detail = r.json()["detail"][0]
+    assert detail["loc"] == ["body", "spp"] and detail["msg"] == (
+        f"4096x4096 x 4096 spp = {4096 ** 3} samples is over the service limit of {limit} "
+        "(NPRT_MAX_JOB_SAMPLES)")
+    assert client.get("/healthz").json() == {"status": "ok"}
+
+
+def test_passes_total_is_counted_with_partial_tiles_and_chunks(client):
+    job = {"scene": "forest:tiny", "width": 100, "height": 40, "spp": 7, "tile_size": 32,
+           "spp_per_pass": 3}
+    r = client.post("/v1/jobs", json=job)
+    assert r.status_code == 202, r.text
+    assert r.json()["passes_total"] == 3 * 2 * 4  # ceil(7/3) chunks x ceil(40/32) x ceil(100/32)
+    assert client.post(f"/v1/jobs/{r.json()['id']}/cancel").status_code in (202, 409)
+
+
+def test_same_idempotency_key_returns_the_same_job(client):
+    job = {"scene": "forest:tiny", **TINY, "seed": 7}
+    key = {"Idempotency-Key": "client-retry-42"}
+    first = client.post("/v1/jobs", json=job, headers=key)
+    again = client.post("/v1/jobs", json=job, headers=key)
+    assert first.status_code == again.status_code == 202
+    assert again.json()["id"] == first.json()["id"]
+    assert again.headers["idempotent-replayed"] == "true"
+    assert "idempotent-replayed" not in first.headers
+    listed = client.get("/v1/jobs", params={"limit": 500}).json()["data"]
+    assert sum(j["settings"]["seed"] == 7 for j in listed) == 1
+    other = client.post("/v1/jobs", json={**job, "spp": 2}, headers=key)
+    assert other.status_code == 409
+    assert other.json() == {"detail": f"Idempotency-Key 'client-retry-42' was used for job "
+                                      f"{first.json()['id']} with a different request"}
+    fresh = client.post("/v1/jobs", json=job, headers={"Idempotency-Key": "another"})
+    assert fresh.status_code == 202 and fresh.json()["id"] != first.json()["id"]
+    for job_id in (first.json()["id"], fresh.json()["id"]):
+        client.post(f"/v1/jobs/{job_id}/cancel")
+
+
+def test_cancel_of_a_running_job_is_stored_and_reported(client):
+    long = {**TINY, "width": 64, "height": 64, "spp": 512, "tile_size": 16, "spp_per_pass": 1}
+    job_id = client.post("/v1/jobs", json={"scene": "forest:tiny", **long}).json()["id"]
+    wait_for(lambda: client.get(f"/v1/jobs/{job_id}").json()["state"] == "running", 60,
+             what="job running")
+    r = client.post(f"/v1/jobs/{job_id}/cancel")
+    assert r.status_code == 202
+    assert r.json()["cancel_requested"] is True
+    assert r.json()["state"] in ("running", "canceled")
+    final = wait_for(lambda: (j := client.get(f"/v1/jobs/{job_id}").json())["state"]
+                     in ("succeeded", "failed", "canceled") and j, 30, what="job stopped")
+    assert final["state"] == "canceled" and final["cancel_requested"]

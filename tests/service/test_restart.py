@@ -98,3 +98,37 @@ def test_killed_service_resumes_job_from_checkpoint(tmp_path):
     settings = RenderSettings(**{k: v for k, v in JOB.items() if k != "scene"})
     direct = render(load_any(JOB["scene"]), settings)
     np.testing.assert_array_equal(png_pixels(png), tonemap_srgb(direct.film.image()))
+
+
+# One pass of 128x128 x 16 samples: the cancel is stored long before the renderer reaches
+# the pass boundary where it would act on it.
+ONE_LONG_PASS = {"scene": "forest:tiny", "width": 128, "height": 128, "spp": 16,
+                 "bounces": 3, "shadow_rays": 1, "tile_size": 128, "spp_per_pass": 16}
+
+
+def test_canceled_job_stays_canceled_after_kill_and_restart(tmp_path):
+    data = tmp_path / "data"
+    log_path = tmp_path / "service.log"
+    proc, url = _start(data, log_path)
+    try:
+        job_id = httpx.post(f"{url}/v1/jobs", json=ONE_LONG_PASS, timeout=10).json()["id"]
+        wait_for(lambda: httpx.get(f"{url}/v1/jobs/{job_id}").json()["state"] == "running",
+                 60, interval_s=0.01, what="job running")
+        r = httpx.post(f"{url}/v1/jobs/{job_id}/cancel", timeout=10)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert r.status_code == 202 and r.json()["cancel_requested"], r.text
+
+    proc, url = _start(data, log_path)
+    try:
+        job = httpx.get(f"{url}/v1/jobs/{job_id}").json()
+        assert job["state"] == "canceled" and job["cancel_requested"], job
+        again = httpx.post(f"{url}/v1/jobs/{job_id}/cancel", timeout=10)
+        assert again.status_code == 409
+    finally:
+        proc.terminate()
+        proc.wait(15)
+    assert not (data / "jobs" / job_id / "image.png").exists()
