@@ -11,6 +11,7 @@ from protos import nprt_pb2 as pb
 from protos import nprt_pb2_grpc
 from service.errors import Conflict, InvalidJob, InvalidScene, NotFound, ServiceError
 from service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
+from service.grpc_logs import JobLogServicer
 from service.manager import JobManager
 from service.store import TERMINAL
 
@@ -35,7 +36,7 @@ def _validation_message(e: ValidationError) -> str:
                      f"(got {err.get('input')!r})" for err in e.errors())
 
 
-class RenderServicer(nprt_pb2_grpc.RenderServiceServicer):
+class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
     def __init__(self, manager: JobManager, max_message_bytes: int):
         self.manager = manager
         self.max_message_bytes = max_message_bytes

@@ -13,6 +13,7 @@ from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 from protos import nprt_pb2, nprt_pb2_grpc
 from service.config import ServiceSettings
 from service.grpc_api import RenderServicer
+from service.grpc_reflection import enable_reflection
 from service.manager import JobManager
 
 log = logging.getLogger(__name__)
@@ -56,6 +57,7 @@ def start_grpc_server(manager: JobManager, settings: ServiceSettings, host: str,
     nprt_pb2_grpc.add_RenderServiceServicer_to_server(RenderServicer(manager, limit), server)
     health_servicer = health.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    enable_reflection(server)
     bound = server.add_insecure_port(f"{host}:{port}")
     if bound == 0:
         raise OSError(f"gRPC could not bind {host}:{port}")

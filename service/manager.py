@@ -8,6 +8,7 @@ import contextlib
 import json
 import logging
 import queue
+import shutil
 import threading
 import time
 import uuid
@@ -151,6 +152,15 @@ class JobManager:
             self._set_state(job_id, "canceled", finished_at=time.time())
         log.info("job %s: cancel requested (was %s)", job_id, rec.state)
         return self.get(job_id)
+
+    def delete(self, job_id: str) -> None:
+        """Forget a terminal job: its row and its folder (image, checkpoint, job.log)."""
+        rec = self.get(job_id)
+        if rec.state not in TERMINAL:
+            raise Conflict(f"job {job_id} is {rec.state}; cancel it before deleting it")
+        self.store.delete(job_id)
+        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+        log.info("job %s deleted", job_id)
 
     def subscribe(self, job_id: str, deliver: Deliver):
         return self.broker.subscribe(job_id, deliver)

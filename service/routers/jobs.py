@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
-from typing import Annotated
+import base64
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, HTTPException, Query, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sse_starlette.sse import EventSourceResponse
 
+from service import images
 from service.deps import ManagerDep, TokenDep
 from service.errors import InvalidJob
 from service.schemas import JobCreate, JobPublic, JobsPublic, JobState, TileEvent
@@ -83,12 +85,15 @@ async def get_image_exr(job_id: str, manager: ManagerDep) -> Response:
             responses={200: {"content": {"text/event-stream": {}}, "description":
                              "`state` events (JobPublic JSON) on connect and on every change, "
                              "`tile` events (TileEvent JSON) per finished pass, then `end`"}})
-async def job_events(job_id: str, manager: ManagerDep) -> EventSourceResponse:
+async def job_events(job_id: str, manager: ManagerDep,
+                     pixels: Annotated[Literal["none", "f16"], Query(
+                         description="f16: tile events carry the tile's pixels")] = "none"
+                     ) -> EventSourceResponse:
     await run_in_threadpool(manager.get, job_id)  # 404 before the stream starts
-    return EventSourceResponse(_events(manager, job_id), ping=SSE_PING_S)
+    return EventSourceResponse(_events(manager, job_id, pixels == "f16"), ping=SSE_PING_S)
 
 
-async def _events(manager, job_id: str):
+async def _events(manager, job_id: str, with_pixels: bool = False):
     loop = asyncio.get_running_loop()
     q: asyncio.Queue[dict] = asyncio.Queue()
 
@@ -111,7 +116,9 @@ async def _events(manager, job_id: str):
             ev = await q.get()
             rec = None
             if ev["type"] == "tile":
-                tile = TileEvent(**{k: ev[k] for k in TileEvent.model_fields})
+                tile = TileEvent(**{k: ev[k] for k in TileEvent.model_fields if k in ev})
+                if with_pixels:
+                    tile.pixels = base64.b64encode(images.f16_bytes(ev["rgb"])).decode()
                 yield {"event": "tile", "data": tile.model_dump_json()}
             else:
                 rec = ev["job"]

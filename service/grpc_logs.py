@@ -1,0 +1,41 @@
+"""RenderService.StreamJobLog: a job's job.log over gRPC (a mixin of the servicer, which
+provides self.manager)."""
+
+from __future__ import annotations
+
+import time
+
+import grpc
+
+from protos import nprt_pb2 as pb
+from service.errors import NotFound
+from service.joblog import LOG_NAME, LogTail, read_lines
+from service.store import TERMINAL
+
+LOG_POLL_S = 0.25  # how often a follower looks for new lines
+
+
+class JobLogServicer:
+    def StreamJobLog(self, request, context):
+        try:
+            self.manager.get(request.job_id)
+        except NotFound as e:
+            context.abort(grpc.StatusCode.NOT_FOUND, str(e))
+        path = self.manager.job_dir(request.job_id) / LOG_NAME
+        if not request.follow:
+            for text, end in read_lines(path, request.offset):
+                yield pb.LogLine(text=text, end_offset=end)
+            return
+        tail = LogTail(path, request.offset)
+        while context.is_active():
+            try:
+                rec = self.manager.get(request.job_id)
+            except NotFound:  # deleted while followed
+                return
+            lines, done = tail.poll(rec.state in TERMINAL, time.monotonic())
+            for text, end in lines:
+                yield pb.LogLine(text=text, end_offset=end)
+            if done:
+                return
+            if not lines:
+                time.sleep(LOG_POLL_S)
