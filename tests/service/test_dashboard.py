@@ -123,6 +123,7 @@ def test_job_page_from_the_form_draws_tiles_settings_times_log(server, watched, 
     expect(page.locator("#log-status")).to_have_text("complete (job succeeded)")
     expect(page.locator("#phase-svg rect").first).to_be_visible()
     expect(page.locator("#phase-caption")).to_contain_text("single-process render")
+    expect(page.locator("#phase-chart")).not_to_contain_text("null")
     expect(page.locator("#shard-panel")).to_contain_text("no shards")
     expect(page.locator("#cancel-button")).to_be_hidden()
     expect(page.locator("#requeue-button")).to_be_visible()
@@ -270,6 +271,8 @@ def test_proxy_job_shards_phases_and_ab_view_against_exact(server, watched, api,
     expect(page.locator("#phase-caption")).to_contain_text("summed over the 2 shards, "
                                                            "divided by 2")
     expect(page.locator("#phase-svg rect[data-phase='wall time']")).to_have_count(1)
+    expect(page.locator("#phase-chart li[data-phase=transfer_wait]")).to_contain_text(
+        "not a share of the wall time")  # it overlaps itself: shown apart from the bars
     # Phase bars are per-shard means: none may be longer than the wall-time bar.
     widths = page.eval_on_selector_all("#phase-svg rect", "rs => rs.map(r => "
                                        "[r.dataset.phase, r.width.baseVal.value])")

@@ -139,8 +139,8 @@ export function drawPhaseChart(job) {
     : "Seconds in each stage of the single-process render";
   const notes = Object.entries(OVERLAPPING).filter(([n]) => n in phases)
     .map(([n, why]) => el("li", { "data-phase": n }, `${n}: ${phases[n].toFixed(3)} s, ${why}`));
-  box.replaceChildren(chart, el("p", { class: "muted", id: "phase-caption" },
-    `${who}${wall ? ", against the job's wall time" : ""}.`), notes.length ? el("ul", { class: "muted" }, ...notes) : null);
+  const caption = el("p", { class: "muted", id: "phase-caption" }, `${who}${wall ? ", against the job's wall time" : ""}.`);
+  box.replaceChildren(chart, caption, ...(notes.length ? [el("ul", { class: "muted" }, ...notes)] : []));
 }
 
 // One cell per tile, shaded by the samples it holds; tile events raise a cell's count.
