@@ -226,3 +226,21 @@ class Image(_message.Message):
     height: int
     partial: bool
     def __init__(self, job_id: _Optional[str] = ..., format: _Optional[_Union[ImageFormat, str]] = ..., data: _Optional[bytes] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., partial: _Optional[bool] = ...) -> None: ...
+
+class StreamJobLogRequest(_message.Message):
+    __slots__ = ("job_id", "offset", "follow")
+    JOB_ID_FIELD_NUMBER: _ClassVar[int]
+    OFFSET_FIELD_NUMBER: _ClassVar[int]
+    FOLLOW_FIELD_NUMBER: _ClassVar[int]
+    job_id: str
+    offset: int
+    follow: bool
+    def __init__(self, job_id: _Optional[str] = ..., offset: _Optional[int] = ..., follow: _Optional[bool] = ...) -> None: ...
+
+class LogLine(_message.Message):
+    __slots__ = ("text", "end_offset")
+    TEXT_FIELD_NUMBER: _ClassVar[int]
+    END_OFFSET_FIELD_NUMBER: _ClassVar[int]
+    text: str
+    end_offset: int
+    def __init__(self, text: _Optional[str] = ..., end_offset: _Optional[int] = ...) -> None: ...

@@ -64,6 +64,11 @@ class RenderServiceStub:
                 request_serializer=nprt__pb2.GetImageRequest.SerializeToString,
                 response_deserializer=nprt__pb2.Image.FromString,
                 _registered_method=True)
+        self.StreamJobLog = channel.unary_stream(
+                '/nprt.v1.RenderService/StreamJobLog',
+                request_serializer=nprt__pb2.StreamJobLogRequest.SerializeToString,
+                response_deserializer=nprt__pb2.LogLine.FromString,
+                _registered_method=True)
 
 
 class RenderServiceServicer:
@@ -118,6 +123,15 @@ class RenderServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def StreamJobLog(self, request, context):
+        """The job's log (job.log: its render thread's records, INFO and above), one line per
+        message from `offset`; with `follow`, new lines as they are written until the job ends.
+        NOT_FOUND for an unknown id.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_RenderServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -150,6 +164,11 @@ def add_RenderServiceServicer_to_server(servicer, server):
                     servicer.GetImage,
                     request_deserializer=nprt__pb2.GetImageRequest.FromString,
                     response_serializer=nprt__pb2.Image.SerializeToString,
+            ),
+            'StreamJobLog': grpc.unary_stream_rpc_method_handler(
+                    servicer.StreamJobLog,
+                    request_deserializer=nprt__pb2.StreamJobLogRequest.FromString,
+                    response_serializer=nprt__pb2.LogLine.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -314,6 +333,33 @@ class RenderService:
             '/nprt.v1.RenderService/GetImage',
             nprt__pb2.GetImageRequest.SerializeToString,
             nprt__pb2.Image.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def StreamJobLog(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/nprt.v1.RenderService/StreamJobLog',
+            nprt__pb2.StreamJobLogRequest.SerializeToString,
+            nprt__pb2.LogLine.FromString,
             options,
             channel_credentials,
             insecure,

@@ -28,7 +28,7 @@ def add_proxy_parsers(subparsers) -> None:
     t.add_argument("--samples", type=int, default=ProxyConfig.n_samples,
                    help="training rays traced per mesh")
     t.add_argument("--out", default=None, help="cache directory (default ~/.cache/nprt/proxies)")
-    t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--seed", type=int, default=0, help="random seed of the training rays")
     t.add_argument("--size", default="default", help="demo size: default, small or tiny")
     t.add_argument("--force", action="store_true", help="retrain even when cached")
     t.set_defaults(func=run)

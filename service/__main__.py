@@ -1,13 +1,13 @@
 """`python -m service serve|submit ...`: the service subcommands without the full nprt CLI."""
 
-import argparse
 import sys
 
+from service.cli import OneLineParser
 from service.cli_serve import add_serve_parsers
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m service")
+    parser = OneLineParser(prog="python -m service")
     add_serve_parsers(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)
     return args.func(args)

@@ -31,7 +31,7 @@ from service.errors import (
     redact_paths,
 )
 from service.manager import JobManager
-from service.routers import jobs, scenes
+from service.routers import jobs, operations, scenes
 from service.scenes import SceneStore
 
 log = logging.getLogger(__name__)
@@ -78,6 +78,7 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
     app.add_middleware(TokenMiddleware, token=settings.api_token)
     app.include_router(scenes.router)
     app.include_router(jobs.router)
+    app.include_router(operations.router)
 
     @app.exception_handler(ServiceError)
     async def service_error(_: Request, exc: ServiceError) -> JSONResponse:

@@ -1,5 +1,5 @@
-"""The `nprt` command line: render, demo, scenes; serve/submit and proxy register their
-own subcommands."""
+"""The `nprt` command line: render, demo, scenes; serve/submit, jobs and proxy register
+their own subcommands."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ from pathlib import Path
 from pydantic import ValidationError
 
 from scene.errors import SceneError
+from service.logconfig import add_log_flags
 from service.preflight import CliError
 
 log = logging.getLogger(__name__)
@@ -19,8 +20,25 @@ log = logging.getLogger(__name__)
 _FLAG_OF = {("proxy", "width"): "--proxy-width", ("proxy", "budget_s"): "--proxy-budget-s"}
 
 
+class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Every option's help ends with its default, unless there is none to show (None, an
+    on/off flag, or a default the help already names)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        help_ = action.help or ""
+        if (action.default in (None, argparse.SUPPRESS) or action.nargs == 0
+                or "%(default)" in help_ or "default:" in help_):
+            return help_
+        return super()._get_help_string(action)
+
+
 class OneLineParser(argparse.ArgumentParser):
-    """argparse, but a usage error is one line `nprt: invalid option: ...`, exit 2."""
+    """argparse, but a usage error is one line `nprt: invalid option: ...`, exit 2; --help
+    shows defaults (subparsers are made with this class too, so theirs do as well)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", DefaultsFormatter)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):
         self.exit(2, f"nprt: invalid option: {self.prog}: {message} "
@@ -28,19 +46,23 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
-    p.add_argument("--width", type=int, default=defaults.get("width", 256))
-    p.add_argument("--height", type=int, default=defaults.get("height", 256))
+    p.add_argument("--width", type=int, default=defaults.get("width", 256),
+                   help="image width, pixels")
+    p.add_argument("--height", type=int, default=defaults.get("height", 256),
+                   help="image height, pixels")
     p.add_argument("--spp", type=int, default=defaults.get("spp", 16), help="samples per pixel")
     p.add_argument("--bounces", type=int, default=5, help="maximum bounces B")
     p.add_argument("--shadow-rays", type=int, default=4, help="shadow rays S per hit")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--russian-roulette", action="store_true")
+    p.add_argument("--seed", type=int, default=0, help="random seed")
+    p.add_argument("--russian-roulette", action="store_true",
+                   help="end low-throughput paths early (from depth 3)")
     p.add_argument("--shards", type=int, default=defaults.get("shards", 0),
                    help="K shard actors; 0 = single-process reference")
     p.add_argument("--mode", choices=["exact", "proxy", "oracle"],
-                   default=defaults.get("mode", "exact"))
-    p.add_argument("--tile-size", type=int, default=64)
-    p.add_argument("--spp-per-pass", type=int, default=defaults.get("spp_per_pass", 4))
+                   default=defaults.get("mode", "exact"), help="traversal policy of the shards")
+    p.add_argument("--tile-size", type=int, default=64, help="tile edge, pixels")
+    p.add_argument("--spp-per-pass", type=int, default=defaults.get("spp_per_pass", 4),
+                   help="samples per pixel that one pass renders")
     p.add_argument("--threshold", type=float, default=None,
                    help="proxy visibility threshold (default: each proxy's calibrated one)")
     p.add_argument("--band", type=float, default=0.1,
@@ -149,7 +171,10 @@ def cmd_scenes(a: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     ap = OneLineParser(prog="nprt", description=__doc__)
-    ap.add_argument("-v", "--verbose", action="store_true")
+    ap.add_argument("--version", action="version", version=f"%(prog)s {nprt_version()}")
+    ap.add_argument("-v", "--verbose", action="store_true",
+                    help="log at INFO and print tracebacks of internal errors")
+    add_log_flags(ap, global_=True)
     sub = ap.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("render", help="render a scene file or a demo scene")
@@ -160,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_render)
 
     p = sub.add_parser("demo", help="render a demo scene through the distributed path")
-    p.add_argument("--scene", default="forest")
+    p.add_argument("--scene", default="forest", help="demo scene name")
     p.add_argument("--out", default="out/demo", help="folder for images and statistics")
     p.add_argument("--modes", nargs="+", default=["exact", "proxy"],
                    choices=["exact", "proxy", "oracle"],
@@ -170,15 +195,34 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("scenes", help="list the demo scenes and their statistics")
     p.add_argument("--sizes", nargs="+", default=["default"],
-                   choices=["default", "small", "tiny"])
+                   choices=["default", "small", "tiny"], help="demo sizes to list")
     p.set_defaults(func=cmd_scenes)
 
     from proxies.cli import add_proxy_parsers
+    from service.cli_jobs import add_jobs_parser
     from service.cli_serve import add_serve_parsers
 
     add_serve_parsers(sub)
+    add_jobs_parser(sub)
     add_proxy_parsers(sub)
     return ap
+
+
+def nprt_version() -> str:
+    """The installed distribution's version; a source checkout that is not installed says
+    so rather than guess."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("nprt")
+    except PackageNotFoundError:
+        return "(not installed)"
+
+
+def log_level(args: argparse.Namespace) -> str:
+    if args.log_level:
+        return args.log_level
+    return "INFO" if args.verbose or args.command == "serve" else "WARNING"
 
 
 def _cmd_demo(a):
@@ -191,9 +235,10 @@ def _cmd_demo(a):
 
 
 def main(argv: list[str] | None = None) -> int:
+    from service.logconfig import configure_logging
+
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="%(levelname)s %(name)s: %(message)s")
+    configure_logging(log_level(args), args.log_json)
     try:
         return int(args.func(args) or 0)
     except CliError as e:

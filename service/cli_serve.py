@@ -10,6 +10,8 @@ import os
 import sys
 from pathlib import Path
 
+from service.logconfig import add_log_flags, configure_logging
+
 log = logging.getLogger(__name__)
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
@@ -33,21 +35,21 @@ def add_serve_parsers(subparsers) -> None:
     p.add_argument("--ray-address", help="Ray cluster to render on (default: local Ray)")
     p.add_argument("--max-jobs", type=int, help="jobs rendering at once "
                                                 "(NPRT_MAX_CONCURRENT_JOBS)")
-    p.add_argument("--log-level", default="INFO")
+    add_log_flags(p)
     p.set_defaults(func=cmd_serve)
 
     s = subparsers.add_parser("submit", help="submit a render job to a running service",
                               description="SCENE is a demo name (forest, city:small, "
                                           "sculpture:tiny), an uploaded scene id, or a local "
                                           ".glb/.gltf/.json/.zip file to upload first.")
-    s.add_argument("scene")
-    s.add_argument("--server", default=os.environ.get("NPRT_SERVER", DEFAULT_SERVER))
-    s.add_argument("--token", default=os.environ.get("NPRT_API_TOKEN"),
-                   help="bearer token (NPRT_API_TOKEN)")
+    s.add_argument("scene", help="demo name, uploaded scene id, or a scene file to upload")
+    add_server_flags(s)
     for flag, _, typ in _SETTING_FLAGS:
-        s.add_argument(flag, type=typ)
-    s.add_argument("--mode", choices=("exact", "proxy", "oracle"))
-    s.add_argument("--russian-roulette", action="store_true", default=None)
+        s.add_argument(flag, type=typ, help="(default: the server's)")
+    s.add_argument("--mode", choices=("exact", "proxy", "oracle"),
+                   help="traversal policy (default: the server's)")
+    s.add_argument("--russian-roulette", action="store_true", default=None,
+                   help="end low-throughput paths early")
     s.add_argument("--threshold", type=float, help="proxy visibility threshold")
     s.add_argument("--band", type=float, help="proxy confidence band, secondary rays")
     s.add_argument("--shadow-band", type=float, help="proxy confidence band, shadow rays")
@@ -57,8 +59,16 @@ def add_serve_parsers(subparsers) -> None:
     s.add_argument("--wait", action="store_true", help="follow progress until the job ends")
     s.add_argument("-o", "--output", type=Path,
                    help="save the final image here (.png or .exr); implies --wait")
-    s.add_argument("--timeout-s", type=float, default=30.0, help="HTTP request timeout")
     s.set_defaults(func=cmd_submit)
+
+
+def add_server_flags(p) -> None:
+    """--server, --token and --timeout-s: how a client subcommand reaches the service."""
+    p.add_argument("--server", default=os.environ.get("NPRT_SERVER", DEFAULT_SERVER),
+                   help="service base URL (NPRT_SERVER)")
+    p.add_argument("--token", default=os.environ.get("NPRT_API_TOKEN"),
+                   help="bearer token (NPRT_API_TOKEN)")
+    p.add_argument("--timeout-s", type=float, default=30.0, help="HTTP request timeout, s")
 
 
 def cmd_serve(args: argparse.Namespace) -> int:
@@ -67,8 +77,8 @@ def cmd_serve(args: argparse.Namespace) -> int:
     from service.app import create_app
     from service.config import ServiceSettings
 
-    logging.basicConfig(level=args.log_level.upper(),
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    level = getattr(args, "log_level", None) or "INFO"
+    configure_logging(level, getattr(args, "log_json", False))
     overrides = {k: v for k, v in (("data_dir", args.data_dir),
                                    ("ray_address", args.ray_address),
                                    ("max_concurrent_jobs", args.max_jobs)) if v is not None}
@@ -77,8 +87,9 @@ def cmd_serve(args: argparse.Namespace) -> int:
     app = create_app(settings, grpc_port=grpc_port, grpc_host=args.host)
     # grpc.aio shares uvicorn's loop and supports only the standard asyncio one (not uvloop);
     # httptools parses HTTP when installed (a dependency: a fifth of the CPU per request).
-    config = uvicorn.Config(app, host=args.host, port=args.port, log_level=args.log_level.lower(),
-                            timeout_graceful_shutdown=3, loop="asyncio")
+    # log_config=None: uvicorn's records go through the root handler (text or JSON) too.
+    config = uvicorn.Config(app, host=args.host, port=args.port, log_level=level.lower(),
+                            log_config=None, timeout_graceful_shutdown=3, loop="asyncio")
     uvicorn.Server(config).run()
     return 0
 

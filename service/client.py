@@ -1,4 +1,5 @@
-"""A small httpx client for the REST API, used by `nprt submit` and the benchmark."""
+"""A small httpx client for the REST API, used by `nprt submit`, `nprt jobs` and the
+benchmark."""
 
 from __future__ import annotations
 
@@ -56,12 +57,36 @@ class Client:
     def job(self, job_id: str) -> dict:
         return self._ok(self.http.get(f"/v1/jobs/{job_id}")).json()
 
+    def jobs(self, offset: int = 0, limit: int = 50, state: str | None = None) -> dict:
+        """One page of jobs, newest first: {data, count, offset, limit}."""
+        params = {"offset": offset, "limit": limit} | ({"state": state} if state else {})
+        return self._ok(self.http.get("/v1/jobs", params=params)).json()
+
+    def cancel(self, job_id: str) -> dict:
+        return self._ok(self.http.post(f"/v1/jobs/{job_id}/cancel")).json()
+
+    def delete(self, job_id: str) -> None:
+        self._ok(self.http.delete(f"/v1/jobs/{job_id}"))
+
+    def logs(self, job_id: str) -> str:
+        """The job's log so far."""
+        return self._ok(self.http.get(f"/v1/jobs/{job_id}/logs")).text
+
+    def follow_logs(self, job_id: str) -> Iterator[str]:
+        """Log lines as they are written, until the job ends."""
+        for event, data in self._sse(f"/v1/jobs/{job_id}/logs", {"follow": 1}):
+            if event == "log":
+                yield data
+
     def image(self, job_id: str, fmt: str = "png") -> bytes:
         return self._ok(self.http.get(f"/v1/jobs/{job_id}/image.{fmt}")).content
 
     def events(self, job_id: str) -> Iterator[tuple[str, str]]:
         """(event, data) pairs of the job's SSE stream until the server closes it."""
-        with self.http.stream("GET", f"/v1/jobs/{job_id}/events",
+        return self._sse(f"/v1/jobs/{job_id}/events")
+
+    def _sse(self, path: str, params: dict | None = None) -> Iterator[tuple[str, str]]:
+        with self.http.stream("GET", path, params=params,
                               timeout=httpx.Timeout(self.http.timeout.connect, read=None)) as r:
             if r.is_error:
                 r.read()

@@ -22,6 +22,7 @@ from service.errors import (
 )
 from service.events import AsyncWatch
 from service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
+from service.grpc_logs import JobLogServicer
 from service.manager import JobManager
 from service.store import TERMINAL
 
@@ -51,7 +52,7 @@ def _validation_message(e: ValidationError) -> str:
                      f"(got {err.get('input')!r})" for err in e.errors())
 
 
-class RenderServicer(nprt_pb2_grpc.RenderServiceServicer):
+class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
     def __init__(self, manager: JobManager, max_message_bytes: int):
         self.manager = manager
         self.max_message_bytes = max_message_bytes

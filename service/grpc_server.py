@@ -14,6 +14,7 @@ from protos import nprt_pb2, nprt_pb2_grpc
 from service.auth import bearer_error
 from service.config import ServiceSettings
 from service.grpc_api import RenderServicer
+from service.grpc_reflection import enable_reflection
 from service.manager import JobManager
 
 log = logging.getLogger(__name__)
@@ -53,6 +54,7 @@ async def start_grpc_server(manager: JobManager, settings: ServiceSettings, host
     nprt_pb2_grpc.add_RenderServiceServicer_to_server(RenderServicer(manager, limit), server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
+    enable_reflection(server)
     bound = server.add_insecure_port(f"{host}:{port}")
     if bound == 0:
         raise OSError(f"gRPC could not bind {host}:{port}")

@@ -35,6 +35,13 @@ def exr_bytes(img: np.ndarray) -> bytes:
         return path.read_bytes()
 
 
+def f16_bytes(img: np.ndarray) -> bytes:
+    """img : (h, w, 3) float32 linear -> little-endian float16 bytes, row-major, for the
+    dashboard (it applies exposure to linear values); clipped to float16's largest finite
+    value so an outlier is bright, not infinite."""
+    return np.clip(img, 0.0, 65504.0).astype("<f2").tobytes()
+
+
 def encode(img: np.ndarray, fmt: str) -> bytes:
     if fmt == "png":
         return png_bytes(img)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import logging
 import queue
+import shutil
 import sys
 import threading
 import time
@@ -190,6 +191,15 @@ class JobManager:
     def watch(self, job_id: str, notify: Notify) -> Subscription:
         """Collect `job_id`'s events for one watcher (TooManyWatchers over the limit)."""
         return self.broker.subscribe(job_id, notify)
+
+    def delete(self, job_id: str) -> None:
+        """Forget a terminal job: its row and its folder (image, checkpoint, job.log)."""
+        rec = self.get(job_id)
+        if rec.state not in TERMINAL:
+            raise Conflict(f"job {job_id} is {rec.state}; cancel it before deleting it")
+        self.store.delete(job_id)
+        shutil.rmtree(self.job_dir(job_id), ignore_errors=True)
+        log.info("job %s deleted", job_id)
 
     def image(self, job_id: str, fmt: str) -> tuple[bytes, bool]:
         """(encoded image, partial): the final file once succeeded, else the latest pass."""

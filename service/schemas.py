@@ -81,6 +81,8 @@ class TileEvent(BaseModel):
     sample0: int
     sample1: int
     progress: float = Field(ge=0.0, le=1.0)
+    pixels: str | None = Field(None, description="with ?pixels=f16 only: base64 of the "
+                               "tile's linear RGB so far, (h, w, 3) little-endian float16")
 
 
 class ScenePublic(BaseModel):

@@ -182,6 +182,11 @@ class JobStore:
             "state IN ('preparing', 'running') AND NOT cancel_requested AND retries < ?",
             (*values, job_id, max_retries))
 
+    def delete(self, job_id: str) -> bool:
+        """Remove the job's row; False if there was none."""
+        with self._lock:
+            return self._db.execute("DELETE FROM jobs WHERE id = ?", (job_id,)).rowcount > 0
+
     def list(self, offset: int = 0, limit: int = 50, state: str | None = None
              ) -> tuple[list[JobRecord], int]:
         """A page of jobs, newest first, and the count of all matching jobs."""
@@ -191,6 +196,19 @@ class JobStore:
                                     "LIMIT ? OFFSET ?", (*args, limit, offset)).fetchall()
             total = self._db.execute(f"SELECT COUNT(*) FROM jobs {where}", args).fetchone()[0]
         return [_record(r) for r in rows], int(total)
+
+    def counts_by_state(self) -> dict[str, int]:
+        """Jobs per state; every state is a key."""
+        with self._lock:
+            rows = self._db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall()
+        return {s: 0 for s in STATES} | {r[0]: int(r[1]) for r in rows}
+
+    def active_or_finished_since(self, t: float) -> list[JobRecord]:
+        """Jobs preparing or running now, and jobs that finished at or after t (unix s)."""
+        with self._lock:
+            rows = self._db.execute("SELECT * FROM jobs WHERE state IN ('preparing', 'running') "
+                                    "OR finished_at >= ?", (t,)).fetchall()
+        return [_record(r) for r in rows]
 
     def unfinished(self) -> list[JobRecord]:
         """Jobs a previous process left behind, oldest first (FIFO on restart)."""

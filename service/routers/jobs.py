@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+import base64
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Header, HTTPException, Query, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sse_starlette.sse import EventSourceResponse
 
+from service import images
 from service.deps import ManagerDep, TokenDep
 from service.errors import InvalidJob, TooManyWatchers
 from service.events import AsyncWatch
@@ -107,13 +109,16 @@ async def get_image_exr(job_id: str, manager: ManagerDep) -> Response:
                              "`tile` events (TileEvent JSON) per finished pass, then `end`; "
                              "a slow reader gets the latest tile of each rectangle"}}
             | error_responses(404, 503))
-async def job_events(job_id: str, manager: ManagerDep) -> EventSourceResponse:
+async def job_events(job_id: str, manager: ManagerDep,
+                     pixels: Annotated[Literal["none", "f16"], Query(
+                         description="f16: tile events carry the tile's pixels")] = "none"
+                     ) -> EventSourceResponse:
     manager.get(job_id)  # 404 before the stream starts
     manager.broker.check_capacity()  # 503 likewise
-    return EventSourceResponse(_events(manager, job_id), ping=SSE_PING_S)
+    return EventSourceResponse(_events(manager, job_id, pixels == "f16"), ping=SSE_PING_S)
 
 
-async def _events(manager, job_id: str):
+async def _events(manager, job_id: str, with_pixels: bool = False):
     try:
         # Subscribe before the snapshot so nothing falls between them (duplicates are harmless).
         watch = AsyncWatch(lambda notify: manager.watch(job_id, notify))
@@ -126,7 +131,9 @@ async def _events(manager, job_id: str):
         while rec.state not in TERMINAL:
             for ev in await watch.next_events():
                 if ev["type"] == "tile":
-                    tile = TileEvent(**{k: ev[k] for k in TileEvent.model_fields})
+                    tile = TileEvent(**{k: ev[k] for k in TileEvent.model_fields if k in ev})
+                    if with_pixels:
+                        tile.pixels = base64.b64encode(images.f16_bytes(ev["rgb"])).decode()
                     yield {"event": "tile", "data": tile.model_dump_json()}
                 else:
                     rec = ev["job"]

@@ -38,6 +38,8 @@ def test_writing_endpoints_need_the_token(anon, headers, detail):
     assert scene.status_code == 401 and scene.json() == {"detail": detail}
     cancel = anon.post("/v1/jobs/abc/cancel", headers=headers)
     assert cancel.status_code == 401 and cancel.json() == {"detail": detail}
+    delete = anon.delete("/v1/jobs/abc", headers=headers)
+    assert delete.status_code == 401 and delete.json() == {"detail": detail}
 
 
 def test_right_token_writes_and_reads_stay_open(anon):

@@ -1,4 +1,6 @@
-"""The dashboard in a real (headless) Chromium: submit a demo job, watch it fill in."""
+"""The dashboard in a real (headless) Chromium against a live server: the job list, the job
+page (settings, times, explanation, tiles, image, log, shards, phases), actions, upload and
+the A/B view. Each test saves screenshots under its tmp_path."""
 
 from __future__ import annotations
 
@@ -7,70 +9,292 @@ from pathlib import Path
 import httpx
 import pytest
 
-from tests.service.helpers import LiveServer, settings_for
+from tests.service.helpers import TINY, HeldSlots, LiveServer, settings_for, two_box_glb, wait_for
+
+pytestmark = pytest.mark.slow
 
 CHROMIUM = Path("/usr/bin/chromium")
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
                  "--no-first-run", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync"]
+JOB_TIMEOUT_MS = 90_000
+FORM = {"width": 64, "height": 48, "spp": 4, "tile_size": 16}
+# A sharded pair on the shipped proxies: the exact job, then the proxy job to compare.
+SHARDED = {**TINY, "width": 64, "height": 48, "shards": 2, "seed": 3}
 
 
-# (size, extra form fields, what the statistics table must show)
-REFERENCE_JOB = ("tiny", {}, "primary rays")
-# Proxy mode on 2 shards with the shipped proxies: the per-mesh plan is shown.
-PROXY_JOB = ("small", {"shards": 2, "band": 0.2}, "width 16")
-
-
-@pytest.mark.slow
-@pytest.mark.parametrize("job", [REFERENCE_JOB, PROXY_JOB], ids=["reference", "proxy"])
-def test_dashboard_submits_demo_job_and_shows_progress_and_image(tmp_path, job):
-    size, fields, expected = job
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
     if not CHROMIUM.exists():
         pytest.skip(f"{CHROMIUM} is absent (apt-get install -y chromium); the dashboard "
-                    "test needs Debian's Chromium and never downloads a browser")
-    from playwright.sync_api import expect, sync_playwright
+                    "tests need Debian's Chromium and never download a browser")
+    with LiveServer(settings_for(tmp_path_factory.mktemp("dash"))) as s:
+        yield s
 
-    with LiveServer(settings_for(tmp_path)) as server, sync_playwright() as pw:
-        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
-        try:
-            page = browser.new_page(viewport={"width": 1200, "height": 900})
-            external = []  # nothing may be fetched from outside the service
-            page.on("request", lambda r: None if r.url.startswith(server.url)
-                    else external.append(r.url))
-            page.goto(server.url + "/")
-            expect(page.locator("#scene-select option[value=forest]")).to_have_count(1)
-            page.select_option("#scene-select", "forest")
-            page.select_option("select[name=size]", size)
-            if fields:
-                page.select_option("select[name=mode]", "proxy")
-            form = {"width": 64, "height": 48, "spp": 4, "tile_size": 16, **fields}
-            for name, value in form.items():
-                page.fill(f"input[name={name}]", str(value))
-            page.click("#submit-button")
 
-            expect(page.locator("#job-view")).to_be_visible()
-            expect(page.locator("#job-state")).to_have_text("succeeded", timeout=60_000)
-            expect(page.locator("#job-progress")).to_have_attribute("aria-valuenow", "100")
-            expect(page.locator("#job-progress-text")).to_have_text("100%")
-            page.wait_for_function("() => document.querySelector('#job-image').naturalWidth"
-                                   " === 64", timeout=20_000)
-            expect(page.locator("#phase-svg rect").first).to_be_visible()
-            expect(page.locator("#stats-table")).to_contain_text(expected)
-            if fields:  # the form's proxy knobs reached the job
-                job_id = page.url.rsplit("/", 1)[-1]
-                sent = httpx.get(f"{server.url}/v1/jobs/{job_id}").json()["settings"]
-                assert sent["mode"] == "proxy" and sent["shards"] == 2, sent
-                assert sent["proxy"]["band"] == 0.2, sent
-            expect(page.locator("#cancel-button")).to_be_disabled()
-            shot = tmp_path / f"dashboard-job-{size}.png"
-            page.screenshot(path=str(shot), full_page=True)
-            print(f"dashboard screenshot: {shot}")
+@pytest.fixture(scope="module")
+def browser(server):
+    from playwright.sync_api import sync_playwright
 
-            page.goto(server.url + "/#/")
-            row = page.locator("#job-table tbody tr").first
-            expect(row.locator(".state")).to_have_text("succeeded")
-            expect(row.locator("[role=progressbar]")).to_have_attribute("aria-valuenow", "100")
-            page.screenshot(path=str(tmp_path / "dashboard-list.png"), full_page=True)
-            assert external == []
-        finally:
-            browser.close()
+    with sync_playwright() as pw:
+        b = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+@pytest.fixture
+def api(server):
+    with httpx.Client(base_url=server.url, timeout=30.0) as c:
+        yield c
+
+
+class Watched:
+    """A page plus what it did: requests, failed responses, script errors."""
+
+    def __init__(self, page, base_url: str):
+        self.page, self.requests, self.bad, self.errors = page, [], [], []
+        page.on("request", lambda r: self.requests.append(r.url))
+        page.on("response", lambda r: r.status >= 400 and self.bad.append(f"{r.status} {r.url}"))
+        page.on("pageerror", lambda e: self.errors.append(str(e)))
+        page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
+        self.base_url = base_url
+
+    def check_clean(self):
+        assert (self.errors, self.bad) == ([], [])
+        assert all(u.startswith(self.base_url) for u in self.requests)  # nothing external
+
+
+@pytest.fixture
+def watched(browser, server):
+    context = browser.new_context(viewport={"width": 1280, "height": 1000})
+    context.add_init_script("""
+        window.__explains = [];
+        new MutationObserver(() => {
+          const e = document.querySelector('#job-explain');
+          if (e && e.textContent) window.__explains.push(e.textContent);
+        }).observe(document, {subtree: true, childList: true, characterData: true});
+    """)
+    w = Watched(context.new_page(), server.url)
+    yield w
+    context.close()
+
+
+def _done(api, job_id: str) -> dict:
+    return wait_for(lambda: (j := api.get(f"/v1/jobs/{job_id}").json())["state"]
+                    in ("succeeded", "failed", "canceled") and j, 120, what=f"{job_id} ends")
+
+
+def _canvas_mean(page, selector: str) -> float:
+    """Mean of the RGB bytes the canvas shows."""
+    return page.evaluate("""(sel) => {
+        const c = document.querySelector(sel);
+        const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+        let s = 0; for (let i = 0; i < d.length; i += 4) s += d[i] + d[i + 1] + d[i + 2];
+        return s / (3 * d.length / 4); }""", selector)
+
+
+def test_job_page_from_the_form_draws_tiles_settings_times_log(server, watched, api, tmp_path):
+    from playwright.sync_api import expect
+
+    page = watched.page
+    page.goto(server.url + "/")
+    expect(page.locator("#scene-select option[value=forest]")).to_have_count(1)
+    page.select_option("#scene-select", "forest")
+    page.select_option("select[name=size]", "tiny")
+    expect(page.locator("label.proxy-knob").first).to_be_hidden()  # exact mode: no proxy knobs
+    for name, value in FORM.items():
+        page.fill(f"input[name={name}]", str(value))
+    page.click("#submit-button")
+
+    expect(page.locator("#job-view")).to_be_visible()
+    expect(page.locator("#job-state")).to_have_text("succeeded", timeout=JOB_TIMEOUT_MS)
+    expect(page.locator("#job-progress")).to_have_attribute("aria-valuenow", "100")
+    settings = page.locator("#settings-table")
+    expect(settings.locator("tr[data-key=resolution] td").nth(1)).to_have_text("64 × 48")
+    expect(settings.locator("tr[data-key='samples per pixel'] td").nth(1)).to_have_text(
+        "4 (2 per pass)")
+    expect(settings.locator("tr[data-key='proxy band']")).to_have_count(0)
+    times = page.locator("#times-table")
+    for key in ("created", "started", "finished"):
+        expect(times.locator(f"tr[data-key={key}] td").nth(1)).not_to_have_text("–")
+    expect(times.locator("tr[data-key=duration] td").nth(1)).to_contain_text(" s")
+    expect(page.locator("#tile-svg rect[data-samples='4']")).to_have_count(4 * 3)
+    expect(page.locator("#log-view")).to_contain_text("preparing scene 'forest:tiny'")
+    expect(page.locator("#log-status")).to_have_text("complete (job succeeded)")
+    expect(page.locator("#phase-svg rect").first).to_be_visible()
+    expect(page.locator("#phase-caption")).to_contain_text("single-process render")
+    expect(page.locator("#phase-chart")).not_to_contain_text("null")
+    expect(page.locator("#shard-panel")).to_contain_text("no shards")
+    expect(page.locator("#cancel-button")).to_be_hidden()
+    expect(page.locator("#requeue-button")).to_be_visible()
+    expect(page.locator("#image-empty")).to_be_hidden()
+    expect(page.locator("#downloads")).to_be_visible()
+
+    # The image came from tile events and one /pixels read of the final image: no PNGs.
+    assert not [u for u in watched.requests if "image.png" in u]
+    assert len([u for u in watched.requests if u.endswith("/pixels")]) == 1
+    canvas = page.locator("#job-canvas")
+    assert page.evaluate("document.querySelector('#job-canvas').width") == 64
+    base = _canvas_mean(page, "#job-canvas")
+    assert base > 1.0
+    page.locator("#exposure").fill("2")
+    expect(page.locator("#exposure-value")).to_have_text("+2.0 EV")
+    assert _canvas_mean(page, "#job-canvas") > base * 1.2
+    page.select_option("#zoom", "4")
+    assert canvas.bounding_box()["width"] == pytest.approx(256, abs=1)
+    page.screenshot(path=str(tmp_path / "job-page.png"), full_page=True)
+    watched.check_clean()
+
+
+def test_queued_then_preparing_job_explains_itself_without_broken_links(server, watched, api,
+                                                                         tmp_path):
+    from playwright.sync_api import expect
+
+    held = HeldSlots(server.url, server.settings.max_concurrent_jobs)
+    try:
+        job = api.post("/v1/jobs", json={"scene": "forest:tiny", **TINY}).json()
+        page = watched.page
+        page.goto(f"{server.url}/#/jobs/{job['id']}")
+        expect(page.locator("#job-state")).to_have_text("queued")
+        expect(page.locator("#job-explain")).to_contain_text("Queued: waiting for a free job")
+        expect(page.locator("#image-empty")).to_be_visible()
+        expect(page.locator("#downloads")).to_be_hidden()
+        expect(page.locator("#job-canvas")).to_be_hidden()
+        expect(page.locator("#cancel-button")).to_be_visible()
+        expect(page.locator("#delete-button")).to_be_hidden()
+        page.screenshot(path=str(tmp_path / "queued.png"), full_page=True)
+    finally:
+        held.release()
+    expect(page.locator("#job-state")).to_have_text("succeeded", timeout=JOB_TIMEOUT_MS)
+    explains = page.evaluate("window.__explains")
+    assert any(e.startswith("Preparing: loading scene forest:tiny") for e in explains), explains
+    watched.check_clean()
+
+
+def test_cancel_requeue_delete_fit_the_state(server, watched, api, tmp_path):
+    from playwright.sync_api import expect
+
+    page = watched.page
+    page.on("dialog", lambda d: d.accept())
+    held = HeldSlots(server.url, server.settings.max_concurrent_jobs)
+    try:
+        job = api.post("/v1/jobs", json={"scene": "forest:tiny", **TINY, "seed": 7}).json()
+        page.goto(f"{server.url}/#/jobs/{job['id']}")
+        page.click("#cancel-button")
+        expect(page.locator("#job-state")).to_have_text("canceled")
+        expect(page.locator("#cancel-button")).to_be_hidden()
+        expect(page.locator("#requeue-button")).to_be_visible()
+        page.screenshot(path=str(tmp_path / "canceled.png"), full_page=True)
+    finally:
+        held.release()
+    page.click("#requeue-button")
+    page.wait_for_url(lambda url: job["id"] not in url and "#/jobs/" in url)
+    again = page.url.rsplit("/", 1)[-1]
+    twin = api.get(f"/v1/jobs/{again}").json()
+    assert twin["settings"] == job["settings"] and twin["scene"] == job["scene"]
+    expect(page.locator("#job-state")).to_have_text("succeeded", timeout=JOB_TIMEOUT_MS)
+    page.click("#delete-button")
+    expect(page.locator("#list-view")).to_be_visible()
+    assert api.get(f"/v1/jobs/{again}").status_code == 404
+    expect(page.locator(f"#job-table tr[data-job='{again}']")).to_have_count(0)
+    watched.check_clean()
+
+
+def test_job_list_filters_sorts_and_pages(server, watched, api, tmp_path):
+    from playwright.sync_api import expect
+
+    held = HeldSlots(server.url, server.settings.max_concurrent_jobs)
+    try:
+        ids = [api.post("/v1/jobs", json={"scene": "forest:tiny", **TINY}).json()["id"]
+               for _ in range(11)]
+        for job_id in ids:
+            api.post(f"/v1/jobs/{job_id}/cancel")
+    finally:
+        held.release()
+    canceled = api.get("/v1/jobs", params={"state": "canceled", "limit": 500}).json()
+    page = watched.page
+    page.goto(server.url + "/")
+    page.select_option("#state-filter", "canceled")
+    page.select_option("#page-size", "10")
+    rows = page.locator("#job-table tbody tr")
+    expect(rows).to_have_count(10)
+    expect(page.locator("#job-count")).to_have_text(f"({canceled['count']} canceled)")
+    pages = -(-canceled["count"] // 10)
+    expect(page.locator("#page-info")).to_have_text(f"page 1 of {pages}")
+    expect(rows.first).to_have_attribute("data-job", canceled["data"][0]["id"])  # newest
+    expect(rows.locator(".state")).to_have_text(["canceled"] * 10)
+    expect(rows.first.locator(".settings")).to_have_text("32×32 · 4 spp · exact · reference")
+    expect(rows.first.locator(".age")).to_contain_text("ago")
+    page.click("#next-page")
+    expect(page.locator("#page-info")).to_have_text(f"page 2 of {pages}")
+    expect(rows).to_have_count(canceled["count"] - 10)
+    page.select_option("#sort", "oldest")  # back to page 1, oldest first
+    expect(rows.first).to_have_attribute("data-job", canceled["data"][-1]["id"])
+    page.screenshot(path=str(tmp_path / "list.png"), full_page=True)
+    page.select_option("#state-filter", "succeeded")
+    expect(rows.locator(".state").first).to_have_text("succeeded")
+    watched.check_clean()
+
+
+def test_scene_upload_from_the_page_selects_the_new_scene(server, watched, tmp_path):
+    from playwright.sync_api import expect
+
+    glb = two_box_glb(tmp_path / "two_boxes.glb")
+    page = watched.page
+    page.goto(server.url + "/")
+    page.set_input_files("#upload-file", str(glb))
+    page.click("#upload-button")
+    status = page.locator("#upload-status")
+    expect(status).to_contain_text("uploaded two_boxes.glb as scene")
+    expect(status).to_contain_text("2 instances of 1 meshes")
+    scene_id = page.eval_on_selector("#scene-select", "s => s.value")
+    assert len(scene_id) == 64  # the sha256 of the upload
+    expect(page.locator("#size-label")).to_be_hidden()  # sizes are for demos only
+    page.screenshot(path=str(tmp_path / "upload.png"), full_page=True)
+    watched.check_clean()
+
+
+def test_proxy_job_shards_phases_and_ab_view_against_exact(server, watched, api, tmp_path):
+    from playwright.sync_api import expect
+
+    exact = api.post("/v1/jobs", json={"scene": "forest:small", **SHARDED}).json()
+    assert _done(api, exact["id"])["state"] == "succeeded"
+    proxy = api.post("/v1/jobs", json={"scene": "forest:small", **SHARDED, "mode": "proxy",
+                                       "proxy": {"band": 0.2}}).json()
+    page = watched.page
+    page.goto(f"{server.url}/#/jobs/{proxy['id']}")
+    expect(page.locator("#job-state")).to_have_text("succeeded", timeout=JOB_TIMEOUT_MS)
+    expect(page.locator("#settings-table tr[data-key='proxy band'] td").nth(1)).to_have_text(
+        "0.2 (shadow rays: 0)")
+    expect(page.locator("#shard-table tbody tr")).to_have_count(2)
+    expect(page.locator("#shard-table tbody tr").first.locator(".busy")).to_contain_text("%")
+    expect(page.locator("#phase-caption")).to_contain_text("summed over the 2 shards, "
+                                                           "divided by 2")
+    expect(page.locator("#phase-svg rect[data-phase='wall time']")).to_have_count(1)
+    expect(page.locator("#phase-chart li[data-phase=transfer_wait]")).to_contain_text(
+        "not a share of the wall time")  # it overlaps itself: shown apart from the bars
+    # Phase bars are per-shard means: none may be longer than the wall-time bar.
+    widths = page.eval_on_selector_all("#phase-svg rect", "rs => rs.map(r => "
+                                       "[r.dataset.phase, r.width.baseVal.value])")
+    wall = dict(widths)["wall time"]
+    assert all(w <= wall + 1e-6 for _, w in widths), widths
+    expect(page.locator("#stats-table")).to_contain_text("bytes saved vs exact")
+
+    body = page.locator("#compare-body")
+    expect(body).to_be_visible(timeout=20_000)
+    expect(page.locator("#compare-what")).to_contain_text(exact["id"][:8])
+    expect(page.locator("#compare-stats tr[data-key=RMSE]")).to_have_count(1)
+    page.locator("#compare-slider").fill("20")
+    clip = page.eval_on_selector("#compare-b", "c => c.style.clipPath")
+    assert clip == "inset(0px 80% 0px 0px)", clip
+    page.screenshot(path=str(tmp_path / "ab-slider.png"), full_page=True)
+    page.check("input[name=compare-mode][value=flicker]")
+    label = page.locator("#flicker-label")
+    expect(label).to_have_text("A: exact")
+    expect(label).to_have_text("B: proxy")
+    page.check("input[name=compare-mode][value=error]")
+    expect(page.locator("#error-map")).to_be_visible()
+    expect(page.locator("#compare-stage")).to_be_hidden()
+    assert _canvas_mean(page, "#error-map") > 0.0  # proxy pixels differ from exact ones
+    page.screenshot(path=str(tmp_path / "ab-error-map.png"), full_page=True)
+    watched.check_clean()

@@ -1,0 +1,45 @@
+"""DELETE /v1/jobs/{id} and /v1/jobs/{id}/pixels (the linear image for the dashboard)."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from fastapi import APIRouter, Response, status
+from fastapi.concurrency import run_in_threadpool
+
+from service import images
+from service.deps import ManagerDep, TokenDep
+from workers.film import read_exr
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
+
+@router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, dependencies=[TokenDep],
+               responses={404: {"description": "no such job"},
+                          409: {"description": "the job is still queued or running"}})
+async def delete_job(job_id: str, manager: ManagerDep) -> Response:
+    """Forget a finished, failed or canceled job: its record, image, checkpoint and log."""
+    await run_in_threadpool(manager.delete, job_id)
+    return Response(status_code=status.HTTP_204_NO_CONTENT)
+
+
+def linear_pixels(manager, job_id: str):
+    """((h, w, 3) float32 linear, partial): the job's image as EXR decoded."""
+    data, partial = manager.image(job_id, "exr")
+    with tempfile.TemporaryDirectory(prefix="nprt-px-") as d:
+        path = Path(d) / "image.exr"
+        path.write_bytes(data)
+        return read_exr(path), partial
+
+
+@router.get("/{job_id}/pixels", response_class=Response, responses={200: {
+    "content": {"application/octet-stream": {}},
+    "description": "linear RGB, row-major (h, w, 3) little-endian float16; headers "
+                   "X-Nprt-Width, X-Nprt-Height, X-Nprt-Partial. 404 before the first pass."}})
+async def get_pixels(job_id: str, manager: ManagerDep) -> Response:
+    img, partial = await run_in_threadpool(linear_pixels, manager, job_id)
+    h, w = img.shape[:2]
+    return Response(images.f16_bytes(img), media_type="application/octet-stream",
+                    headers={"X-Nprt-Width": str(w), "X-Nprt-Height": str(h),
+                             "X-Nprt-Partial": str(partial).lower(),
+                             "Cache-Control": "no-store"})
