@@ -10,13 +10,13 @@ from fastapi.concurrency import run_in_threadpool
 
 from service import images
 from service.deps import ManagerDep, TokenDep
+from service.schemas import error_responses
 from workers.film import read_exr
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 @router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, dependencies=[TokenDep],
-               responses={404: {"description": "no such job"},
-                          409: {"description": "the job is still queued or running"}})
+               responses=error_responses(401, 404, 409))
 async def delete_job(job_id: str, manager: ManagerDep) -> Response:
     """Forget a finished, failed or canceled job: its record, image, checkpoint and log."""
     await run_in_threadpool(manager.delete, job_id)
@@ -35,7 +35,8 @@ def linear_pixels(manager, job_id: str):
 @router.get("/{job_id}/pixels", response_class=Response, responses={200: {
     "content": {"application/octet-stream": {}},
     "description": "linear RGB, row-major (h, w, 3) little-endian float16; headers "
-                   "X-Nprt-Width, X-Nprt-Height, X-Nprt-Partial. 404 before the first pass."}})
+                   "X-Nprt-Width, X-Nprt-Height, X-Nprt-Partial. 404 before the first pass."}}
+            | error_responses(404))
 async def get_pixels(job_id: str, manager: ManagerDep) -> Response:
     img, partial = await run_in_threadpool(linear_pixels, manager, job_id)
     h, w = img.shape[:2]

@@ -6,7 +6,7 @@ import asyncio
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Query
+from fastapi import APIRouter, Header, Query, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import PlainTextResponse
 from sse_starlette.sse import EventSourceResponse
@@ -14,6 +14,7 @@ from sse_starlette.sse import EventSourceResponse
 from service.deps import ManagerDep
 from service.errors import NotFound
 from service.joblog import LOG_NAME, LogTail, read_lines
+from service.schemas import error_responses
 from service.store import TERMINAL
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -22,12 +23,12 @@ LOG_POLL_S = 0.25  # how often a follower looks for new lines
 SSE_PING_S = 15
 
 
-@router.get("/{job_id}/logs", response_class=PlainTextResponse, responses={200: {
+@router.get("/{job_id}/logs", response_class=Response, responses={200: {
     "content": {"text/plain": {}, "text/event-stream": {}},
     "description": "text/plain: the log from `offset` (at most 1 MiB; header "
                    "X-Nprt-Log-Offset is where to read next). follow=1: SSE `log` events, one "
                    "line each, `id` the byte offset after it (reconnects resume there), then "
-                   "`end` with the job's final state."}})
+                   "`end` with the job's final state."}} | error_responses(404))
 async def job_logs(job_id: str, manager: ManagerDep,
                    follow: bool = False,
                    offset: Annotated[int, Query(ge=0, description="byte offset")] = 0,
