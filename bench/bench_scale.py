@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import queue
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -120,19 +120,20 @@ def bench_warm_pool(scene_name: str, width: int) -> dict:
             for label, seed in (("cold", 1), ("warm", 2)):
                 s = RenderSettings(width=width, height=width * 9 // 16, spp=8, shards=2,
                                    seed=seed)
-                tiles: queue.Queue = queue.Queue()
+                wake = threading.Event()
                 t0 = time.perf_counter()
-                rec = manager.submit(scene_name, s)
-                unsubscribe = manager.subscribe(rec.id, tiles.put)
-                first = None
-                while True:
-                    ev = tiles.get(timeout=600)
-                    if ev["type"] == "tile" and first is None:
-                        first = time.perf_counter() - t0
-                    if ev["type"] == "state" and ev["job"].state in ("succeeded", "failed"):
-                        break
-                if callable(unsubscribe):
-                    unsubscribe()
+                rec, _ = manager.submit(scene_name, s)
+                sub = manager.watch(rec.id, wake.set)
+                first, ended = None, False
+                while not ended:
+                    wake.wait(600)
+                    wake.clear()
+                    for ev in sub.drain():
+                        if ev["type"] == "tile" and first is None:
+                            first = time.perf_counter() - t0
+                        if ev["type"] == "state" and ev["job"].state in ("succeeded", "failed"):
+                            ended = True
+                sub.close()
                 done = manager.get(rec.id)
                 out[label] = {"first_tile_s": round(first, 3), "state": done.state,
                               "checkpoint_bytes": done.stats.get("checkpoint_bytes"),
