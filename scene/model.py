@@ -123,14 +123,31 @@ class Environment:
     horizon: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
+# Default near distance of a camera, relative to its eye-to-target distance: far above
+# the float32 rounding of a surface the eye may sit on (1e-7 relative), far below any
+# geometry a view is framed to show.
+NEAR_REL = 1e-5
+
+
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole look-at camera; fov_deg is the vertical field of view."""
+    """Pinhole look-at camera; fov_deg is the vertical field of view. near: the distance
+    of the near plane along the view axis (surfaces before it are not seen, as glTF's
+    znear); None: NEAR_REL times |target - eye|, so it scales with the scene."""
 
     eye: tuple[float, float, float] = (0.0, 0.0, 5.0)
     target: tuple[float, float, float] = (0.0, 0.0, 0.0)
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     fov_deg: float = 45.0
+    near: float | None = None
+
+    @property
+    def near_distance(self) -> float:
+        """The near plane's distance from the eye along the view axis, in scene units."""
+        if self.near is not None:
+            return float(self.near)
+        view = np.asarray(self.target, np.float64) - np.asarray(self.eye, np.float64)
+        return NEAR_REL * float(np.linalg.norm(view))
 
 
 @dataclass(frozen=True, eq=False)

@@ -52,8 +52,8 @@ class _RecordingGeometry:
         self.inner, self.occluded = inner, []
         self.closest_hits = 0
 
-    def intersect_closest(self, origin, direction, tmax):
-        out = self.inner.intersect_closest(origin, direction, tmax)
+    def intersect_closest(self, origin, direction, tmax, hit_inst=None, hit_prim=None):
+        out = self.inner.intersect_closest(origin, direction, tmax, hit_inst, hit_prim)
         self.closest_hits += int((out[1] >= 0).sum())
         return out
 
