@@ -41,13 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-# pbrt's gamma(n) = n u / (1 - n u), u the unit roundoff of the format.
-_U32, _U64 = 2.0**-24, 2.0**-53
-GAMMA32_7 = 7 * _U32 / (1 - 7 * _U32)
-GAMMA64_3 = 3 * _U64 / (1 - 3 * _U64)
-# Local error per unit of the hit triangle's largest |vertex coordinate|: |v - o| of any
-# vertex v and a ray origin o near the triangle is at most twice that.
-LOCAL_REL = 2 * GAMMA32_7
+from workers.shade_kernels import GAMMA64_3, LOCAL_REL
 
 
 def _rowdot(m: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from workers.offset import GAMMA64_3, LOCAL_REL
 from workers.rng import DIM_BSDF_U, DIM_LIGHT_BASE, DIM_RR
 
 # error_model="numpy": x / 0.0 is inf or NaN (as in numpy), not a ZeroDivisionError.
@@ -61,6 +60,15 @@ def uniform_rows(seed, rows, pixel, sample, bounce, dim):
 
 
 # The rounding-error constants of workers.offset, whose formulas the next three copy.
+# They live here, not there: numba's cache is keyed on this file, so a constant taken
+# from another module would stay frozen in cached code after it changed.
+# pbrt's gamma(n) = n u / (1 - n u), u the unit roundoff of the format.
+_U32, _U64 = 2.0**-24, 2.0**-53
+GAMMA32_7 = 7 * _U32 / (1 - 7 * _U32)
+GAMMA64_3 = 3 * _U64 / (1 - 3 * _U64)
+# Local error per unit of the hit triangle's largest |vertex coordinate|: |v - o| of any
+# vertex v and a ray origin o near the triangle is at most twice that.
+LOCAL_REL = 2 * GAMMA32_7
 _LOCAL_REL = LOCAL_REL
 _G64 = GAMMA64_3
 _G64_1 = 1.0 + GAMMA64_3
