@@ -12,6 +12,10 @@ from workers.geometry import MeshGeometry
 from workers.toplevel import InstanceTable
 
 _FAR = np.float32(1e30)
+# Instance boxes are culled at tmax stretched by this much (256 float32 ulps): the float32
+# t Embree gives a hit may round below its box's float64 entry distance, and a hit tied
+# with tmax must still be found for the tie rule. Hits themselves are cut at tmax exactly.
+BOX_TMAX_SLACK_REL = 2.0**-16
 
 
 class LocalGeometry:
@@ -66,7 +70,8 @@ class LocalGeometry:
         run_inst = np.full(n, -1, np.int32)
         run_prim = np.full(n, -1, np.int32)
         run_u, run_v = np.zeros(n, np.float32), np.zeros(n, np.float32)
-        for m, r, i, lo, ld in self._pairs_by_mesh(origin, direction, tmax):
+        box_tmax = tmax.astype(np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
+        for m, r, i, lo, ld in self._pairs_by_mesh(origin, direction, box_tmax):
             # Embree always gets tfar = inf: which of two triangles tied on a shared edge
             # it reports depends on tfar, and an exact render must not depend on the
             # tmax a ray happened to arrive with. The tmax cut is applied here instead.
