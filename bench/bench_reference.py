@@ -202,6 +202,7 @@ def bench_scene(name: str, size: str, settings: RenderSettings) -> dict:
         if n == 0:
             continue
         o, d, tmax = raylog.arrays(kind)
+        o = np.ascontiguousarray(o, EMBREE_DTYPE)  # float64 on the wire; raw Embree takes f32
         raw_closest = time_raw(emb, o, d, tmax, "closest")
         all_closest += raw_closest
         row = {"rays": n, "renderer_s": raylog.seconds[kind], "slab_s": raylog.slab_s[kind],

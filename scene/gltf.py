@@ -4,6 +4,7 @@ base mesh with one instance per node, with base-colour factor and texture as the
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 from pathlib import Path
@@ -22,8 +23,9 @@ log = logging.getLogger(__name__)
 def load_gltf(path, root: Path | None = None) -> Scene:
     """Load a .glb/.gltf file; meshes keep their local space, node world transforms become
     instances, and identical meshes (geometry, UVs, normals, material) are stored once.
-    The scene gets a framing camera and a sky (glTF cameras/lights are ignored). External
-    buffers and images resolve next to the file, inside `root` when it is set (an upload)."""
+    The scene gets a framing camera and a sky (glTF lights and camera poses are ignored;
+    the file camera's znear becomes the framing camera's near distance). External buffers
+    and images resolve next to the file, inside `root` when it is set (an upload)."""
     refs = FileRefs(Path(path).parent, root)
     path = refs.resolve(Path(path).name, "glTF file", "")
     shown = refs.show(path)
@@ -62,7 +64,24 @@ def load_gltf(path, root: Path | None = None) -> Scene:
     if not placements:
         raise SceneError(f"{shown}: no triangle meshes in the glTF scene")
     log.info("%s: %d base meshes, %d instances", shown, len(meshes), len(placements))
-    return scene_from_meshes(meshes, placements, tuple(materials) or (Material(),), path.stem)
+    scene = scene_from_meshes(meshes, placements, tuple(materials) or (Material(),), path.stem)
+    znear = _file_znear(tm)
+    if znear is None:
+        return scene
+    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, near=znear))
+
+
+def _file_znear(tm: trimesh.Scene) -> float | None:
+    """znear of the file's perspective camera (trimesh reads the first) in world units:
+    scaled by its node's uniform scale, if any. None when the file has no camera."""
+    if not tm.has_camera:
+        return None
+    xf = np.asarray(tm.camera_transform, dtype=np.float64)
+    scale = float(np.cbrt(abs(np.linalg.det(xf[:3, :3]))))
+    znear = float(tm.camera.z_near) * (scale if np.isfinite(scale) and scale > 0 else 1.0)
+    if not (np.isfinite(znear) and znear >= 0.0):
+        raise SceneError(f"camera znear {tm.camera.z_near!r} is not a distance >= 0")
+    return znear
 
 
 def _content_key(mesh: Mesh) -> tuple:

@@ -455,7 +455,7 @@ def _floats(x) -> list | float:
 
 
 def _floats_dict(obj, skip: tuple[str, ...] = ()) -> dict:
-    return {k: _floats(v) for k, v in vars(obj).items() if k not in skip}
+    return {k: _floats(v) for k, v in vars(obj).items() if k not in skip and v is not None}
 
 
 # ---------------------------------------------------------------- convenience

@@ -20,6 +20,14 @@ VERTEX_DTYPE = np.float32
 INDEX_DTYPE = np.uint32
 TRANSFORM_DTYPE = np.float64
 
+# Largest radiance, irradiance or emission accepted (a point light's intensity counts
+# over the scene's size squared): float32's 3.4e38 less 3.4e8 of headroom for what a path
+# multiplies it by (a light sample's 1/pdf, Russian roulette's 1/(1 - q), sums over
+# samples) before pixels, shadow contributions and throughputs are stored as float32.
+MAX_RADIOMETRY = 1e30
+# Quad lights whose edges are closer to parallel than this (sine of the angle) have no area.
+MIN_QUAD_SINE = 1e-12
+
 
 @dataclass(frozen=True, eq=False)
 class Mesh:
@@ -185,14 +193,31 @@ class Environment:
     horizon: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
+# Default near distance of a camera, relative to its eye-to-target distance: far above
+# the float32 rounding of a surface the eye may sit on (1e-7 relative), far below any
+# geometry a view is framed to show.
+NEAR_REL = 1e-5
+
+
 @dataclass(frozen=True)
 class Camera:
-    """Pinhole look-at camera; fov_deg is the vertical field of view."""
+    """Pinhole look-at camera; fov_deg is the vertical field of view. near: the distance
+    of the near plane along the view axis (surfaces before it are not seen, as glTF's
+    znear); None: NEAR_REL times |target - eye|, so it scales with the scene."""
 
     eye: tuple[float, float, float] = (0.0, 0.0, 5.0)
     target: tuple[float, float, float] = (0.0, 0.0, 0.0)
     up: tuple[float, float, float] = (0.0, 1.0, 0.0)
     fov_deg: float = 45.0
+    near: float | None = None
+
+    @property
+    def near_distance(self) -> float:
+        """The near plane's distance from the eye along the view axis, in scene units."""
+        if self.near is not None:
+            return float(self.near)
+        view = np.asarray(self.target, np.float64) - np.asarray(self.eye, np.float64)
+        return NEAR_REL * float(np.linalg.norm(view))
 
 
 @dataclass(frozen=True, eq=False)
@@ -319,6 +344,73 @@ def validate_scene(scene: Scene) -> None:
         raise SceneError(f"instance {int(bad[0])}: mesh {int(mesh[bad[0]])} does not exist")
     validate_transforms(scene.instance_transform,
                         lambda i: f"instance {i} (mesh {scene.meshes[mesh[i]].name!r})")
+    validate_radiometry(scene)
+    validate_camera(scene.camera)
+
+
+def _vector(value, field: str) -> np.ndarray:
+    """(3,) float64 of a finite 3-vector, or a SceneError naming the field."""
+    v = np.asarray(value, np.float64)
+    if v.shape != (3,) or not np.isfinite(v).all():
+        raise SceneError(f"{field}: must be 3 finite numbers, got {value!r}")
+    return v
+
+
+def _radiometry(value, field: str, scale: float = 1.0) -> None:
+    """value: an RGB radiance, irradiance or emission (scale 1), or an intensity over
+    `scale` = the scene's size squared."""
+    v = _vector(value, field)
+    if (v < 0).any():
+        raise SceneError(f"{field}: must not be negative, got {v.tolist()}")
+    if v.max() / scale > MAX_RADIOMETRY:
+        per = "" if scale == 1.0 else f" over the scene's size squared ({scale:.3g})"
+        raise SceneError(f"{field}: {v.tolist()}{per} exceeds {MAX_RADIOMETRY:g}: the image "
+                         f"would overflow float32")
+
+
+def validate_radiometry(scene: Scene) -> None:
+    """Refuse radiometry whose image would overflow float32, quad lights without area
+    and directional lights without a direction; errors name the field."""
+    for i, m in enumerate(scene.materials):
+        _radiometry(m.emission, f"materials[{i}] ({m.name!r}).emission")
+    env = scene.environment
+    for name in ("radiance", "zenith", "horizon"):
+        _radiometry(getattr(env, name), f"environment.{name}")
+    for i, q in enumerate(scene.quad_lights):
+        where = f"quad_lights[{i}]"
+        _vector(q.corner, f"{where}.corner")
+        u, v = _vector(q.edge_u, f"{where}.edge_u"), _vector(q.edge_v, f"{where}.edge_v")
+        area = float(np.linalg.norm(np.cross(u, v)))
+        if not area > MIN_QUAD_SINE * float(np.linalg.norm(u) * np.linalg.norm(v)):
+            raise SceneError(f"{where}: zero area (edge_u {u.tolist()} and edge_v "
+                             f"{v.tolist()} are zero or parallel)")
+        _radiometry(q.radiance, f"{where}.radiance")
+    if scene.point_lights:
+        wb = instance_world_bounds(scene)
+        size = float(np.linalg.norm(wb[:, 1].max(axis=0) - wb[:, 0].min(axis=0)))
+        for i, p in enumerate(scene.point_lights):
+            _vector(p.position, f"point_lights[{i}].position")
+            _radiometry(p.intensity, f"point_lights[{i}].intensity", max(size * size, 1e-300))
+    for i, d in enumerate(scene.directional_lights):
+        where = f"directional_lights[{i}]"
+        length = float(np.linalg.norm(_vector(d.direction, f"{where}.direction")))
+        if not length > 0.0:
+            raise SceneError(f"{where}.direction: zero length ({list(d.direction)})")
+        _radiometry(d.irradiance, f"{where}.irradiance")
+
+
+def validate_camera(cam: Camera) -> None:
+    eye, target = _vector(cam.eye, "camera.eye"), _vector(cam.target, "camera.target")
+    up = _vector(cam.up, "camera.up")
+    view = target - eye
+    if not np.linalg.norm(view) > 0.0:
+        raise SceneError(f"camera: eye and target coincide ({eye.tolist()})")
+    if not np.linalg.norm(np.cross(view, up)) > 0.0:
+        raise SceneError(f"camera.up: {up.tolist()} is zero or parallel to the view direction")
+    if not 0.0 < cam.fov_deg < 180.0:
+        raise SceneError(f"camera.fov_deg: must lie in (0, 180), got {cam.fov_deg!r}")
+    if cam.near is not None and not (np.isfinite(cam.near) and cam.near >= 0.0):
+        raise SceneError(f"camera.near: must be a finite distance >= 0, got {cam.near!r}")
 
 
 def instance_world_bounds(scene: Scene) -> np.ndarray:

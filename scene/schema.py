@@ -138,10 +138,14 @@ class EnvironmentSpec(_Strict):
 
 
 class CameraSpec(_Strict):
+    """`near`: distance of the near plane along the view axis (glTF's znear); surfaces
+    before it are not seen. Unset: 1e-5 of the eye-to-target distance."""
+
     eye: Vec3 = (0.0, 0.0, 5.0)
     target: Vec3 = (0.0, 0.0, 0.0)
     up: Vec3 = (0.0, 1.0, 0.0)
     fov_deg: float = Field(default=45.0, gt=0.0, lt=180.0)
+    near: float | None = Field(default=None, ge=0.0, allow_inf_nan=False)
 
     @model_validator(mode="after")
     def _well_posed(self) -> CameraSpec:

@@ -1,7 +1,14 @@
 """Ray batches: frozen struct-of-arrays named by the stage that produces them.
 
 Every field has an explicit dtype; `nbytes` (the sum of the arrays' nbytes) is
-what the transfer statistics count.
+what the transfer statistics count. Also the one rule that orders hit records
+(`precedes`), so the reference and every shard count pick the same hit on a tie.
+
+Origins travel as float64 (ORIGIN_DTYPE): a float32 world point is only good to
+ulp(|p|) / 2, 1/256 at 1e5 and 0.5 at 1e7, so a scene far from the origin would lose
+its small shadows however well the spawn offset is chosen. float64 keeps them to
+1e-16 relative (2e-9 at 1e7) for 12 more bytes per ray; see workers/offset.py for the
+alternatives measured.
 """
 
 from __future__ import annotations
@@ -17,6 +24,29 @@ KIND_NAMES = ("primary", "secondary", "shadow")
 # Hit record sentinels in `hit_inst` (int32): no hit yet, or a quad light (-2 - light index).
 NO_HIT = -1
 LIGHT_BASE = -2
+
+# Precision policy of the wire format: origins float64, everything else float32 or less.
+ORIGIN_DTYPE = np.float64
+
+# Tie ranks (int64) of hit_inst values: quad lights first, in light order, then instances
+# in instance order; "no hit" last, so any hit at or before tmax replaces it.
+_RANK_LIGHT0 = -(1 << 40)
+_RANK_NO_HIT = 1 << 40
+
+
+def tie_rank(hit_inst: np.ndarray) -> np.ndarray:
+    """(n,) int32 hit_inst -> (n,) int64 rank: the order of hits at equal t."""
+    h = np.asarray(hit_inst, np.int64)
+    return np.where(h >= 0, h, np.where(h == NO_HIT, _RANK_NO_HIT, _RANK_LIGHT0 + LIGHT_BASE - h))
+
+
+def precedes(t_a, inst_a, prim_a, t_b, inst_b, prim_b) -> np.ndarray:
+    """(n,) bool: hit a comes before hit b in the global order, the one rule every fold
+    of hit records follows: smaller t (float32, as stored in the record); on equal t the
+    lower `tie_rank`, then the lower primitive. t (n,) float32, inst, prim (n,) int32."""
+    t_a, t_b = np.asarray(t_a, np.float32), np.asarray(t_b, np.float32)
+    r_a, r_b = tie_rank(inst_a), tie_rank(inst_b)
+    return (t_a < t_b) | ((t_a == t_b) & ((r_a < r_b) | ((r_a == r_b) & (prim_a < prim_b))))
 
 
 def _check(name: str, arr: np.ndarray, n: int, width: int | None, dtype) -> None:
@@ -71,7 +101,7 @@ class _Batch:
 
 
 _RAY_SPEC = {
-    "origin": (3, np.float32),
+    "origin": (3, ORIGIN_DTYPE),
     "direction": (3, np.float32),
     "tmax": (None, np.float32),
     "throughput": (3, np.float32),
@@ -99,7 +129,7 @@ FLAG_SHADE = 4  # closest hit is final; sent to the hit's owner only to be shade
 class RayBatch(_Batch):
     """Camera and BSDF rays looking for their closest hit (kind PRIMARY or SECONDARY).
 
-    origin (n,3) f32, direction (n,3) f32, tmax (n,) f32 (closest hit so far),
+    origin (n,3) f64, direction (n,3) f32, tmax (n,) f32 (closest hit so far),
     throughput (n,3) f32, pixel (n,) u32, sample (n,) u32, depth (n,) u8,
     kind (n,) u8, visited (n,) u64 shard bitmask, pdf_prev (n,) f32,
     hit_inst/hit_prim (n,) i32, hit_u/hit_v (n,) f32, hops (n,) u8, flags (n,) u8 (FLAG_* bits).
@@ -125,7 +155,7 @@ class RayBatch(_Batch):
 
 
 _SHADOW_SPEC = {
-    "origin": (3, np.float32),
+    "origin": (3, ORIGIN_DTYPE),
     "direction": (3, np.float32),
     "tmax": (None, np.float32),
     "contribution": (3, np.float32),  # radiance added to `pixel` if unoccluded
@@ -138,7 +168,8 @@ _SHADOW_SPEC = {
 @dataclass(frozen=True, eq=False)
 class ShadowRayBatch(_Batch):
     """Next-event rays: contribution (n,3) f32 lands on pixel (n,) u32 unless occluded
-    before tmax (n,) f32. origin/direction (n,3) f32, visited (n,) u64, hops (n,) u8."""
+    before tmax (n,) f32. origin (n,3) f64, direction (n,3) f32, visited (n,) u64,
+    hops (n,) u8."""
 
     _SPEC = _SHADOW_SPEC
     origin: np.ndarray

@@ -1,10 +1,12 @@
-"""Pinhole look-at camera: primary rays for a pass's pixels and samples."""
+"""Pinhole look-at camera: primary rays for a pass's pixels and samples, starting at the
+camera's near plane (so a camera on a surface does not see it at t = 0)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from scene.model import Camera
+from workers.batch import ORIGIN_DTYPE
 from workers.rng import CAMERA_BOUNCE, uniform
 from workers.sampling import normalize
 
@@ -14,7 +16,7 @@ def generate_primary(cam: Camera, width: int, height: int, seed: int,
     """Jittered camera rays.
 
     pixel, sample : (n,) uint32
-    returns origin (n, 3) float32, direction (n, 3) float32 unit
+    returns origin (n, 3) float64 (on the near plane), direction (n, 3) float32 unit
     """
     eye = np.asarray(cam.eye, np.float64)
     fwd = normalize((np.asarray(cam.target, np.float64) - eye)[None])[0]
@@ -27,5 +29,9 @@ def generate_primary(cam: Camera, width: int, height: int, seed: int,
     x = (pixel % width + jx) / width * 2.0 - 1.0  # (n,) in [-1, 1], left to right
     y = 1.0 - (pixel // width + jy) / height * 2.0  # top row is +1
     d = fwd[None] + (x * half_w)[:, None] * right[None] + (y * half_h)[:, None] * up[None]
-    origin = np.broadcast_to(eye.astype(np.float32), (len(pixel), 3)).copy()
-    return origin, normalize(d).astype(np.float32)
+    direction = normalize(d).astype(np.float32)
+    # The near plane lies near_distance along fwd: the ray reaches it at near / cos.
+    unit = direction.astype(np.float64)
+    t_near = cam.near_distance / (unit @ fwd)  # (n,) float64, cos > 0 inside the frustum
+    origin = eye[None] + t_near[:, None] * unit
+    return origin.astype(ORIGIN_DTYPE), direction

@@ -16,7 +16,15 @@ import numpy as np
 
 from scene.model import Camera, Material, Mesh
 from workers import shade_kernels
-from workers.batch import LIGHT_BASE, NO_HIT, PRIMARY, SECONDARY, RayBatch, ShadowRayBatch
+from workers.batch import (
+    LIGHT_BASE,
+    NO_HIT,
+    ORIGIN_DTYPE,
+    PRIMARY,
+    SECONDARY,
+    RayBatch,
+    ShadowRayBatch,
+)
 from workers.camera import generate_primary
 from workers.lights import FAR_T, LightSet
 from workers.passes import Pass
@@ -43,7 +51,7 @@ class Shaded:
 def new_rays(origin, direction, throughput, pixel, sample, depth, kind, pdf_prev) -> RayBatch:
     n = len(pixel)
     return RayBatch(
-        origin=np.asarray(origin, np.float32), direction=np.asarray(direction, np.float32),
+        origin=np.asarray(origin, ORIGIN_DTYPE), direction=np.asarray(direction, np.float32),
         tmax=np.full(n, INF_T, np.float32), throughput=np.asarray(throughput, np.float32),
         pixel=pixel.astype(np.uint32), sample=sample.astype(np.uint32),
         depth=depth.astype(np.uint8), kind=np.full(n, kind, np.uint8),
@@ -132,7 +140,7 @@ class PathIntegrator:
             return ShadowRayBatch.empty()
         k, origin, wi, tmax, contrib, pix = shade_kernels.next_event(
             self.s.seed, S, np.flatnonzero(go), surf, rays.pixel, rays.sample, rays.depth,
-            sf.p, sf.ns, sf.ng, sf.albedo, thr, *self._light_arrays(),
+            sf.p, sf.p_err, sf.ns, sf.ng, sf.albedo, thr, *self._light_arrays(),
             float(FAR_T), float(SHADOW_TMAX_SCALE))
         return ShadowRayBatch(
             origin=origin[:k], direction=wi[:k], tmax=tmax[:k],
@@ -160,7 +168,7 @@ class PathIntegrator:
         phi = 2.0 * np.pi * u2  # sines in numpy: its SIMD versions need not round like libm's
         c, k, origin, d, t, pdf = shade_kernels.bsdf_continue(
             self.s.seed, g, surf, rays.pixel, rays.sample, rays.depth, np.cos(phi),
-            np.sin(phi), sf.p, sf.ng, sf.ns, sf.albedo, thr, self.s.russian_roulette,
+            np.sin(phi), sf.p, sf.p_err, sf.ng, sf.ns, sf.albedo, thr, self.s.russian_roulette,
             RR_START_DEPTH)
         k = surf[k[:c]]
         return new_rays(origin[:c], d[:c], t[:c], rays.pixel[k],

@@ -40,9 +40,11 @@ class LightSet:
         self.count = self.n_quads + self.n_points + len(self.dir_dir)
 
     def intersect_quads(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray):
-        """Closest quad hit from the emitting side within (0, tmax).
+        """Closest quad hit from the emitting side within (0, tmax], t compared as the
+        float32 that a hit record stores; on equal t the lower light index (the order of
+        `workers.batch.precedes`). The caller decides a tie with tmax's own hit.
 
-        origin, direction : (n, 3) float32; tmax : (n,) float32
+        origin (n, 3) float64, direction (n, 3) float32; tmax : (n,) float32
         returns t (n,) float32 (inf if none), light (n,) int32 (-1 if none)
         """
         n = len(origin)
@@ -52,14 +54,15 @@ class LightSet:
         for i in range(self.n_quads):
             nrm = self.quad_normal[i]
             denom = d @ nrm  # < 0 when arriving at the emitting face
-            with np.errstate(divide="ignore", invalid="ignore"):
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
                 t = ((self.quad_corner[i] - o) @ nrm) / denom
+                t32 = t.astype(np.float32)
             rel = o + t[:, None] * d - self.quad_corner[i]
             a = rel @ self.quad_u[i] / (self.quad_u[i] @ self.quad_u[i])
             b = rel @ self.quad_v[i] / (self.quad_v[i] @ self.quad_v[i])
-            ok = (denom < 0) & (t > 0) & (t < tmax) & (t < best_t) & \
+            ok = (denom < 0) & (t > 0) & (t32 <= tmax) & (t32 < best_t) & \
                  (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
-            best_t[ok] = t[ok]
+            best_t[ok] = t32[ok]
             best_l[ok] = i
         return best_t, best_l
 

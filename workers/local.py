@@ -7,10 +7,15 @@ from __future__ import annotations
 import numpy as np
 
 from workers import kernels
+from workers.batch import precedes
 from workers.geometry import MeshGeometry
 from workers.toplevel import InstanceTable
 
 _FAR = np.float32(1e30)
+# Instance boxes are culled at tmax stretched by this much (256 float32 ulps): the float32
+# t Embree gives a hit may round below its box's float64 entry distance, and a hit tied
+# with tmax must still be found for the tie rule. Hits themselves are cut at tmax exactly.
+BOX_TMAX_SLACK_REL = 2.0**-16
 
 
 class LocalGeometry:
@@ -39,10 +44,16 @@ class LocalGeometry:
             a, b = start[m], start[m + 1]
             yield int(m), ray[a:b], inst[a:b], lo[a:b], ld[a:b]
 
-    def intersect_closest(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray):
-        """Closest hit among these instances within (0, tmax).
+    def intersect_closest(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray,
+                          hit_inst: np.ndarray | None = None,
+                          hit_prim: np.ndarray | None = None):
+        """Closest hit among these instances within (0, tmax), or, given the record a ray
+        carries (hit_inst, hit_prim (n,) int32 at t = tmax), the hit that precedes it in
+        the global order (`workers.batch.precedes`: a hit at t == tmax replaces the
+        record when its instance ranks lower), so folding shard by shard in any order
+        gives the same hit as one fold over every instance.
 
-        origin, direction : (n, 3) float32 world; tmax : (n,) float32
+        origin (n, 3) float64 world, direction (n, 3) float32 world; tmax : (n,) float32
         returns t (n,) float32 (tmax where no hit), inst (n,) int32 (-1), prim (n,) int32,
         u, v (n,) float32
         """
@@ -52,23 +63,29 @@ class LocalGeometry:
         prim_best = np.full(n, -1, np.int32)
         u_best = np.zeros(n, np.float32)
         v_best = np.zeros(n, np.float32)
-        # Each ray's closest candidate so far: smaller t, then the lowest instance, so any
-        # shard split agrees. Folded in per mesh (a jitted loop, no sort of all hits).
+        # Each ray's closest candidate so far: smaller t, then the lower instance (an
+        # instance gives a ray one hit, so (t, inst) orders them totally). Folded in per
+        # mesh (a jitted loop, no sort of all hits).
         run_t = np.full(n, np.inf, np.float32)
         run_inst = np.full(n, -1, np.int32)
         run_prim = np.full(n, -1, np.int32)
         run_u, run_v = np.zeros(n, np.float32), np.zeros(n, np.float32)
-        for m, r, i, lo, ld in self._pairs_by_mesh(origin, direction, tmax):
+        box_tmax = tmax.astype(np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
+        for m, r, i, lo, ld in self._pairs_by_mesh(origin, direction, box_tmax):
             # Embree always gets tfar = inf: which of two triangles tied on a shared edge
             # it reports depends on tfar, and an exact render must not depend on the
             # tmax a ray happened to arrive with. The tmax cut is applied here instead.
             far = np.full(len(r), _FAR, np.float32)  # fresh: embreex writes tfar in place
             t, prim, u, v = self.geometry[m].intersect_closest(lo, ld, far)
-            hit = (prim >= 0) & (t < tmax[r])
+            hit = (prim >= 0) & (t <= tmax[r])  # t == tmax: the record decides below
             kernels.closest_candidates(
                 r[hit], t[hit], i[hit], prim[hit], u[hit], v[hit],
                 run_t, run_inst, run_prim, run_u, run_v)
-        better = (run_inst >= 0) & (run_t < t_best)
+        if hit_inst is None:
+            better = (run_inst >= 0) & (run_t < t_best)
+        else:
+            better = (run_inst >= 0) & precedes(run_t, run_inst, run_prim, t_best, hit_inst,
+                                                hit_prim)
         t_best[better], inst_best[better] = run_t[better], run_inst[better]
         prim_best[better] = run_prim[better]
         u_best[better], v_best[better] = run_u[better], run_v[better]

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from workers.batch import RayBatch, ShadowRayBatch
+from workers.local import BOX_TMAX_SLACK_REL
 from workers.world import EVERYWHERE, ShardWorld
 
 DONE = -1
@@ -25,7 +26,10 @@ def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, 
     returns (n,) int32 target shard or DONE
     """
     target = np.full(len(origin), DONE, np.int32)
-    ray, inst, t_enter, _ = world.table.box_entries(origin, direction, tmax, remote)
+    # Stretched as local intersection culls (workers.local): a hit on another shard tied
+    # with tmax must still be visited, or the global tie rule could not see it.
+    box_tmax = np.asarray(tmax, np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
+    ray, inst, t_enter, _ = world.table.box_entries(origin, direction, box_tmax, remote)
     if len(ray) == 0:
         return target
     owner = world.owner[inst]

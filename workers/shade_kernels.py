@@ -61,34 +61,68 @@ def uniform_rows(seed, rows, pixel, sample, bounce, dim):
     return out
 
 
-_ORIGIN = np.float32(1.0 / 32.0)  # the constants of workers.offset
-_FLOAT_SCALE = np.float32(1.0 / 65536.0)
-_INT_SCALE = np.float32(256.0)
-_INT32_MIN = -(1 << 31)
+# The rounding-error constants of workers.offset, whose formulas the next three copy.
+# They live here, not there: numba's cache is keyed on this file, so a constant taken
+# from another module would stay frozen in cached code after it changed.
+# pbrt's gamma(n) = n u / (1 - n u), u the unit roundoff of the format.
+_U32, _U64 = 2.0**-24, 2.0**-53
+GAMMA32_7 = 7 * _U32 / (1 - 7 * _U32)
+GAMMA64_3 = 3 * _U64 / (1 - 3 * _U64)
+# Local error per unit of the hit triangle's largest |vertex coordinate|: |v - o| of any
+# vertex v and a ray origin o near the triangle is at most twice that.
+LOCAL_REL = 2 * GAMMA32_7
+_LOCAL_REL = LOCAL_REL
+_G64 = GAMMA64_3
+_G64_1 = 1.0 + GAMMA64_3
 
 
 @njit(inline="always", **JIT)
-def offset_coord(p, n):
-    """One coordinate of `workers.offset.offset_ray_origin`: p, n float32 -> float32, in
-    float32 and wrapping int32 arithmetic as numpy does it."""
-    prod = np.float32(_INT_SCALE * n)
-    # x86's float -> int32 conversion gives INT32_MIN for NaN and out-of-range values.
-    of_i = np.int64(prod) if abs(prod) < np.float32(2147483648.0) else np.int64(_INT32_MIN)
-    if p < 0:
-        of_i = -of_i
-    p_i = np.int32(np.int64(np.float32(p).view(np.int32)) + of_i)  # wraps like numpy's int32 add
-    if abs(p) < _ORIGIN:
-        return np.float32(p + np.float32(_FLOAT_SCALE * n))
-    return np.int32(p_i).view(np.float32)
+def _abs_rowdot(m, it, c, v0, v1, v2):
+    """(|m[it, c, 0]| v0 + |m[it, c, 1]| v1) + |m[it, c, 2]| v2."""
+    return (abs(m[it, c, 0]) * v0 + abs(m[it, c, 1]) * v1) + abs(m[it, c, 2]) * v2
+
+
+@njit(inline="always", **JIT)
+def point_error(l2w, w2l, it, v_max, pl, p, i, out):
+    """out[i] = `workers.offset.hit_point_error` of world point p[i] (3,) float64 of
+    instance it, from its local point pl (3,) float64 and its triangle's largest
+    |local vertex coordinate| v_max."""
+    e = _LOCAL_REL * v_max
+    for c in range(3):
+        a = ((abs(l2w[it, c, 0] * pl[0]) + abs(l2w[it, c, 1] * pl[1]))
+             + abs(l2w[it, c, 2] * pl[2])) + abs(l2w[it, c, 3])
+        m = (abs(l2w[it, c, 0]) + abs(l2w[it, c, 1])) + abs(l2w[it, c, 2])
+        out[i, c] = _G64 * a + _G64_1 * (m * e)
+    q0, q1, q2 = abs(p[i, 0]) + out[i, 0], abs(p[i, 1]) + out[i, 1], abs(p[i, 2]) + out[i, 2]
+    b0 = _G64 * (_abs_rowdot(w2l, it, 0, q0, q1, q2) + abs(w2l[it, 0, 3]))
+    b1 = _G64 * (_abs_rowdot(w2l, it, 1, q0, q1, q2) + abs(w2l[it, 1, 3]))
+    b2 = _G64 * (_abs_rowdot(w2l, it, 2, q0, q1, q2) + abs(w2l[it, 2, 3]))
+    for c in range(3):
+        out[i, c] = out[i, c] + _abs_rowdot(l2w, it, c, b0, b1, b2)
+
+
+@njit(inline="always", **JIT)
+def offset_origin(p, p_err, n, i, out, k):
+    """out[k] = `workers.offset.offset_ray_origin` of row i of p, p_err, n (h, 3)
+    float64, in float64 with its one-step rounding away from the surface."""
+    d = (abs(n[i, 0]) * p_err[i, 0] + abs(n[i, 1]) * p_err[i, 1]) + abs(n[i, 2]) * p_err[i, 2]
+    for c in range(3):
+        off = d * n[i, c]
+        o = p[i, c] + off
+        if off > 0:
+            o = np.nextafter(o, np.inf)
+        elif off < 0:
+            o = np.nextafter(o, -np.inf)
+        out[k, c] = o
 
 
 @njit(**JIT)
-def offset_rows(p, n):
-    """`workers.offset.offset_ray_origin` for (k, 3) float32 p and n (its oracle test)."""
+def offset_rows(p, p_err, n):
+    """`workers.offset.offset_ray_origin` for (k, 3) float64 p, p_err and n (its oracle
+    test)."""
     out = np.empty_like(p)
     for i in range(len(p)):
-        for c in range(3):
-            out[i, c] = offset_coord(p[i, c], n[i, c])
+        offset_origin(p, p_err, n, i, out, i)
     return out
 
 
@@ -105,17 +139,17 @@ def _norm(a0, a1, a2):
 
 
 @njit(**JIT)
-def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, ns, ng, albedo, thr,
+def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, albedo, thr,
                q_corner, q_u, q_v, q_normal, q_area, q_radiance,
                pt_pos, pt_intensity, dir_dir, dir_irradiance, far_t, tmax_scale):
     """S light samples per row in `rows` (int64 indices into the per-hit arrays; hit i
     belongs to ray ray_of[i] of pixel, sample, depth), kept where the light is above both
     the shading and geometric surface and the contribution is positive (and not NaN).
 
-    pixel, sample (n,) u32; depth (n,) u8 per ray; p, ns, ng, albedo, thr (h, 3) float64
-    per hit; light arrays as in `LightSet` (float64); far_t, tmax_scale float64.
-    returns k and, in their first k rows: origin (offset as `workers.offset`),
-    direction (m, 3) float32,
+    pixel, sample (n,) u32; depth (n,) u8 per ray; p, p_err, ns, ng, albedo, thr (h, 3)
+    float64 per hit; light arrays as in `LightSet` (float64); far_t, tmax_scale float64.
+    returns k and, in their first k rows: origin (m, 3) float64 (offset as
+    `workers.offset`), direction (m, 3) float32,
     tmax (m,) float32, contribution (m, 3) float32, pixel (m,) uint32; m = len(rows) * S.
     """
     n_quads, n_points = len(q_area), len(pt_pos)
@@ -123,7 +157,7 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, ns, ng, albedo, t
     fcount = np.float64(count)
     fS = np.float64(S)
     m = len(rows) * S
-    o_p = np.empty((m, 3), np.float32)
+    o_p = np.empty((m, 3), np.float64)
     o_dir = np.empty((m, 3), np.float32)
     o_tmax = np.empty(m, np.float32)
     o_con = np.empty((m, 3), np.float32)
@@ -195,8 +229,8 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, ns, ng, albedo, t
             c2 = thr[i, 2] * (albedo[i, 2] / np.pi) * val[2] * scale
             if c0 != c0 or c1 != c1 or c2 != c2 or not (c0 > 0 or c1 > 0 or c2 > 0):
                 continue  # contrib.max(axis=1) > 0: NaN propagates and fails
+            offset_origin(p, p_err, ng, i, o_p, k)
             for c in range(3):
-                o_p[k, c] = offset_coord(np.float32(p[i, c]), np.float32(ng[i, c]))
                 o_dir[k, c] = np.float32(wi[c])
             o_con[k, 0], o_con[k, 1], o_con[k, 2] = (np.float32(c0), np.float32(c1),
                                                      np.float32(c2))
@@ -209,7 +243,7 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, ns, ng, albedo, t
 @njit(**JIT)
 def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, verts,
             faces, normals, uvs, mesh_vbase, mesh_fbase, mesh_has_n, mesh_has_uv, mesh_mat,
-            mat_albedo, mat_emission, mat_tex, tex_base, tex_h, tex_w, texels):
+            mat_albedo, mat_emission, mat_tex, tex_base, tex_h, tex_w, texels, w2l):
     """Surface interactions of `workers.surface.surface_at` for `rows` (k,) int64 of the
     hit records inst, prim (n,) int32; u, v (n,) float32; direction (n, 3) float32.
     slot_of_mesh (M,) int64 base mesh -> slot here (-1: not held); inst_mesh (m,) int32;
@@ -217,9 +251,9 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
     verts, normals (V, 3) float32; uvs (V, 2) float32; faces (F, 3) int64 (vertex base
     added). Per slot: vertex / face base, has-normals / has-uvs flags, material. Per
     material: albedo, emission (3,) float64, texture (-1: none). Per texture: texel base,
-    height, width; texels (T, 3) float32.
+    height, width; texels (T, 3) float32; w2l (m, 3, 4) float64 (inverses of l2w).
     returns bad (the first of rows whose mesh is not held, else -1), p, ng, ns, albedo,
-    emission (k, 3) float64.
+    emission, p_err (k, 3) float64 (p's error bound, `workers.offset.hit_point_error`).
     """
     n = len(rows)
     p = np.empty((n, 3))
@@ -227,6 +261,7 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
     ns = np.empty((n, 3))
     albedo = np.empty((n, 3))
     emission = np.empty((n, 3))
+    p_err = np.empty((n, 3))
     pl = np.empty(3)
     gl = np.empty(3)
     sl = np.empty(3)
@@ -235,14 +270,17 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
         it = inst[h]
         slot = slot_of_mesh[inst_mesh[it]]
         if slot < 0:
-            return h, p, ng, ns, albedo, emission
+            return h, p, ng, ns, albedo, emission, p_err
         b1, b2 = np.float64(u[h]), np.float64(v[h])
         b0 = 1.0 - b1 - b2
         f = mesh_fbase[slot] + prim[h]
         t0, t1, t2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        v_max = 0.0
         for c in range(3):
             x0 = np.float64(verts[t0, c])
             pl[c] = b0 * x0 + b1 * np.float64(verts[t1, c]) + b2 * np.float64(verts[t2, c])
+            v_max = max(v_max, abs(x0), abs(np.float64(verts[t1, c])),
+                        abs(np.float64(verts[t2, c])))
         e10 = np.float64(verts[t1, 0]) - np.float64(verts[t0, 0])
         e11 = np.float64(verts[t1, 1]) - np.float64(verts[t0, 1])
         e12 = np.float64(verts[t1, 2]) - np.float64(verts[t0, 2])
@@ -278,6 +316,7 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
         for c in range(3):
             p[i, c] = (_dot(l2w[it, c, 0], l2w[it, c, 1], l2w[it, c, 2], pl[0], pl[1], pl[2])
                        + l2w[it, c, 3])
+        point_error(l2w, w2l, it, v_max, pl, p, i, p_err)
         g0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], gl[0], gl[1], gl[2])
         g1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], gl[0], gl[1], gl[2])
         g2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], gl[0], gl[1], gl[2])
@@ -300,25 +339,25 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
             s0, s1, s2 = -s0, -s1, -s2
         ng[i, 0], ng[i, 1], ng[i, 2] = g0, g1, g2
         ns[i, 0], ns[i, 1], ns[i, 2] = s0, s1, s2
-    return -1, p, ng, ns, albedo, emission
+    return -1, p, ng, ns, albedo, emission, p_err
 
 
 @njit(**JIT)
-def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p, ng, ns,
-                  albedo, thr, russian_roulette, rr_start_depth):
+def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p, p_err, ng,
+                  ns, albedo, thr, russian_roulette, rr_start_depth):
     """Cosine-hemisphere continuation of `rows` (k,) int64 (of `workers.sampling.
     cosine_hemisphere` and `PathIntegrator._continue`): cos_phi, sin_phi (k,) float64 of
     phi = 2 pi u2 come from numpy, whose SIMD sines need not round like libm's.
 
     ray_of (h,) int64 hit -> ray; pixel, sample (n,) u32; depth (n,) u8 per ray;
-    p, ng, ns, albedo, thr (h, 3) float64 per hit.
+    p, p_err, ng, ns, albedo, thr (h, 3) float64 per hit.
     returns c and, in their first c rows: row (c,) int64 (into the per-hit arrays),
-    origin (offset as `workers.offset`), direction, throughput (c, 3) float32,
-    pdf (c,) float32.
+    origin (c, 3) float64 (offset as `workers.offset`), direction, throughput (c, 3)
+    float32, pdf (c,) float32.
     """
     k = len(rows)
     o_row = np.empty(k, np.int64)
-    o_p = np.empty((k, 3), np.float32)
+    o_p = np.empty((k, 3), np.float64)
     o_d = np.empty((k, 3), np.float32)
     o_t = np.empty((k, 3), np.float32)
     o_pdf = np.empty(k, np.float32)
@@ -355,8 +394,7 @@ def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p,
         if not max(max(t0, t1), t2) > 0:
             continue
         o_row[c] = i
-        for a_ in range(3):
-            o_p[c, a_] = offset_coord(np.float32(p[i, a_]), np.float32(ng[i, a_]))
+        offset_origin(p, p_err, ng, i, o_p, c)
         o_d[c, 0], o_d[c, 1], o_d[c, 2] = np.float32(d0), np.float32(d1), np.float32(d2)
         o_t[c, 0], o_t[c, 1], o_t[c, 2] = np.float32(t0), np.float32(t1), np.float32(t2)
         o_pdf[c] = np.float32(z / np.pi)

@@ -1,5 +1,6 @@
 """Surface interactions from hit records: position from barycentrics (float64, local then
-world), geometric and shading normals, UVs and albedo. Only meshes held here can be shaded."""
+world) with a bound on its rounding error (workers.offset), geometric and shading normals,
+UVs and albedo. Only meshes held here can be shaded."""
 
 from __future__ import annotations
 
@@ -10,19 +11,22 @@ import numpy as np
 
 from scene.model import Material, Mesh
 from workers import shade_kernels
+from workers.offset import hit_point_error
 from workers.toplevel import InstanceTable
 
 
 @dataclass(frozen=True)
 class Surface:
     """p (n,3) f64 world point; ng, ns (n,3) f64 unit geometric / shading normals facing
-    the incoming ray; albedo (n,3) f64; emission (n,3) f64."""
+    the incoming ray; albedo (n,3) f64; emission (n,3) f64; p_err (n,3) f64 bound on p's
+    rounding error per coordinate (`workers.offset.hit_point_error`)."""
 
     p: np.ndarray
     ng: np.ndarray
     ns: np.ndarray
     albedo: np.ndarray
     emission: np.ndarray
+    p_err: np.ndarray
 
 
 class SurfaceTables:
@@ -71,6 +75,7 @@ class SurfaceTables:
         self.inst_mesh = np.array(table.mesh, np.int32)
         self.l2w = np.array(table.local_to_world, np.float64, order="C")
         self.nmat = np.array(table.normal_to_world, np.float64, order="C")
+        self.w2l = np.array(table.world_to_local, np.float64, order="C")
         self.held = held
 
     def at(self, inst: np.ndarray, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
@@ -79,7 +84,7 @@ class SurfaceTables:
         optionally rows (k,) int64: only these hits, in this order."""
         if rows is None:
             rows = np.arange(len(inst))
-        bad, p, ng, ns, albedo, emission = shade_kernels.surface(
+        bad, p, ng, ns, albedo, emission, p_err = shade_kernels.surface(
             np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(inst, np.int32),
             np.ascontiguousarray(prim, np.int32),
             np.ascontiguousarray(u, np.float32), np.ascontiguousarray(v, np.float32),
@@ -87,12 +92,12 @@ class SurfaceTables:
             self.l2w, self.nmat, self.verts, self.faces,
             self.normals, self.uvs, self.vbase, self.fbase, self.has_n, self.has_uv,
             self.mesh_mat, self.mat_albedo, self.mat_emission, self.mat_tex, self.tex_base,
-            self.tex_h, self.tex_w, self.texels)
+            self.tex_h, self.tex_w, self.texels, self.w2l)
         if bad >= 0:
             m = int(self.inst_mesh[inst[bad]])  # bad: an index into inst
             raise KeyError(f"mesh {m} of instance {int(inst[bad])} is not held here "
                            f"(held: {self.held})")
-        return Surface(p, ng, ns, albedo, emission)
+        return Surface(p, ng, ns, albedo, emission, p_err)
 
 
 def surface_at(meshes: Mapping[int, Mesh], materials: Sequence[Material],
@@ -102,6 +107,7 @@ def surface_at(meshes: Mapping[int, Mesh], materials: Sequence[Material],
     The numpy formula, kept as the oracle of `SurfaceTables.at`."""
     n = len(inst)
     p_loc = np.zeros((n, 3))
+    v_max = np.zeros(n)  # largest |local vertex coordinate| of each hit triangle
     ng_loc = np.zeros((n, 3))
     ns_loc = np.zeros((n, 3))
     albedo = np.zeros((n, 3))
@@ -116,6 +122,7 @@ def surface_at(meshes: Mapping[int, Mesh], materials: Sequence[Material],
         v0, v1, v2 = (mesh.vertices[tri[:, k]].astype(np.float64) for k in range(3))
         w0, w1, w2 = b0[sel, None], b1[sel, None], b2[sel, None]
         p_loc[sel] = w0 * v0 + w1 * v1 + w2 * v2
+        v_max[sel] = np.abs(np.stack([v0, v1, v2], axis=1)).max(axis=(1, 2))
         ng_loc[sel] = np.cross(v1 - v0, v2 - v0)
         if mesh.normals is not None:
             nv = mesh.normals.astype(np.float64)
@@ -131,6 +138,7 @@ def surface_at(meshes: Mapping[int, Mesh], materials: Sequence[Material],
         emission[sel] = mat.emission
     l2w = table.local_to_world[inst]  # (n, 3, 4)
     p = _apply(l2w, p_loc) + l2w[:, :, 3]
+    p_err = hit_point_error(v_max, p_loc, l2w, table.world_to_local[inst], p)
     nmat = table.normal_to_world[inst]
     ng = _unit(_apply(nmat, ng_loc))
     ns = _unit(_apply(nmat, ns_loc))
@@ -138,7 +146,7 @@ def surface_at(meshes: Mapping[int, Mesh], materials: Sequence[Material],
     # Two-sided diffuse: both normals face the side the ray came from.
     ng = np.where((_dot(ng, d) > 0)[:, None], -ng, ng)
     ns = np.where((_dot(ns, ng) < 0)[:, None], -ns, ns)
-    return Surface(p, ng, ns, albedo, emission)
+    return Surface(p, ng, ns, albedo, emission, p_err)
 
 
 # The kernels' fixed sum orders (`shade_kernels._dot`, `_norm`), written out rather than

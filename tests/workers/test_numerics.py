@@ -52,8 +52,8 @@ class _RecordingGeometry:
         self.inner, self.occluded = inner, []
         self.closest_hits = 0
 
-    def intersect_closest(self, origin, direction, tmax):
-        out = self.inner.intersect_closest(origin, direction, tmax)
+    def intersect_closest(self, origin, direction, tmax, hit_inst=None, hit_prim=None):
+        out = self.inner.intersect_closest(origin, direction, tmax, hit_inst, hit_prim)
         self.closest_hits += int((out[1] >= 0).sum())
         return out
 
@@ -227,3 +227,31 @@ def test_axis_aligned_shadow_rays_find_their_occluder(tmp_path):
     assert shadow.all(axis=-1).sum() >= 20, "too few pixels entirely in the shadow"
     ref = np.repeat(value[..., 0][..., None], 3, axis=-1)
     assert_image_close(img, ref, tmp_path, "axis_shadow", rtol=1e-5, atol=1e-6, mask=pure)
+
+
+def _camera_on_wall(with_wall: bool, near: float | None) -> Scene:
+    """A camera whose eye lies exactly on a wall (the plane z = 0, exact in float32 and
+    float64), looking straight out of it at a sphere lit by a directional light that
+    travels toward the wall. Black environment: the wall can change the image only
+    where camera rays hit it."""
+    wall = plane_mesh(half=4.0, divisions=6, name="wall")
+    ball = mesh_from_trimesh(trimesh.creation.icosphere(subdivisions=3), "ball")
+    upright = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], float)
+    instances = (Instance(1, trs((0.0, 1.0, 4.0))),) + ((Instance(0, upright),) if with_wall
+                                                         else ())
+    return Scene((wall, ball), instances, materials=(Material(albedo=(0.6, 0.6, 0.6)),),
+                 directional_lights=(DirectionalLight((0.2, -0.5, -1.0), (2.0, 2.0, 2.0)),),
+                 camera=Camera(eye=(0.3, 1.1, 0.0), target=(0.3, 1.1, 5.0), fov_deg=60.0,
+                               near=near))
+
+
+def test_camera_exactly_on_a_surface_sees_the_scene(tmp_path):
+    kw = dict(width=32, height=32, spp=2, bounces=1, seed=4)
+    seen = render_image(_camera_on_wall(True, None), **kw)
+    ref = render_image(_camera_on_wall(False, None), **kw)
+    assert ref.max() > 0 and (ref.max(axis=-1) == 0).mean() > 0.2, "sphere on black expected"
+    assert_image_close(seen, ref, tmp_path, "camera_on_wall", rtol=1e-6, atol=1e-7)
+    # Without a near distance the wall is seen at t = 0 in every direction, from its
+    # unlit side: the sphere is gone.
+    blocked = render_image(_camera_on_wall(True, 0.0), **kw)
+    assert not blocked.any()

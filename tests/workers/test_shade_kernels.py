@@ -37,7 +37,9 @@ def _lights(rng, quads=2, points=2, dirs=1) -> LightSet:
 def _hits(rng, n):
     ng = normalize(rng.normal(size=(n, 3)))
     ns = normalize(ng + 0.3 * rng.normal(size=(n, 3)))
-    return NS(p=rng.normal(size=(n, 3)) * 2.0, ng=ng, ns=ns, albedo=rng.random((n, 3)),
+    p = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-6, 8, (n, 1))
+    return NS(p=p, p_err=np.abs(p) * 1e-7 * rng.random((n, 3)), ng=ng, ns=ns,
+              albedo=rng.random((n, 3)),
               thr=rng.random((n, 3)) * (rng.random((n, 1)) > 0.1),
               pixel=rng.integers(0, 1 << 20, n).astype(np.uint32),
               sample=rng.integers(0, 64, n).astype(np.uint32),
@@ -64,7 +66,7 @@ def _next_event_numpy(seed, S, lights, h, go):
         w = np.where(pdf_l > 0, S * pdf_l / (S * pdf_l + pdf_b), 1.0) / S
     contrib = h.thr[idx] * (h.albedo[idx] / np.pi) * value * (np.maximum(cos_s, 0) * w)[:, None]
     ok = (cos_s > 0) & (cos_g > 0) & (contrib.max(axis=1) > 0)
-    origin = offset_ray_origin(p[ok].astype(np.float32), ng[ok].astype(np.float32))
+    origin = offset_ray_origin(p[ok], h.p_err[idx][ok], ng[ok])
     return (origin, wi[ok].astype(np.float32), (dist[ok] * SHADOW_TMAX_SCALE).astype(np.float32),
             contrib[ok].astype(np.float32), pix[ok])
 
@@ -89,8 +91,9 @@ def test_next_event_kernel_matches_numpy_bit_for_bit():
         integ = PathIntegrator.__new__(PathIntegrator)
         integ.lights, integ._lights_cache = lights, None
         k, origin, wi, tmax, con, pix = shade_kernels.next_event(
-            9, S, np.flatnonzero(go), np.arange(3000), h.pixel, h.sample, h.depth, h.p, h.ns,
-            h.ng, h.albedo, h.thr, *integ._light_arrays(), float(FAR_T), float(SHADOW_TMAX_SCALE))
+            9, S, np.flatnonzero(go), np.arange(3000), h.pixel, h.sample, h.depth, h.p,
+            h.p_err, h.ns, h.ng, h.albedo, h.thr, *integ._light_arrays(), float(FAR_T),
+            float(SHADOW_TMAX_SCALE))
         got = (origin[:k], wi[:k], tmax[:k], con[:k], pix[:k])
         assert k > 0
         for a, b in zip(want, got, strict=True):
@@ -125,7 +128,7 @@ def _continue_numpy(seed, rr_on, h, go):
         t = np.where(rr[:, None], t / (1.0 - q)[:, None], t)
     keep &= t.max(axis=1) > 0
     k = g[keep]
-    origin = offset_ray_origin(h.p[k].astype(np.float32), h.ng[k].astype(np.float32))
+    origin = offset_ray_origin(h.p[k], h.p_err[k], h.ng[k])
     return (k, origin, d[keep].astype(np.float32), t[keep].astype(np.float32),
             pdf[keep].astype(np.float32))
 
@@ -141,7 +144,7 @@ def test_continue_kernel_matches_numpy_bit_for_bit(rr_on):
     phi = 2.0 * np.pi * shade_kernels.uniform_rows(5, g, h.pixel, h.sample, h.depth, DIM_BSDF_V)
     c, k, origin, d, t, pdf = shade_kernels.bsdf_continue(
         5, g, np.arange(4000), h.pixel, h.sample, h.depth, np.cos(phi), np.sin(phi), h.p,
-        h.ng, h.ns, h.albedo, h.thr, rr_on, RR_START_DEPTH)
+        h.p_err, h.ng, h.ns, h.albedo, h.thr, rr_on, RR_START_DEPTH)
     got = (k[:c], origin[:c], d[:c], t[:c], pdf[:c])
     assert c > 0
     for a, b in zip(want, got, strict=True):
@@ -176,7 +179,7 @@ def test_surface_kernel_matches_surface_at_bit_for_bit(name):
         want = surface_at(meshes, scene.materials, table, inst, prim, u, v, d)
         got = SurfaceTables(meshes, scene.materials, table).at(inst, prim, u, v, d)
         first = first or want
-        for f in ("p", "ng", "ns", "albedo", "emission"):
+        for f in ("p", "ng", "ns", "albedo", "emission", "p_err"):
             assert np.array_equal(getattr(want, f), getattr(got, f)), f"{layout}: {f}"
             assert np.array_equal(getattr(want, f), getattr(first, f)), f"{layout}: {f}"
 
@@ -194,18 +197,19 @@ def test_surface_kernel_refuses_meshes_not_held():
 
 
 def test_offset_kernel_matches_offset_ray_origin_bit_for_bit():
-    """Near the origin (the float offset), far from it (the integer-ULP one), at zeros of
-    either sign, at the float32 extremes, and for non-finite normals."""
+    """Across magnitudes, at zeros of either sign, with zero error bounds, at the float64
+    extremes, and for non-finite normals."""
     rng = np.random.default_rng(7)
     n = 200000
-    p = (rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-8, 8, (n, 3))).astype(np.float32)
-    p[:100] = np.array([0.0, -0.0, 1.0 / 32.0], np.float32)
-    p[100:200] = np.float32(3.0e38)
-    p[200:300] = -np.float32(1.0 / 32.0)
-    nrm = normalize(rng.normal(size=(n, 3))).astype(np.float32)
-    nrm[300:400] = np.array([np.nan, np.inf, -np.inf], np.float32)
-    nrm[400:500] = np.array([-0.0, 0.0, 1.0], np.float32)
-    with np.errstate(invalid="ignore"):
-        want = offset_ray_origin(p, nrm)
-    got = shade_kernels.offset_rows(p, nrm)
-    assert np.array_equal(want.view(np.int32), got.view(np.int32))
+    p = rng.normal(size=(n, 3)) * 10.0 ** rng.integers(-300, 300, (n, 3))
+    p[:100] = np.array([0.0, -0.0, 1.0 / 32.0])
+    p[100:200] = 1.7e308
+    err = np.abs(p) * 10.0 ** rng.integers(-17, -3, (n, 3))
+    err[200:300] = 0.0
+    nrm = normalize(rng.normal(size=(n, 3)))
+    nrm[300:400] = np.array([np.nan, np.inf, -np.inf])
+    nrm[400:500] = np.array([-0.0, 0.0, 1.0])
+    with np.errstate(invalid="ignore", over="ignore"):
+        want = offset_ray_origin(p, err, nrm)
+    got = shade_kernels.offset_rows(p, err, nrm)
+    assert np.array_equal(want.view(np.int64), got.view(np.int64))
