@@ -81,7 +81,7 @@ class Coordinator:
                  proxy_dir=None, shard_options: list[dict] | None = None,
                  pools: PoolRegistry | None = None):
         self.scene, self.s, self.k = scene, settings, settings.shards
-        self._pools = pools
+        self._pools, self._closed = pools, False
         if pools is not None:  # a warm pool, handed back on close
             self.pool = pools.acquire(scene, settings, ray_address=ray_address,
                                       proxy_dir=proxy_dir, shard_options=shard_options)
@@ -329,10 +329,11 @@ class Coordinator:
         }
 
     def close(self) -> None:
-        if self.pool is None:
+        """Hand the pool back (or close a private one); info() still answers after."""
+        if self._closed:
             return
+        self._closed = True
         if self._pools is not None:
             self._pools.release(self.pool)
         else:
             self.pool.close()
-        self.pool = None

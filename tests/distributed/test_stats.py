@@ -51,8 +51,10 @@ def test_bytes_by_kind_equal_transfers_times_row_bytes(stats_by_k, k):
 
 
 def test_row_bytes_match_the_declared_layout():
-    # origin, direction, throughput 3 x f32; tmax, pdf_prev, hit_u, hit_v f32; pixel, sample
-    # u32; hit_inst, hit_prim i32; visited u64; depth, kind, hops, flags u8.
-    assert RAY_ROW_BYTES == 3 * 12 + 4 * 4 + 2 * 4 + 2 * 4 + 8 + 4 * 1
-    # origin, direction, contribution 3 x f32; tmax f32; pixel u32; visited u64; hops u8.
-    assert SHADOW_ROW_BYTES == 3 * 12 + 4 + 4 + 8 + 1
+    # origin 3 x f64 (precision far from the origin); direction, throughput 3 x f32; tmax,
+    # pdf_prev, hit_u, hit_v f32; pixel, sample u32; hit_inst, hit_prim i32; visited u64;
+    # depth, kind, hops, flags u8.
+    assert RAY_ROW_BYTES == 24 + 2 * 12 + 4 * 4 + 2 * 4 + 2 * 4 + 8 + 4 * 1
+    # origin 3 x f64; direction, contribution 3 x f32; tmax f32; pixel u32; visited u64;
+    # hops u8.
+    assert SHADOW_ROW_BYTES == 24 + 2 * 12 + 4 + 4 + 8 + 1
