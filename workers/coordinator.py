@@ -37,6 +37,7 @@ from workers.pool import ShardPool
 from workers.settings import RenderSettings
 from workers.shard import Manifest, WorkItem
 from workers.stats import RenderStats
+from workers.trace import TraceRecorder
 
 log = logging.getLogger(__name__)
 
@@ -68,8 +69,9 @@ class Coordinator:
 
     def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
                  proxy_dir=None, shard_options: list[dict] | None = None,
-                 pool: ShardPool | None = None):
+                 pool: ShardPool | None = None, trace: bool = False):
         self.scene, self.s, self.k = scene, settings, settings.shards
+        self.trace = TraceRecorder(self.k) if trace else None  # every work call, for models
         self._own_pool = pool is None
         self.pool = pool or ShardPool(scene, settings, ray_address, proxy_dir, shard_options)
         if (self.pool.k, self.pool.mode) != (self.k, settings.mode):
@@ -209,11 +211,15 @@ class Coordinator:
             parcels += got
         self.calls[sid] += 1
         m_ref, outs = self._dispatch(sid, items, parcels)
+        if self.trace is not None:
+            self.trace.on_dispatch(sid, by_token, m_ref, outs)
         return {m_ref: ("work", sid, list(by_token), outs)}
 
     def _on_work(self, ref, what, live: dict, inbox: list) -> None:
         _, sid, tokens, outs = what
         manifest: Manifest = self._get(ref)
+        if self.trace is not None:
+            self.trace.on_return(ref, manifest)
         self.busy_s[sid] += manifest.busy_s
         self.bytes_in[sid] += manifest.bytes_in
         self.bytes_out[sid] += manifest.bytes_out
