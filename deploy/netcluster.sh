@@ -27,8 +27,8 @@
 # namespace, link, cgroup and file that `up` made; a failed `up` does the same before exiting.
 #
 # Options: --name NAME (prefix, <= 6 characters; default nprt), --subnet A.B.C (default
-# 10.213.0), --port P (the GCS port; P+1 and P+2 go to the head's client server and agent;
-# default 26379), --object-store-mb M (per node, default 256), --auth token|disabled (Ray's
+# 10.213.0), --port P (the GCS port; P+1 to P+3 go to the head's client server, agent
+# and dashboard; default 26379), --object-store-mb M (per node, default 256), --auth token|disabled (Ray's
 # token authentication; default token, from ~/.ray/auth_token), --python PATH (the Ray
 # binary is the one next to it; default $PYTHON, $VENV/bin/python, the checkout's .venv,
 # python3). Needs root, iproute2 (installed with apt-get when missing) and network
@@ -167,14 +167,29 @@ shape_dev() {  # shape_dev "ip netns exec NS" DEV : htb at BANDWIDTH, then netem
     n = b + 0; u = b; sub(/^[0-9.]+/, "", u)
     m = (u == "gbit") ? 1e9 : (u == "mbit") ? 1e6 : (u == "kbit") ? 1e3 : 1
     x = n * m / 8 / 250; if (x < 65536) x = 65536; printf "%d", x }')
-  $run tc qdisc replace dev "$dev" root handle 1: htb default 10
+  $run tc qdisc show dev "$dev" | grep "qdisc htb 1: root" >/dev/null || \
+    $run tc qdisc replace dev "$dev" root handle 1: htb default 10
   $run tc class replace dev "$dev" parent 1: classid 1:10 htb rate "$BANDWIDTH" \
     ceil "$BANDWIDTH" burst "$burst" cburst "$burst" quantum 65536
-  if [ "$(awk -v d="$DELAY" 'BEGIN { print (d + 0 > 0) }')" = 1 ]; then
-    $run tc qdisc replace dev "$dev" parent 1:10 handle 10: netem delay "$DELAY" limit 100000
+  # The leaf is deleted and added again: tc cannot change one qdisc kind into another.
+  $run tc qdisc del dev "$dev" parent 1:10 2>/dev/null || true
+  if has_delay; then
+    $run tc qdisc add dev "$dev" parent 1:10 handle 10: netem delay "$DELAY" limit 100000
   else
-    $run tc qdisc replace dev "$dev" parent 1:10 handle 10: pfifo limit 100000
+    $run tc qdisc add dev "$dev" parent 1:10 handle 10: pfifo limit 100000
   fi
+}
+
+has_delay() { [ "$(awk -v d="$DELAY" 'BEGIN { print (d + 0 > 0) }')" = 1 ]; }
+
+check_netem() {  # before touching any link: a delay needs the kernel's netem
+  has_delay || return 0
+  local probe="$NAME-probe$$" ok=0
+  ip netns add "$probe"
+  ip netns exec "$probe" tc qdisc add dev lo root netem delay "$DELAY" 2>/dev/null && ok=1
+  ip netns del "$probe"
+  [ "$ok" = 1 ] || die "cannot give links a $DELAY delay: this kernel has no netem" \
+    "(sch_netem); use --delay 0ms"
 }
 
 shape_node() {  # both directions of node I's link
@@ -209,15 +224,16 @@ launch() {  # launch TAG CGROUP COMMAND... : in a new session (recorded, for dow
 }
 
 port_free() {
-  ! ss -Hltn "sport = :$1" 2>/dev/null | grep -q . || die "port $1 is in use (give --port)"
+  [ -z "$(ss -Hltn "sport = :$1" 2>/dev/null)" ] || die "port $1 is in use (give --port)"
 }
 
 start_head() {  # GCS and a CPU-less raylet in the root namespace, on the bridge address
   local p
-  for p in "$GCS_PORT" $((GCS_PORT + 1)) $((GCS_PORT + 2)); do port_free "$p"; done
+  for p in "$GCS_PORT" $((GCS_PORT + 1)) $((GCS_PORT + 2)) $((GCS_PORT + 3)); do port_free "$p"; done
   say "head: root namespace $SUBNET.1:$GCS_PORT (GCS, no CPUs: the coordinator's node)"
   launch head "" "$RAY" start --head --node-ip-address="$SUBNET.1" --port="$GCS_PORT" \
     --ray-client-server-port=$((GCS_PORT + 1)) --dashboard-agent-listen-port=$((GCS_PORT + 2)) \
+    --dashboard-port=$((GCS_PORT + 3)) \
     --num-cpus=0 --object-store-memory=$((STORE_MB * 1024 * 1024)) --include-dashboard=false \
     --disable-usage-stats --temp-dir="$STATE/ray" --resources='{"netcluster_head": 1}'
 }
@@ -260,6 +276,7 @@ cmd_up() {
   need_tools
   [ -e "$STATE" ] && die "a cluster named $NAME is up already ($STATE); run down first"
   check_netns
+  check_netem
   find_python
   [ -n "$CPUS" ] || CPUS=$(awk -v c="$(nproc)" -v n="$N" 'BEGIN { printf "%g", c / n }')
   NUM_CPUS=$(awk -v c="$CPUS" 'BEGIN { p = int(c + 0.5); print (p < 1) ? 1 : p }')
@@ -306,6 +323,7 @@ load_state() {
 
 cmd_shape() {
   load_state "$@"
+  check_netem
   for ((i = 0; i < N; i++)); do shape_node "$i"; done
   echo "$BANDWIDTH $DELAY" > "$STATE/shape"
   say "$N links now $BANDWIDTH delay $DELAY"
@@ -337,7 +355,7 @@ cmd_exec() {  # exec I [--name NAME] -- COMMAND...
   done
   [ "${1:-}" = -- ] && shift
   [ $# -gt 0 ] || die "exec I -- COMMAND: no command"
-  ip netns list | grep -qE "^$(ns "$i")( |$)" || die "no namespace $(ns "$i")"
+  ip netns list | grep -E "^$(ns "$i")( |$)" >/dev/null || die "no namespace $(ns "$i")"
   exec ip netns exec "$(ns "$i")" "$@"
 }
 
