@@ -154,6 +154,7 @@ def run_bandwidth(args) -> dict:
                 sm = s.model_copy(update={"mode": mode})
                 pool = ShardPool(scene, sm)
                 try:
+                    traced_render(scene, sm, pool)  # warm-up: the first render is slower
                     for bw in args.bandwidths:
                         netcluster("shape", "--bandwidth", bw)
                         runs = [traced_render(scene, sm, pool) for _ in range(args.repeat)]

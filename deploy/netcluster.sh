@@ -27,9 +27,10 @@
 # namespace, link, cgroup and file that `up` made; a failed `up` does the same before exiting.
 #
 # Options: --name NAME (prefix, <= 6 characters; default nprt), --subnet A.B.C (default
-# 10.213.0), --port P (the GCS port; P+1 to P+3 go to the head's client server, agent
-# and dashboard; default 26379), --object-store-mb M (per node, default 256), --auth token|disabled (Ray's
-# token authentication; default token, from ~/.ray/auth_token), --python PATH (the Ray
+# 10.213.0), --port P (the GCS port; P+1 to P+3 go to the head's client server, agent and
+# dashboard; default 26379), --object-store-mb M (per node, default 256), --auth
+# token|disabled (Ray's token authentication; default token, from ~/.ray/auth_token),
+# --pin (taskset each node to its own cores as well as the quota), --python PATH (the Ray
 # binary is the one next to it; default $PYTHON, $VENV/bin/python, the checkout's .venv,
 # python3). Needs root, iproute2 (installed with apt-get when missing) and network
 # namespaces; exit status 3 means network namespaces are not available here.
@@ -50,7 +51,10 @@ PIN=0
 die() { echo "netcluster: $*" >&2; exit 1; }
 say() { echo "netcluster: $*" >&2; }
 
-usage() { sed -n '2,36p' "${BASH_SOURCE[0]}" | sed 's/^# \{0,1\}//'; exit "${1:-2}"; }
+usage() {  # the comment block above
+  awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "${BASH_SOURCE[0]}"
+  exit "${1:-2}"
+}
 
 parse_opts() {
   while [ $# -gt 0 ]; do
