@@ -44,6 +44,7 @@ from workers.pool import (  # noqa: F401 (ShardStartError re-exported)
 from workers.settings import RenderSettings
 from workers.shard import Manifest, WorkItem
 from workers.stats import RenderStats
+from workers.trace import TraceRecorder
 
 log = logging.getLogger(__name__)
 
@@ -79,8 +80,9 @@ class Coordinator:
 
     def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
                  proxy_dir=None, shard_options: list[dict] | None = None,
-                 pools: PoolRegistry | None = None):
+                 pools: PoolRegistry | None = None, trace: bool = False):
         self.scene, self.s, self.k = scene, settings, settings.shards
+        self.trace = TraceRecorder(self.k) if trace else None  # every work call, for models
         self._pools, self._closed = pools, False
         if pools is not None:  # a warm pool, handed back on close
             self.pool = pools.acquire(scene, settings, ray_address=ray_address,
@@ -237,12 +239,16 @@ class Coordinator:
             parcels += got
         self.calls[sid] += 1
         m_ref, outs = self._dispatch(sid, items, parcels)
+        if self.trace is not None:
+            self.trace.on_dispatch(sid, by_token, m_ref, outs)
         waiting[m_ref] = ("work", sid, list(by_token), outs)
         return left
 
     def _on_work(self, ref, what, live: dict, inbox: list) -> None:
         _, sid, tokens, outs = what
         manifest: Manifest = self._get(ref)
+        if self.trace is not None:
+            self.trace.on_return(ref, manifest)
         self.busy_s[sid] += manifest.busy_s
         self.bytes_in[sid] += manifest.bytes_in
         self.bytes_out[sid] += manifest.bytes_out
