@@ -169,3 +169,9 @@ def test_checkpoint_json_is_the_commit_point(tmp_path):
     ck = load_checkpoint(tmp_path)
     assert ck.next_pass == 4 and (ck.sums == 1.0).all()
     assert json.loads((tmp_path / "checkpoint.json").read_text())["next_pass"] == 4
+
+
+def test_checkpoint_keeps_the_passes_finished_out_of_order(tmp_path):
+    save_checkpoint(tmp_path, 4, np.ones((2, 3)), np.ones(2, np.int64), {}, done=[7, 5])
+    ck = load_checkpoint(tmp_path)
+    assert (ck.next_pass, ck.done) == (4, [5, 7])

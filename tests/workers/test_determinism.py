@@ -94,3 +94,33 @@ def test_resumed_render_equals_uninterrupted_render(scene):
     sums, samples = snapshots[k]
     resumed = render(scene, settings, resume=ResumeState(k + 1, sums, samples)).film.image()
     assert np.array_equal(resumed, full)
+
+
+def test_resume_from_passes_finished_out_of_order_equals_uninterrupted_render(scene):
+    # A pipelined render finishes passes out of order; its checkpoint holds every pass
+    # below next_pass plus a few above it (done). Resuming renders exactly the others.
+    from workers.passes import iter_passes
+    from workers.reference import ReferenceRenderer
+    from workers.render import Progress
+
+    settings = RenderSettings(**BASE, tile_size=16, spp_per_pass=2)
+    full = render(scene, settings).film.image()
+    passes = list(iter_passes(settings))
+    k = len(passes) // 2
+    held = [p for p in passes if p.index < k or p.index == k + 2]
+    renderer = ReferenceRenderer(scene, settings)
+    sums = np.zeros((settings.width * settings.height, 3))
+    samples = np.zeros(settings.width * settings.height, np.int64)
+    for p in held:
+        tile, _ = renderer.run_pass(p)
+        sums[p.pixels(settings.width)] += tile
+        samples[p.pixels(settings.width)] += p.sample1 - p.sample0
+    ran = []
+    resumed = render(scene, settings, resume=ResumeState(k, sums, samples, done=[k + 2]),
+                     on_pass=lambda d: ran.append(d.index))
+    assert sorted(ran) == [p.index for p in passes if p.index >= k and p.index != k + 2]
+    assert np.array_equal(resumed.film.image(), full)
+    progress = Progress(k, [k + 2])
+    progress.mark(k)
+    progress.mark(k + 1)
+    assert (progress.next_pass, progress.done) == (k + 3, set())
