@@ -13,8 +13,9 @@ Columns of the bandwidth table (one row per scene, link and mode):
   local intersection + top level - proxy; shading = shading + camera rays). These are wall
   seconds on a host shared with other work; *CPU s* is what both shard processes used;
 - *total s*: the render's wall time (fastest of the repeats); *speedup*: exact / proxy;
-- *model s*: the model on dedicated cores (CPU seconds per call) and ideal links at the
-  nominal rate.
+- *model s*: the model replaying the best fast-link trace of the same scene and mode on
+  dedicated cores (each call's CPU seconds) and ideal links at the nominal rate: the
+  bandwidth's effect without this host's noise.
 """
 
 from __future__ import annotations
@@ -177,7 +178,8 @@ def bandwidth_table(bw_res: dict, rpc_s: float) -> str:
             pair = [runs.get((scene, m, bw)) for m in ("exact", "proxy")]
             if None in pair:
                 continue
-            models = [model_s(r, _bits(bw), rpc_s) for r in pair]
+            models = [model_s(best_fast(bw_res, scene, m), _bits(bw), rpc_s)
+                      for m in ("exact", "proxy")]
             for r, m in zip(pair, models, strict=True):
                 link = bw_res["links"][bw]
                 mb = r["stats"]["total_bytes"] / 1e6
@@ -228,11 +230,13 @@ def scaling_table(rows: list[dict], labels: list[str]) -> str:
 
 
 def flatness(rows: list[dict], label: str) -> dict:
-    """Per scene and mode: model time at the largest K over the smallest."""
+    """Per scene and mode: (model time at the largest K, and at the worst K) over the
+    time at the smallest K."""
     out = {}
     for r in rows:
         out.setdefault((r["scene"], r["mode"]), {})[r["k"]] = r[label]
-    return {f"{sc} {m}": v[max(v)] / v[min(v)] for (sc, m), v in out.items()}
+    return {f"{sc} {m}": (v[max(v)] / v[min(v)], max(v.values()) / v[min(v)])
+            for (sc, m), v in out.items()}
 
 
 # -- plots ---------------------------------------------------------------------------------------
@@ -256,8 +260,10 @@ def plot_bandwidth(bw_res: dict, rpc_s: float, path: Path) -> None:
             runs = [r for r in bw_res["runs"] if r["scene"] == scene and r["mode"] == mode]
             x = [_bits(r["bandwidth"]) / 1e9 for r in runs]
             ax.plot(x, [r["wall_s"] for r in runs], "o-", color=color, label=f"{mode} measured")
-            ax.plot(x, [model_s(r, _bits(r["bandwidth"]), rpc_s) for r in runs], "s--",
-                    color=color, alpha=0.6, label=f"{mode} model, dedicated cores")
+            base = best_fast(bw_res, scene, mode)
+            grid = np.geomspace(5e6, 2e10, 16)
+            ax.plot(grid / 1e9, [model_s(base, b, rpc_s) for b in grid], "--", color=color,
+                    alpha=0.6, label=f"{mode} model, dedicated cores")
         ax.set_title(f"{scene}: 2 shaped nodes")
     ax = axes[-1]
     for mode, color in (("exact", "tab:red"), ("proxy", "tab:blue")):
@@ -296,8 +302,8 @@ def plot_scaling(rows: list[dict], label: str, path: Path) -> None:
         ks = sorted(PAPER_T2[mode])
         t = np.array([PAPER_T2[mode][k] for k in ks])
         name = "paper Wald et al." if mode == "exact" else "paper ours"
-        axes[0].plot(ks, t, "k--", color=color, alpha=0.5, lw=2, label=name)
-        axes[1].plot(ks, t / t[0], "k--", color=color, alpha=0.5, lw=2, label=name)
+        axes[0].plot(ks, t, "--", color=color, alpha=0.5, lw=2, label=name)
+        axes[1].plot(ks, t / t[0], "--", color=color, alpha=0.5, lw=2, label=name)
     axes[0].set_title(f"render time, model at {label} (paper: 1 GigE, GPUs)")
     axes[1].set_title("relative to K = 2")
     for ax in axes:
@@ -347,6 +353,9 @@ def report(out: Path, update_readme: bool = True) -> int:
 
 
 def section_bandwidth(bw_res, val, share, per_path) -> str:
+    ours = per_path["ours"]
+    scenes = [sc for sc in dict.fromkeys(k.rsplit(" ", 1)[0] for k in ours)
+              if f"{sc} exact" in ours and f"{sc} proxy" in ours]
     links = ", ".join(f"{bw}: {_mbit(v)}" for bw, v in bw_res["links"].items())
     lines = [
         "## Shaped network links (`bench_network.py`)",
@@ -359,8 +368,10 @@ def section_bandwidth(bw_res, val, share, per_path) -> str:
         "column. Plot: `results/network_bandwidth.png`.",
         "",
         f"What one Ray object really reached between the nodes: {links}. The host (2 "
-        "shared cores, veth, Ray's object transfer) caps it near 1 Gbit/s, so the 2, 4 and "
-        "20 Gbit/s rows differ only by noise.",
+        f"shared cores, veth, Ray's object transfer) caps it near "
+        f"{_mbit(max(bw_res['links'].values()))}, so links above that are the same link; "
+        "and down to 1 Gbit/s these few MB cross in under 0.1 s, so those rows differ by "
+        "the noise of a shared host only.",
         "",
         bandwidth_table(bw_res, val["rpc_s"]),
         "",
@@ -371,7 +382,11 @@ def section_bandwidth(bw_res, val, share, per_path) -> str:
         + ", ".join(f"{'Wald et al.' if k == 'exact' else 'proxy'} {v * 1e6:.2f} µs"
                     for k, v in per_path["paper"].items())
         + ". So a link here must be that many times slower than 1 GigE to cost the same "
-        "share of the time as in the paper.",
+        "share of the time as in the paper. Compute alone, exact over proxy: "
+        + ", ".join(f"{sc} {ours[f'{sc} exact'] / ours[f'{sc} proxy']:.2f}x" for sc in scenes)
+        + f" here, {per_path['paper']['exact'] / per_path['paper']['proxy']:.2f}x in the paper"
+        " (its GPU proxies are cheap next to the intersections they save; our CPU proxy "
+        "inference is not), which bounds the speedup the network alone can add to.",
         "",
         f"**Model validation.** The model (bench/netmodel.py) replays each run's own trace "
         f"(recorded call times, measured link rate). Its one free parameter, the one-way "
@@ -420,16 +435,21 @@ def section_scaling(sc_res, rows, labels, flat) -> str:
         scaling_table(rows, labels),
         "",
         f"**Target: proxy flat within {FLAT_TARGET:.0%} from K = 2 to 8 while exact grows** "
-        "(time at the largest K over the smallest):",
+        "(time at K = 8 over K = 2; for proxy also the worst K over K = 2, which is what "
+        "the verdict uses):",
         "",
     ]
     for label in labels:
         f = flat[label]
         parts = []
-        for key, v in f.items():
+        for key, (end, worst) in f.items():
             scene, mode = key.rsplit(" ", 1)
-            ok = v <= 1 + FLAT_TARGET if mode == "proxy" else v > 1.0
-            parts.append(f"{key} {v:.2f}x ({'met' if ok else 'NOT met'})")
+            if mode == "proxy":
+                ok = worst <= 1 + FLAT_TARGET
+                parts.append(f"{key} {end:.2f}x, worst {worst:.2f}x "
+                             f"({'met' if ok else 'NOT met'})")
+            else:
+                parts.append(f"{key} {end:.2f}x ({'met' if end > 1.0 else 'NOT met'})")
         lines.append(f"- at {label}: " + ", ".join(parts))
     paper = {m: PAPER_T2[m][8] / PAPER_T2[m][2] for m in PAPER_T2}
     lines.append(f"- paper: proxy {paper['proxy']:.2f}x, exact {paper['exact']:.2f}x")

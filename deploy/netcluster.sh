@@ -279,6 +279,8 @@ cmd_up() {
   STATE=$(state_dir)
   need_tools
   [ -e "$STATE" ] && die "a cluster named $NAME is up already ($STATE); run down first"
+  ip link show "$(bridge)" >/dev/null 2>&1 && \
+    die "a bridge $(bridge) exists already: another cluster named $NAME? (give --name)"
   check_netns
   check_netem
   find_python
@@ -379,19 +381,14 @@ kill_ns_procs() {  # TERM, then KILL what is left, of every process in namespace
 cmd_down() {
   [ -n "${STATE:-}" ] || { parse_opts "$@"; STATE=$(state_dir); }
   [ -f "$STATE/env" ] && . "$STATE/env"
-  local n i cg sid pids
-  for i in "$STATE"/sid-*; do  # every process of every session up started (head included)
-    [ -f "$i" ] || continue
-    sid=$(cat "$i")
-    pids=$(ps -e -o pid=,sid= | awk -v s="$sid" '$2 == s { print $1 }')
-    [ -n "$pids" ] && kill -TERM $pids 2>/dev/null || true
-  done
-  sleep 1
-  for i in "$STATE"/sid-*; do
-    [ -f "$i" ] || continue
-    sid=$(cat "$i")
-    pids=$(ps -e -o pid=,sid= | awk -v s="$sid" '$2 == s { print $1 }')
-    [ -n "$pids" ] && kill -KILL $pids 2>/dev/null || true
+  local n i cg sid left
+  for sig in TERM KILL; do  # every process of every session up started (head included)
+    for i in "$STATE"/sid-*; do
+      [ -f "$i" ] || continue
+      sid=$(cat "$i")
+      for n in $(session_pids "$sid"); do kill -"$sig" "$n" 2>/dev/null || true; done
+    done
+    if [ "$sig" = TERM ]; then sleep 1; fi
   done
   for n in $(ip netns list 2>/dev/null | awk '{print $1}' | grep -E "^$NAME-ns[0-9]+$" || true); do
     kill_ns_procs "$n"
@@ -409,8 +406,22 @@ cmd_down() {
     for i in "$cg"/node*; do [ -d "$i" ] && rmdir "$i" 2>/dev/null || true; done
     rmdir "$cg" 2>/dev/null || say "could not remove cgroup $cg"
   fi
+  left=$(ip netns list 2>/dev/null | awk '{print $1}' | grep -E "^$NAME-" || true)
+  left+=$(ip -o link show 2>/dev/null | awk -F': ' '{print $2}' | grep -E "^$NAME-" || true)
+  for i in "$STATE"/sid-*; do
+    if [ -f "$i" ]; then left+=$(session_pids "$(cat "$i")"); fi
+  done
+  [ -z "$left" ] || die "down: still there: $(echo $left)"
   rm -rf "$STATE"
   say "down: nothing of cluster $NAME left"
+}
+
+session_pids() {  # the Ray processes of session $1 (the name check guards a reused id)
+  local pid
+  for pid in $(ps -e -o pid=,sid= | awk -v s="$1" '$2 == s { print $1 }'); do
+    tr '\0' ' ' < "/proc/$pid/cmdline" 2>/dev/null | grep ray >/dev/null && echo "$pid"
+  done
+  return 0
 }
 
 main() {

@@ -108,6 +108,7 @@ def test_killing_a_node_mid_render_gives_the_same_image_or_a_clear_error(tmp_pat
                 driver.kill()
         assert killed is not None, f"the render ended before a node could be killed: {lines}"
         last = json.loads(lines[-1])
+        print(f"node {killed} killed after pass 3; the driver ended with {rc}: {last}")
         if rc == 0:
             assert last == {"done": True}
             ref = reference(make_demo("sculpture", "small"), s).film.image()
