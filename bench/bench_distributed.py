@@ -40,11 +40,11 @@ from rich.progress import (  # noqa: E402
 )
 
 from bench.common import replace_section, timed_render  # noqa: E402
-from scene.demos import DEMOS, make_demo  # noqa: E402
-from scene.model import Scene  # noqa: E402
-from workers.batch import KIND_NAMES  # noqa: E402
-from workers.render import render  # noqa: E402
-from workers.settings import RenderSettings  # noqa: E402
+from nprt.scene.demos import DEMOS, make_demo  # noqa: E402
+from nprt.scene.model import Scene  # noqa: E402
+from nprt.workers.batch import KIND_NAMES  # noqa: E402
+from nprt.workers.render import render  # noqa: E402
+from nprt.workers.settings import RenderSettings  # noqa: E402
 
 log = logging.getLogger(__name__)
 

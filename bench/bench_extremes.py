@@ -10,7 +10,7 @@ the wire (bytes per ray) and in speed (rays per second).
     python -m bench.bench_extremes --report-only                    # tables from the JSON
 
 Block error: the mean |difference| of 8x8-pixel block means over the mean block value
-(`workers.blocks`); averaging a block removes most sampling noise while a bias (a lost
+(`nprt.workers.blocks`); averaging a block removes most sampling noise while a bias (a lost
 shadow, a light leak) stays. Every transformed render uses the untouched render's seed, so
 where nothing drifts the two images are nearly identical; the noise level is the block
 error between two seeds of the untouched scene, and max |z| is the largest per-block
@@ -40,13 +40,13 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.common import machine, replace_section, timed_render  # noqa: E402
-from scene.demos import make_demo  # noqa: E402
-from scene.transform import similarity, transform_scene  # noqa: E402
-from workers.batch import RayBatch, ShadowRayBatch  # noqa: E402
-from workers.blocks import block_error, block_z  # noqa: E402
-from workers.reference import ReferenceRenderer  # noqa: E402
-from workers.render import render  # noqa: E402
-from workers.settings import RenderSettings  # noqa: E402
+from nprt.scene.demos import make_demo  # noqa: E402
+from nprt.scene.transform import similarity, transform_scene  # noqa: E402
+from nprt.workers.batch import RayBatch, ShadowRayBatch  # noqa: E402
+from nprt.workers.blocks import block_error, block_z  # noqa: E402
+from nprt.workers.reference import ReferenceRenderer  # noqa: E402
+from nprt.workers.render import render  # noqa: E402
+from nprt.workers.settings import RenderSettings  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -262,7 +262,7 @@ def write_readme(res: dict, table: str) -> None:
         "## Numerical stability at the extremes (`bench_extremes.py`)", "",
         "`python -m bench.bench_extremes` moves each demo by a similarity (translation "
         "1e0 to 1e7 along a skew direction, uniform scale 1e-6 to 1e6; radiometry adjusted "
-        "by `scene.transform` so the image must not change) and compares it with the "
+        "by `nprt.scene.transform` so the image must not change) and compares it with the "
         "untouched demo, rendered with the same seed, by 8x8 block means. See the module "
         "docstring for the definitions. Target: every point at the noise level (dashed in "
         "the plot).", "",

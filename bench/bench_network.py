@@ -36,11 +36,11 @@ import numpy as np  # noqa: E402
 import ray  # noqa: E402
 
 from bench.common import add_render_flags, machine, render_settings  # noqa: E402
-from scene.demos import make_demo  # noqa: E402
-from workers.coordinator import Coordinator  # noqa: E402
-from workers.passes import iter_passes  # noqa: E402
-from workers.pool import ShardPool  # noqa: E402
-from workers.render import render  # noqa: E402
+from nprt.scene.demos import make_demo  # noqa: E402
+from nprt.workers.coordinator import Coordinator  # noqa: E402
+from nprt.workers.passes import iter_passes  # noqa: E402
+from nprt.workers.pool import ShardPool  # noqa: E402
+from nprt.workers.render import render  # noqa: E402
 
 log = logging.getLogger(__name__)
 

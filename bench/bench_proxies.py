@@ -32,12 +32,12 @@ from bench.common import (
     save,
     timed_render,
 )
-from proxies.evaluate import throughput
-from scene.demos import DEMOS, make_demo
-from scene.partition import partition
-from workers.batch import KIND_NAMES
-from workers.pool import make_plan
-from workers.settings import RenderSettings
+from nprt.proxies.evaluate import throughput
+from nprt.scene.demos import DEMOS, make_demo
+from nprt.scene.partition import partition
+from nprt.workers.batch import KIND_NAMES
+from nprt.workers.pool import make_plan
+from nprt.workers.settings import RenderSettings
 
 log = logging.getLogger(__name__)
 

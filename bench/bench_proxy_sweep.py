@@ -33,8 +33,8 @@ from bench.common import (
     save,
     timed_render,
 )
-from scene.demos import DEMOS, make_demo
-from workers.settings import ProxySettings
+from nprt.scene.demos import DEMOS, make_demo
+from nprt.workers.settings import ProxySettings
 
 RESULTS = Path(__file__).resolve().parent / "results"
 ROOT_README = BENCH_README.parents[1] / "README.md"

@@ -22,12 +22,12 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def measure(size: str, target: float, train: bool) -> list[dict]:
-    from proxies.cache import ProxyCache
-    from proxies.config import DEFAULT_WIDTHS, ProxyConfig
-    from proxies.evaluate import throughput
-    from proxies.policy import plan_proxies
-    from scene.demos import DEMOS, make_demo
-    from scene.partition import partition
+    from nprt.proxies.cache import ProxyCache
+    from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig
+    from nprt.proxies.evaluate import throughput
+    from nprt.proxies.policy import plan_proxies
+    from nprt.scene.demos import DEMOS, make_demo
+    from nprt.scene.partition import partition
 
     cache, config, rows, seen = ProxyCache(), ProxyConfig(), [], set()
     for name in DEMOS:
@@ -74,10 +74,10 @@ def measure_analytic(widths=(16, 32, 64)) -> list[dict]:
     """Sphere, box, torus at a fixed step budget: encodings x widths, same seeds."""
     import trimesh
 
-    from proxies.config import ProxyConfig
-    from proxies.evaluate import throughput
-    from proxies.train import train_proxy
-    from scene.model import Mesh
+    from nprt.proxies.config import ProxyConfig
+    from nprt.proxies.evaluate import throughput
+    from nprt.proxies.train import train_proxy
+    from nprt.scene.model import Mesh
 
     shapes = {"sphere": trimesh.creation.icosphere(subdivisions=3),
               "box": trimesh.creation.box(extents=(1.0, 0.6, 0.8)),

@@ -20,7 +20,7 @@ JSON has the render's wall time too). Embree builds its BVHs lazily on the first
 both sides are warmed up first so no build is timed (nor numba's first-use load of the
 renderer's jitted kernels).
 
-The instrumentation wraps two module-level functions of `workers.reference` for the
+The instrumentation wraps two module-level functions of `nprt.workers.reference` for the
 duration of one render and restores them; nothing in workers/ is changed or slowed.
 """
 
@@ -43,15 +43,15 @@ if __package__ in (None, ""):  # run as a script: make the repository importable
 
 from embreex import mesh_construction, rtcore_scene  # noqa: E402
 
-import workers.reference as reference_module  # noqa: E402
+import nprt.workers.reference as reference_module  # noqa: E402
 from bench.common import replace_section  # noqa: E402
-from scene.demos import DEMOS, make_demo  # noqa: E402
-from scene.model import Scene  # noqa: E402
-from workers.batch import KIND_NAMES, SHADOW  # noqa: E402
-from workers.geometry import EMBREE_DTYPE  # noqa: E402
-from workers.reference import ReferenceRenderer  # noqa: E402
-from workers.render import render  # noqa: E402
-from workers.settings import RenderSettings  # noqa: E402
+from nprt.scene.demos import DEMOS, make_demo  # noqa: E402
+from nprt.scene.model import Scene  # noqa: E402
+from nprt.workers.batch import KIND_NAMES, SHADOW  # noqa: E402
+from nprt.workers.geometry import EMBREE_DTYPE  # noqa: E402
+from nprt.workers.reference import ReferenceRenderer  # noqa: E402
+from nprt.workers.render import render  # noqa: E402
+from nprt.workers.settings import RenderSettings  # noqa: E402
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +98,7 @@ class RayLog:
 
 @contextlib.contextmanager
 def instrument_reference(renderer: ReferenceRenderer, raylog: RayLog):
-    """Time and record workers.reference's closest-hit and shadow queries by ray kind.
+    """Time and record nprt.workers.reference's closest-hit and shadow queries by ray kind.
 
     The two module-level stage functions are swapped for timing wrappers while the
     context is open; the slab test and Embree calls are wrapped on this renderer's own

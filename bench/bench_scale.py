@@ -27,11 +27,11 @@ import numpy as np
 import ray
 
 from bench.common import BENCH_README, machine, quality, replace_section
-from scene.io import load_any
-from workers.coordinator import Coordinator
-from workers.pool import ShardPool
-from workers.render import render
-from workers.settings import RenderSettings
+from nprt.scene.io import load_any
+from nprt.workers.coordinator import Coordinator
+from nprt.workers.pool import ShardPool
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
 
 RESULTS = Path(__file__).resolve().parent / "results"
 TARGETS = {"exact_ratio": 0.8, "proxy_ratio": 0.65, "busy_k2": 0.8, "setup_s": 5.0,
@@ -42,7 +42,7 @@ def timed(scene, s: RenderSettings) -> dict:
     """Prepare (pool start, or reference set-up) then one timed render."""
     t0 = time.perf_counter()
     if s.shards == 0:
-        from workers.reference import ReferenceRenderer
+        from nprt.workers.reference import ReferenceRenderer
 
         renderer = ReferenceRenderer(scene, s)
     else:
@@ -106,9 +106,9 @@ def bench_setup_100k(n: int) -> dict:
 def bench_warm_pool(scene_name: str, width: int) -> dict:
     """Two jobs on one scene through the job manager: time from submit() to the first
     tile event, cold pool and warm pool."""
-    from service.config import ServiceSettings
-    from service.manager import JobManager
-    from service.scenes import SceneStore
+    from nprt.service.config import ServiceSettings
+    from nprt.service.manager import JobManager
+    from nprt.service.scenes import SceneStore
 
     out = {}
     with tempfile.TemporaryDirectory() as d:

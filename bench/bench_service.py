@@ -34,8 +34,8 @@ sys.path.insert(0, str(REPO))  # run as a script: make protos and bench importab
 
 from grpc_health.v1 import health_pb2, health_pb2_grpc  # noqa: E402
 
-from protos import nprt_pb2 as pb  # noqa: E402
-from protos import nprt_pb2_grpc  # noqa: E402
+from nprt.protos import nprt_pb2 as pb  # noqa: E402
+from nprt.protos import nprt_pb2_grpc  # noqa: E402
 
 RESULTS = REPO / "bench" / "results"
 TERMINAL = {"succeeded", "failed", "canceled"}

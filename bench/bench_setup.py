@@ -90,12 +90,12 @@ def measure(path: Path, k: int = 2) -> dict:
     import pickle
     import resource
 
-    from scene.io import load_scene
-    from scene.partition import partition
-    from workers.settings import RenderSettings
-    from workers.shard import Shard, ShardConfig
-    from workers.surface import SurfaceTables
-    from workers.world import ShardWorld
+    from nprt.scene.io import load_scene
+    from nprt.scene.partition import partition
+    from nprt.workers.settings import RenderSettings
+    from nprt.workers.shard import Shard, ShardConfig
+    from nprt.workers.surface import SurfaceTables
+    from nprt.workers.world import ShardWorld
 
     rss0 = _rss_mb()
     t = dict.fromkeys(STEPS, 0.0)

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import ray
 
-from scene.model import Scene
-from workers.coordinator import Coordinator
-from workers.metrics import compare
-from workers.render import render
-from workers.settings import RenderSettings
+from nprt.scene.model import Scene
+from nprt.workers.coordinator import Coordinator
+from nprt.workers.metrics import compare
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
 
 BENCH_README = Path(__file__).resolve().parent / "README.md"
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from workers.coordinator import MAX_QUEUED_CALLS
+from nprt.workers.coordinator import MAX_QUEUED_CALLS
 
 HEAD = -1  # the coordinator's node: its own link is not a bottleneck (unshaped)
 

@@ -8,9 +8,9 @@ import os
 import tempfile
 from pathlib import Path
 
-from proxies.config import ProxyConfig
-from proxies.inference import Proxy, ProxyFormatError
-from scene.model import Mesh
+from nprt.proxies.config import ProxyConfig
+from nprt.proxies.inference import Proxy, ProxyFormatError
+from nprt.scene.model import Mesh
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +26,7 @@ class ProxyUnavailable(RuntimeError):
 
 def _load_trainer():
     """The training entry point; importing it imports torch (an optional extra)."""
-    from proxies.train import train_proxy
+    from nprt.proxies.train import train_proxy
 
     return train_proxy
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
+from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
 
 COLUMNS = ("mesh", "tris", "width", "accuracy", "FP", "FN", "depth err", "internal acc",
            "bytes", "train s", "queries/s")
@@ -48,11 +48,11 @@ def markdown_table(rows: list[list[str]], columns=COLUMNS) -> str:
 
 
 def _proxy_for(mesh, config, args, cache):
-    from proxies.policy import narrowest_proxy
+    from nprt.proxies.policy import narrowest_proxy
 
     if args.width != "auto":
         if args.force:
-            from proxies.cache import _load_trainer
+            from nprt.proxies.cache import _load_trainer
 
             proxy = _load_trainer()(mesh, config, progress=True)
             cache.put(mesh, config, proxy)
@@ -67,8 +67,8 @@ def _proxy_for(mesh, config, args, cache):
 
 
 def run(args: argparse.Namespace) -> int:
-    from proxies.cache import ProxyCache, ProxyUnavailable
-    from scene.io import load_any
+    from nprt.proxies.cache import ProxyCache, ProxyUnavailable
+    from nprt.scene.io import load_any
 
     width = ProxyConfig.width if args.width == "auto" else int(args.width)
     config = ProxyConfig(width=width, budget_s=args.budget_s, n_samples=args.samples,

@@ -22,7 +22,7 @@ class ProxyConfig:
 
     width      : N, hidden width of both residual MLPs
     blocks     : residual blocks per net
-    encoding   : input encoding, see proxies.encoding ("paper" is the paper's)
+    encoding   : input encoding, see nprt.proxies.encoding ("paper" is the paper's)
     n_samples  : training rays traced with Embree (the sample budget)
     grid       : cells per box-face side (DESIGN: 128)
     budget_s   : wall-clock training budget for both nets together, seconds
@@ -87,7 +87,7 @@ def param_count(width: int, blocks: int, n_in: int) -> int:
 
 def estimate_proxy_bytes(config: ProxyConfig) -> int:
     """float32 weights of both nets at config.width; ONNX framing adds a few kB on top."""
-    from proxies.encoding import N_INPUTS
+    from nprt.proxies.encoding import N_INPUTS
 
     n_in = N_INPUTS[config.encoding] * (1 + 2 * config.fourier)
     return 2 * 4 * param_count(config.width, config.blocks, n_in)

@@ -6,9 +6,9 @@ import time
 
 import numpy as np
 
-from proxies.inference import Proxy
-from proxies.sampling import RaySamples, sample_internal_rays, sample_rays
-from scene.model import Mesh
+from nprt.proxies.inference import Proxy
+from nprt.proxies.sampling import RaySamples, sample_internal_rays, sample_rays
+from nprt.scene.model import Mesh
 
 BENCH_BATCH = 1 << 16
 BENCH_THREADS = 2

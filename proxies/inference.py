@@ -11,7 +11,7 @@ import struct
 import numpy as np
 import onnxruntime as ort
 
-from proxies.encoding import depth_decode, encode, to_proxy_box
+from nprt.proxies.encoding import depth_decode, encode, to_proxy_box
 
 log = logging.getLogger(__name__)
 

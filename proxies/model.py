@@ -37,7 +37,7 @@ class ResidualMLP(nn.Module):
     """Input layer -> `blocks` residual blocks -> one output.
 
     x : (n, n_in) float32 encoded queries; returns (n,) float32, through a sigmoid when
-    `sigmoid` (visibility) or raw (depth target, see proxies.encoding.depth_target).
+    `sigmoid` (visibility) or raw (depth target, see nprt.proxies.encoding.depth_target).
     """
 
     def __init__(self, n_in: int, width: int, blocks: int, sigmoid: bool, fourier: int = 0):

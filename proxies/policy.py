@@ -8,9 +8,9 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from proxies.cache import ProxyCache, ProxyUnavailable
-from proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
-from proxies.inference import Proxy
+from nprt.proxies.cache import ProxyCache, ProxyUnavailable
+from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
+from nprt.proxies.inference import Proxy
 
 log = logging.getLogger(__name__)
 

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scene.model import Mesh
+from nprt.scene.model import Mesh
 
 SAMPLE_DTYPE = np.float32
 # The proxy box is the mesh AABB grown by this fraction of its diagonal, so training rays
@@ -139,7 +139,7 @@ def label(geometry, box: np.ndarray, points: np.ndarray, directions: np.ndarray)
 def _geometry(mesh: Mesh, geometry):
     if geometry is not None:
         return geometry
-    from workers.geometry import MeshGeometry
+    from nprt.workers.geometry import MeshGeometry
 
     return MeshGeometry(mesh)
 

@@ -1,4 +1,4 @@
-"""`python -m proxies.ship`: train the proxies the demo scenes need (default config and
+"""`python -m nprt.proxies.ship`: train the proxies the demo scenes need (default config and
 policy) into proxies/shipped/, so rendering the demos needs no torch. Needs torch itself."""
 
 from __future__ import annotations
@@ -8,9 +8,9 @@ import logging
 import sys
 import time
 
-from proxies.cache import SHIPPED_DIR, SUFFIX, ProxyCache, file_name
-from proxies.config import DEFAULT_WIDTHS, ProxyConfig
-from proxies.policy import plan_proxies
+from nprt.proxies.cache import SHIPPED_DIR, SUFFIX, ProxyCache, file_name
+from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig
+from nprt.proxies.policy import plan_proxies
 
 log = logging.getLogger(__name__)
 
@@ -20,10 +20,10 @@ TARGET_ACCURACY = 0.97  # the render path's default in plan_proxies
 
 
 def main(argv=None) -> int:
-    from scene.demos import DEMOS, make_demo
-    from scene.partition import partition
+    from nprt.scene.demos import DEMOS, make_demo
+    from nprt.scene.partition import partition
 
-    ap = argparse.ArgumentParser(prog="python -m proxies.ship", description=__doc__)
+    ap = argparse.ArgumentParser(prog="python -m nprt.proxies.ship", description=__doc__)
     ap.add_argument("--demos", nargs="*", default=list(DEMOS))
     ap.add_argument("--sizes", nargs="*", default=list(SIZES))
     ap.add_argument("--out", default=str(SHIPPED_DIR))

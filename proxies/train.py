@@ -10,14 +10,14 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from proxies.config import EVAL_SEED_OFFSET, ProxyConfig
-from proxies.encoding import N_INPUTS, depth_target, encode
-from proxies.evaluate import evaluate
-from proxies.export import export_onnx
-from proxies.inference import Proxy
-from proxies.model import ResidualMLP
-from proxies.sampling import RaySamples, proxy_box, sample_rays
-from scene.model import Mesh
+from nprt.proxies.config import EVAL_SEED_OFFSET, ProxyConfig
+from nprt.proxies.encoding import N_INPUTS, depth_target, encode
+from nprt.proxies.evaluate import evaluate
+from nprt.proxies.export import export_onnx
+from nprt.proxies.inference import Proxy
+from nprt.proxies.model import ResidualMLP
+from nprt.proxies.sampling import RaySamples, proxy_box, sample_rays
+from nprt.scene.model import Mesh
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ def train_proxy(mesh: Mesh, config: ProxyConfig | None = None, progress: bool = 
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     if geometry is None:
-        from workers.geometry import MeshGeometry
+        from nprt.workers.geometry import MeshGeometry
 
         geometry = MeshGeometry(mesh)
     t_start = time.perf_counter()

@@ -1,24 +1,24 @@
 """Scenes for nprt: the model, JSON/glTF loading, procedural demos and shard partitioning.
 
 The heavy modules (trimesh, pydantic) load on first use of the names below, so importing
-`scene.model` alone stays cheap.
+`nprt.scene.model` alone stays cheap.
 """
 
 from importlib import import_module
 
 _EXPORTS = {
-    "SceneError": "scene.errors",
-    "Scene": "scene.model",
-    "load_scene": "scene.io",
-    "save_scene": "scene.io",
-    "load_any": "scene.io",
+    "SceneError": "nprt.scene.errors",
+    "Scene": "nprt.scene.model",
+    "load_scene": "nprt.scene.io",
+    "save_scene": "nprt.scene.io",
+    "load_any": "nprt.scene.io",
     "load_gltf": "scene.gltf",
-    "make_demo": "scene.demos",
-    "DEMOS": "scene.demos",
-    "Partition": "scene.partition",
+    "make_demo": "nprt.scene.demos",
+    "DEMOS": "nprt.scene.demos",
+    "Partition": "nprt.scene.partition",
 }
 
-# `partition` (the function) is not re-exported: `scene.partition` is its module.
+# `partition` (the function) is not re-exported: `nprt.scene.partition` is its module.
 __all__ = sorted(_EXPORTS)
 
 

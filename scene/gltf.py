@@ -12,10 +12,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from scene.errors import SceneError
-from scene.io import build_mesh, file_normals, scene_from_meshes, srgb_to_linear
-from scene.model import TRANSFORM_DTYPE, Material, Mesh, Scene, validate_transform
-from scene.paths import FileRefs, load_trimesh
+from nprt.scene.errors import SceneError
+from nprt.scene.io import build_mesh, file_normals, scene_from_meshes, srgb_to_linear
+from nprt.scene.model import TRANSFORM_DTYPE, Material, Mesh, Scene, validate_transform
+from nprt.scene.paths import FileRefs, load_trimesh
 
 log = logging.getLogger(__name__)
 

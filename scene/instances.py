@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from scene.errors import SceneError
-from scene.model import Instances, validate_transforms
+from nprt.scene.errors import SceneError
+from nprt.scene.model import Instances, validate_transforms
 
 # The arrays of an instance file, and nothing else.
 MESH_KEY = "mesh"  # (m,) integer index into the scene's meshes

@@ -16,10 +16,10 @@ import trimesh
 from pydantic import ValidationError
 from trimesh.exchange.ply import export_ply
 
-from scene import schema
-from scene.errors import SceneError
-from scene.instances import read_instance_file, write_instance_file
-from scene.model import (
+from nprt.scene import schema
+from nprt.scene.errors import SceneError
+from nprt.scene.instances import read_instance_file, write_instance_file
+from nprt.scene.model import (
     INDEX_DTYPE,
     TRANSFORM_DTYPE,
     VERTEX_DTYPE,
@@ -37,7 +37,7 @@ from scene.model import (
     validate_mesh,
     validate_transforms,
 )
-from scene.paths import FileRefs, load_trimesh
+from nprt.scene.paths import FileRefs, load_trimesh
 
 log = logging.getLogger(__name__)
 
@@ -382,7 +382,7 @@ def _listed_instances(specs: list[schema.InstanceSpec], mesh_names: list[str]) -
 
 def save_scene(scene: Scene, path, instance_file: bool = False) -> Path:
     """Write `path` (JSON) plus one binary PLY per mesh and one .npy per texture beside it;
-    with instance_file, the instances go to `<stem>.instances.npz` (`scene.instances`)."""
+    with instance_file, the instances go to `<stem>.instances.npz` (`nprt.scene.instances`)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     stem = path.stem
@@ -487,7 +487,7 @@ def scene_from_meshes(meshes: list[Mesh], transforms: list[tuple[int, np.ndarray
 def load_any(source, size: str = "default", seed: int = 0, root: Path | None = None) -> Scene:
     """A demo name ("forest", "city:small"), a .json scene, a .glb/.gltf file or a mesh file.
     With `root` set (an upload), no file outside `root` is read."""
-    from scene import demos, gltf  # deferred: both import this module
+    from nprt.scene import demos, gltf  # deferred: both import this module
 
     if isinstance(source, str) and not source.lower().endswith((".json", *MESH_SUFFIXES)):
         name, _, demo_size = source.partition(":")

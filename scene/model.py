@@ -1,7 +1,7 @@
 """The in-memory scene model: base meshes, instances, materials, lights, camera.
 
 These are plain frozen dataclasses of numpy arrays; the JSON schema that users
-write lives in `scene.schema` and is converted into these by `scene.io`.
+write lives in `nprt.scene.schema` and is converted into these by `nprt.scene.io`.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from functools import cached_property
 
 import numpy as np
 
-from scene.errors import SceneError
+from nprt.scene.errors import SceneError
 
 # Precision policy: vertices are stored as float32 (what Embree consumes);
 # transforms are float64 so instances far from the origin stay exact.

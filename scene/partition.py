@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scene.errors import SceneError
-from scene.model import Scene, instance_world_bounds
+from nprt.scene.errors import SceneError
+from nprt.scene.model import Scene, instance_world_bounds
 
 SHARD_DTYPE = np.int32
 

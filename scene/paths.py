@@ -12,7 +12,7 @@ from pathlib import Path, PurePosixPath, PureWindowsPath
 
 import trimesh
 
-from scene.errors import SceneError, UnsafePath
+from nprt.scene.errors import SceneError, UnsafePath
 
 
 def file_problem(path: Path) -> str | None:

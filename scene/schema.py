@@ -1,6 +1,6 @@
 """The JSON scene file format as pydantic v2 models, with its constraints on the fields.
 
-`scene.io` reads and writes these and converts them to and from `scene.model.Scene`.
+`nprt.scene.io` reads and writes these and converts them to and from `nprt.scene.model.Scene`.
 """
 
 from __future__ import annotations
@@ -81,7 +81,7 @@ class InstanceSpec(_Strict):
 
 class InstanceFileSpec(_Strict):
     """Every instance as arrays in a NumPy `.npz` file relative to the scene file (read by
-    `scene.instances`): `mesh` (m,) integer, indices into `meshes`; `transform` (m, 4, 4)
+    `nprt.scene.instances`): `mesh` (m,) integer, indices into `meshes`; `transform` (m, 4, 4)
     float, each a row-major affine local -> world matrix as in `InstanceSpec.transform`.
     No other arrays. Loads in milliseconds where one JSON object per instance takes
     seconds per hundred thousand."""
@@ -95,7 +95,7 @@ def _instances_form(value) -> str:
 
 
 # A list of InstanceSpec, or {"file": ...}. The tags are dropped from error paths by
-# scene.io (a tag that is not an identifier never shows), so errors read instances[3].mesh.
+# nprt.scene.io (a tag that is not an identifier never shows), so errors read instances[3].mesh.
 InstancesSpec = Annotated[
     Annotated[list[InstanceSpec], Field(min_length=1), Tag("list")]
     | Annotated[InstanceFileSpec, Tag("array-file")],

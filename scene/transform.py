@@ -13,7 +13,7 @@ import dataclasses
 
 import numpy as np
 
-from scene.model import Camera, Instance, Scene
+from nprt.scene.model import Camera, Instance, Scene
 
 # A 'sky' environment blends by the direction's +y component: only rotations that keep
 # +y (about the y axis) leave it unchanged.

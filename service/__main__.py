@@ -2,8 +2,8 @@
 
 import sys
 
-from service.cli import OneLineParser
-from service.cli_serve import add_serve_parsers
+from nprt.service.cli import OneLineParser
+from nprt.service.cli_serve import add_serve_parsers
 
 
 def main(argv: list[str] | None = None) -> int:

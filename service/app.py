@@ -16,9 +16,9 @@ from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.formparsers import MultiPartException
 
-from service.auth import TokenMiddleware
-from service.config import ServiceSettings
-from service.errors import (
+from nprt.service.auth import TokenMiddleware
+from nprt.service.config import ServiceSettings
+from nprt.service.errors import (
     BadUpload,
     Conflict,
     InvalidJob,
@@ -30,9 +30,9 @@ from service.errors import (
     UnknownScene,
     redact_paths,
 )
-from service.manager import JobManager
-from service.routers import jobs, operations, scenes
-from service.scenes import SceneStore
+from nprt.service.manager import JobManager
+from nprt.service.routers import jobs, operations, scenes
+from nprt.service.scenes import SceneStore
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
         manager.start()
         grpc_server = None
         if grpc_port is not None:
-            from service.grpc_server import start_grpc_server
+            from nprt.service.grpc_server import start_grpc_server
 
             grpc_server, app.state.grpc_port = await start_grpc_server(manager, settings,
                                                                        grpc_host, grpc_port)

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from workers.render import ResumeState
+from nprt.workers.render import ResumeState
 
 CHECKPOINT = "checkpoint.json"
 

@@ -11,9 +11,9 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
-from scene.errors import SceneError
-from service.logconfig import add_log_flags
-from service.preflight import CliError
+from nprt.scene.errors import SceneError
+from nprt.service.logconfig import add_log_flags
+from nprt.service.preflight import CliError
 
 log = logging.getLogger(__name__)
 # RenderSettings fields whose flag is not "--" + the field name with dashes.
@@ -80,7 +80,7 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
 
 
 def settings_from_args(a: argparse.Namespace):
-    from workers.settings import ProxySettings, RenderSettings
+    from nprt.workers.settings import ProxySettings, RenderSettings
 
     return RenderSettings(
         width=a.width, height=a.height, spp=a.spp, bounces=a.bounces,
@@ -94,7 +94,7 @@ def settings_from_args(a: argparse.Namespace):
 def render_with_progress(scene, settings, ray_address=None, label="render"):
     from tqdm import tqdm
 
-    from workers.render import render
+    from nprt.workers.render import render
 
     bar = tqdm(total=settings.width * settings.height * settings.spp, unit="path",
                unit_scale=True, desc=label, file=sys.stderr)
@@ -127,8 +127,8 @@ def option_error(err: ValidationError) -> str:
 def preflight(settings, ray_address: str | None, uses_ray: bool) -> None:
     """Refuse before any work what would fail after it: a render that cannot fit in
     memory, a Ray cluster nobody answers at."""
-    from service.preflight import check_memory
-    from service.ray_reach import check_ray_reachable
+    from nprt.service.preflight import check_memory
+    from nprt.service.ray_reach import check_ray_reachable
 
     check_memory(settings)
     if uses_ray:
@@ -136,8 +136,8 @@ def preflight(settings, ray_address: str | None, uses_ray: bool) -> None:
 
 
 def cmd_render(a: argparse.Namespace) -> int:
-    from scene.io import load_any
-    from service.preflight import check_writable
+    from nprt.scene.io import load_any
+    from nprt.service.preflight import check_writable
 
     settings = settings_from_args(a)
     check_writable(a.output, "-o", image=True)
@@ -157,7 +157,7 @@ def cmd_render(a: argparse.Namespace) -> int:
 
 
 def cmd_scenes(a: argparse.Namespace) -> int:
-    from scene.demos import DEMOS, make_demo
+    from nprt.scene.demos import DEMOS, make_demo
 
     cols = ("base_meshes", "instances", "instanced_triangles", "mesh_bytes")
     print(f"| demo | size | {' | '.join(cols)} |")
@@ -198,9 +198,9 @@ def build_parser() -> argparse.ArgumentParser:
                    choices=["default", "small", "tiny"], help="demo sizes to list")
     p.set_defaults(func=cmd_scenes)
 
-    from proxies.cli import add_proxy_parsers
-    from service.cli_jobs import add_jobs_parser
-    from service.cli_serve import add_serve_parsers
+    from nprt.proxies.cli import add_proxy_parsers
+    from nprt.service.cli_jobs import add_jobs_parser
+    from nprt.service.cli_serve import add_serve_parsers
 
     add_serve_parsers(sub)
     add_jobs_parser(sub)
@@ -226,8 +226,8 @@ def log_level(args: argparse.Namespace) -> str:
 
 
 def _cmd_demo(a):
-    from service.demo import cmd_demo
-    from service.preflight import check_directory
+    from nprt.service.demo import cmd_demo
+    from nprt.service.preflight import check_directory
 
     check_directory(a.out, "--out")
     preflight(settings_from_args(a), a.ray_address, uses_ray=True)
@@ -235,7 +235,7 @@ def _cmd_demo(a):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from service.logconfig import configure_logging
+    from nprt.service.logconfig import configure_logging
 
     args = build_parser().parse_args(argv)
     configure_logging(log_level(args), args.log_json)

@@ -1,5 +1,5 @@
 """`nprt jobs list|show|cancel|delete|logs|wait`: follow and steer a running service's jobs
-from the command line (REST through service.client)."""
+from the command line (REST through nprt.service.client)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import sys
 import time
 from datetime import datetime
 
-from service.cli_serve import add_server_flags
-from service.preflight import CliError
+from nprt.service.cli_serve import add_server_flags
+from nprt.service.preflight import CliError
 
 STATES = ("queued", "preparing", "running", "succeeded", "failed", "canceled")
 TERMINAL = frozenset(STATES[3:])
@@ -61,7 +61,7 @@ def _run(args: argparse.Namespace, body) -> int:
     """Call body(client, job id or None) and turn API and network errors into one line."""
     import httpx
 
-    from service.client import ApiError, Client
+    from nprt.service.client import ApiError, Client
 
     try:
         with Client(args.server, token=args.token, timeout_s=args.timeout_s) as client:

@@ -10,7 +10,7 @@ import os
 import sys
 from pathlib import Path
 
-from service.logconfig import add_log_flags, configure_logging
+from nprt.service.logconfig import add_log_flags, configure_logging
 
 log = logging.getLogger(__name__)
 
@@ -74,8 +74,8 @@ def add_server_flags(p) -> None:
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
-    from service.app import create_app
-    from service.config import ServiceSettings
+    from nprt.service.app import create_app
+    from nprt.service.config import ServiceSettings
 
     level = getattr(args, "log_level", None) or "INFO"
     configure_logging(level, getattr(args, "log_json", False))
@@ -97,7 +97,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
 def cmd_submit(args: argparse.Namespace) -> int:
     import httpx
 
-    from service.client import ApiError
+    from nprt.service.client import ApiError
 
     try:
         return _submit(args)
@@ -110,7 +110,7 @@ def cmd_submit(args: argparse.Namespace) -> int:
 
 
 def _submit(args: argparse.Namespace) -> int:
-    from service.client import Client
+    from nprt.service.client import Client
 
     body = {field: getattr(args, field) for _, field, _ in _SETTING_FLAGS}
     body |= {"mode": args.mode, "russian_roulette": args.russian_roulette}

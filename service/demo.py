@@ -12,16 +12,16 @@ from pathlib import Path
 
 import numpy as np
 
-from workers.film import save_image
+from nprt.workers.film import save_image
 
 
 def cmd_demo(a) -> int:
     import ray
 
-    from scene.io import load_any
-    from service.cli import render_with_progress, settings_from_args
-    from workers.metrics import compare
-    from workers.raysession import ensure_ray
+    from nprt.scene.io import load_any
+    from nprt.service.cli import render_with_progress, settings_from_args
+    from nprt.workers.metrics import compare
+    from nprt.workers.raysession import ensure_ray
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

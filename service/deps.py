@@ -7,10 +7,10 @@ from typing import Annotated
 from fastapi import Depends, HTTPException, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
-from service.auth import bearer_error
-from service.config import ServiceSettings
-from service.manager import JobManager
-from service.scenes import SceneStore
+from nprt.service.auth import bearer_error
+from nprt.service.config import ServiceSettings
+from nprt.service.manager import JobManager
+from nprt.service.scenes import SceneStore
 
 _bearer = HTTPBearer(auto_error=False, description="NPRT_API_TOKEN, when the server sets one")
 
@@ -38,7 +38,7 @@ ScenesDep = Annotated[SceneStore, Depends(get_scenes)]
 async def require_token(settings: SettingsDep, request: Request,
                   _: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
     """Writing endpoints need `Authorization: Bearer <NPRT_API_TOKEN>` when a token is set.
-    service.auth.TokenMiddleware enforces it before the body is read; this dependency
+    nprt.service.auth.TokenMiddleware enforces it before the body is read; this dependency
     declares the scheme in the OpenAPI schema and checks again."""
     if settings.api_token is None:
         return

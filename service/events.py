@@ -15,7 +15,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Callable
 
-from service.errors import TooManyWatchers
+from nprt.service.errors import TooManyWatchers
 
 log = logging.getLogger(__name__)
 

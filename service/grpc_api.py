@@ -10,9 +10,9 @@ import asyncio
 import grpc
 from pydantic import ValidationError
 
-from protos import nprt_pb2 as pb
-from protos import nprt_pb2_grpc
-from service.errors import (
+from nprt.protos import nprt_pb2 as pb
+from nprt.protos import nprt_pb2_grpc
+from nprt.service.errors import (
     Conflict,
     InvalidJob,
     InvalidScene,
@@ -20,11 +20,11 @@ from service.errors import (
     ServiceError,
     TooManyWatchers,
 )
-from service.events import AsyncWatch
-from service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
-from service.grpc_logs import JobLogServicer
-from service.manager import JobManager
-from service.store import TERMINAL
+from nprt.service.events import AsyncWatch
+from nprt.service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
+from nprt.service.grpc_logs import JobLogServicer
+from nprt.service.manager import JobManager
+from nprt.service.store import TERMINAL
 
 DEFAULT_PAGE = 50
 MAX_PAGE = 500

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 from google.protobuf import struct_pb2
 
-from protos import nprt_pb2 as pb
-from service import images
-from service.store import JobRecord
-from workers.settings import ProxySettings, RenderSettings
+from nprt.protos import nprt_pb2 as pb
+from nprt.service import images
+from nprt.service.store import JobRecord
+from nprt.workers.settings import ProxySettings, RenderSettings
 
 STATE_TO_PB = {
     "queued": pb.JOB_STATE_QUEUED, "preparing": pb.JOB_STATE_PREPARING,

@@ -8,10 +8,10 @@ import time
 
 import grpc
 
-from protos import nprt_pb2 as pb
-from service.errors import NotFound
-from service.joblog import LOG_NAME, LogTail, read_lines
-from service.store import TERMINAL
+from nprt.protos import nprt_pb2 as pb
+from nprt.service.errors import NotFound
+from nprt.service.joblog import LOG_NAME, LogTail, read_lines
+from nprt.service.store import TERMINAL
 
 LOG_POLL_S = 0.25  # how often a follower looks for new lines
 

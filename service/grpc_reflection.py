@@ -6,7 +6,7 @@ import grpc
 from grpc_health.v1 import health_pb2
 from grpc_reflection.v1alpha import reflection
 
-from protos import nprt_pb2
+from nprt.protos import nprt_pb2
 
 
 def enable_reflection(server: grpc.Server) -> tuple[str, ...]:

@@ -10,12 +10,12 @@ import logging
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
-from protos import nprt_pb2, nprt_pb2_grpc
-from service.auth import bearer_error
-from service.config import ServiceSettings
-from service.grpc_api import RenderServicer
-from service.grpc_reflection import enable_reflection
-from service.manager import JobManager
+from nprt.protos import nprt_pb2, nprt_pb2_grpc
+from nprt.service.auth import bearer_error
+from nprt.service.config import ServiceSettings
+from nprt.service.grpc_api import RenderServicer
+from nprt.service.grpc_reflection import enable_reflection
+from nprt.service.manager import JobManager
 
 log = logging.getLogger(__name__)
 

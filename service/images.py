@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from workers.film import Film, tonemap_srgb, write_exr
+from nprt.workers.film import Film, tonemap_srgb, write_exr
 
 
 def film_image(sums: np.ndarray, samples: np.ndarray, width: int, height: int) -> np.ndarray:

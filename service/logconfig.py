@@ -10,7 +10,7 @@ import logging
 import sys
 from datetime import UTC, datetime
 
-from service.joblog import JOB_LOG_LEVEL
+from nprt.service.joblog import JOB_LOG_LEVEL
 
 TEXT_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")

@@ -20,20 +20,20 @@ from pathlib import Path
 
 import numpy as np
 
-from scene.errors import SceneError
-from service import checkpoint, images
-from service.config import ServiceSettings
-from service.errors import Conflict, InvalidJob, NotFound, redact_paths
-from service.events import EventBroker, Notify, Subscription
-from service.joblog import job_log
-from service.scenes import SceneStore
-from service.store import TERMINAL, UNFINISHED, JobRecord, JobStore
-from workers.film import Film
-from workers.passes import count_passes
-from workers.pool import PoolRegistry
-from workers.render import PassDone, Progress, RenderCanceled, make_renderer, render
-from workers.settings import RenderSettings
-from workers.stats import RenderStats
+from nprt.scene.errors import SceneError
+from nprt.service import checkpoint, images
+from nprt.service.config import ServiceSettings
+from nprt.service.errors import Conflict, InvalidJob, NotFound, redact_paths
+from nprt.service.events import EventBroker, Notify, Subscription
+from nprt.service.joblog import job_log
+from nprt.service.scenes import SceneStore
+from nprt.service.store import TERMINAL, UNFINISHED, JobRecord, JobStore
+from nprt.workers.film import Film
+from nprt.workers.passes import count_passes
+from nprt.workers.pool import PoolRegistry
+from nprt.workers.render import PassDone, Progress, RenderCanceled, make_renderer, render
+from nprt.workers.settings import RenderSettings
+from nprt.workers.stats import RenderStats
 
 log = logging.getLogger(__name__)
 
@@ -344,7 +344,7 @@ class JobManager:
         other sharded job, and every job would pay the start-up again."""
         import ray
 
-        from workers.raysession import ensure_ray
+        from nprt.workers.raysession import ensure_ray
 
         address, attempts = self.settings.ray_address, self.settings.ray_start_attempts
         with self._ray_lock:
@@ -451,5 +451,5 @@ def _check_cancel(live: _Live, stage: str) -> None:
 
 def _shards_lost(exc: BaseException) -> bool:
     """Whether a render failed because Ray lost its shards (a node died), not by a bug."""
-    coordinator = sys.modules.get("workers.coordinator")  # never imported: no shards to lose
+    coordinator = sys.modules.get("nprt.workers.coordinator")  # never imported: no shards to lose
     return coordinator is not None and isinstance(exc, coordinator.ShardsLost)

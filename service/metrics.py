@@ -16,7 +16,7 @@ from prometheus_client.core import (
 )
 from prometheus_client.registry import Collector
 
-from service.store import TERMINAL, JobRecord, JobStore
+from nprt.service.store import TERMINAL, JobRecord, JobStore
 
 # Jobs finished this long before a scrape are still read again by it: a job's finish time
 # is taken a moment before its row is written.

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # the CLI imports this module before it knows it will render
-    from workers.settings import RenderSettings
+    from nprt.workers.settings import RenderSettings
 
 GIB = 1 << 30
 # Measured (tracemalloc, bench-free): a reference pass peaks near 600 B per path with four
@@ -110,8 +110,8 @@ class MemoryEstimate:
 
 def estimate_memory(s: RenderSettings) -> MemoryEstimate:
     """Peak memory of rendering `s` in this process (the film lives in the driver)."""
-    from workers.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
-    from workers.film import ACCUM_DTYPE
+    from nprt.workers.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
+    from nprt.workers.film import ACCUM_DTYPE
 
     pixels = s.width * s.height
     film = pixels * (3 * ACCUM_DTYPE().itemsize + 8)  # sums (3 float64) + samples (int64)

@@ -8,7 +8,7 @@ import os
 
 import grpc
 
-from service.preflight import CliError
+from nprt.service.preflight import CliError
 
 PROBE_TIMEOUT_S = 10.0
 LOCAL_ADDRESSES = ("", "auto", "local")  # ray.init finds or starts these itself

@@ -14,11 +14,11 @@ import time
 from collections import OrderedDict
 from pathlib import Path
 
-from scene.errors import SceneError, UnsafePath
-from scene.model import Scene
-from service.config import ServiceSettings
-from service.errors import BadUpload, InvalidScene, NotFound, UnknownScene
-from service.uploads import sniff, unpack
+from nprt.scene.errors import SceneError, UnsafePath
+from nprt.scene.model import Scene
+from nprt.service.config import ServiceSettings
+from nprt.service.errors import BadUpload, InvalidScene, NotFound, UnknownScene
+from nprt.service.uploads import sniff, unpack
 
 log = logging.getLogger(__name__)
 
@@ -28,13 +28,13 @@ _SAFE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}")
 
 
 def demo_names() -> tuple[str, ...]:
-    from scene import demos  # deferred: demos build geometry on import in some versions
+    from nprt.scene import demos  # deferred: demos build geometry on import in some versions
 
     return tuple(demos.DEMOS)
 
 
 def demo_sizes() -> tuple[str, ...]:
-    from scene import demos
+    from nprt.scene import demos
 
     return tuple(demos.SIZES)
 
@@ -47,7 +47,7 @@ def is_demo(ref: str) -> bool:
 
 def load_scene_ref(source: str, root: Path | None = None) -> Scene:
     """Load a demo name or a stored file; with `root`, no file outside it is read."""
-    from scene.io import load_any
+    from nprt.scene.io import load_any
 
     return load_any(source, root=root)
 

@@ -7,8 +7,8 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
-from service.store import JobRecord
-from workers.settings import RenderSettings
+from nprt.service.store import JobRecord
+from nprt.workers.settings import RenderSettings
 
 JobState = Literal["queued", "preparing", "running", "succeeded", "failed", "canceled"]
 

@@ -17,7 +17,7 @@ import zipfile
 import zlib
 from pathlib import Path, PurePosixPath
 
-from service.errors import BadUpload, TooLarge
+from nprt.service.errors import BadUpload, TooLarge
 
 MAX_ZIP_MEMBERS = 10_000
 MAX_NAME_PART_BYTES = 255  # one path component: the limit of common filesystems

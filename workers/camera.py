@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from scene.model import Camera
-from workers.batch import ORIGIN_DTYPE
-from workers.rng import CAMERA_BOUNCE, uniform
-from workers.sampling import normalize
+from nprt.scene.model import Camera
+from nprt.workers.batch import ORIGIN_DTYPE
+from nprt.workers.rng import CAMERA_BOUNCE, uniform
+from nprt.workers.sampling import normalize
 
 
 def generate_primary(cam: Camera, width: int, height: int, seed: int,

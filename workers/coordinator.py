@@ -33,18 +33,18 @@ import numpy as np
 import ray
 from ray.exceptions import ActorUnavailableError, RayActorError
 
-from scene.model import Scene
-from workers.passes import Pass
-from workers.pool import (  # noqa: F401 (ShardStartError re-exported)
+from nprt.scene.model import Scene
+from nprt.workers.passes import Pass
+from nprt.workers.pool import (  # noqa: F401 (ShardStartError re-exported)
     PoolRegistry,
     ShardPool,
     ShardsLost,
     ShardStartError,
 )
-from workers.settings import RenderSettings
-from workers.shard import Manifest, WorkItem
-from workers.stats import RenderStats
-from workers.trace import TraceRecorder
+from nprt.workers.settings import RenderSettings
+from nprt.workers.shard import Manifest, WorkItem
+from nprt.workers.stats import RenderStats
+from nprt.workers.trace import TraceRecorder
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Embree over one base mesh in its local space: the bottom level of the two-level BVH.
 
-embreex fixes tnear at 0, so callers offset origins (workers.offset) before tracing.
+embreex fixes tnear at 0, so callers offset origins (nprt.workers.offset) before tracing.
 """
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from embreex import mesh_construction, rtcore_scene
 
-from scene.model import Mesh
+from nprt.scene.model import Mesh
 
 EMBREE_DTYPE = np.float32
 _NO_HIT_T = np.float32(np.inf)

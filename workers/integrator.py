@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scene.model import Camera, Material, Mesh
-from workers import shade_kernels
-from workers.batch import (
+from nprt.scene.model import Camera, Material, Mesh
+from nprt.workers import shade_kernels
+from nprt.workers.batch import (
     LIGHT_BASE,
     NO_HIT,
     ORIGIN_DTYPE,
@@ -25,13 +25,13 @@ from workers.batch import (
     RayBatch,
     ShadowRayBatch,
 )
-from workers.camera import generate_primary
-from workers.lights import FAR_T, LightSet
-from workers.passes import Pass
-from workers.rng import DIM_BSDF_V
-from workers.settings import RenderSettings
-from workers.surface import SurfaceTables
-from workers.toplevel import InstanceTable
+from nprt.workers.camera import generate_primary
+from nprt.workers.lights import FAR_T, LightSet
+from nprt.workers.passes import Pass
+from nprt.workers.rng import DIM_BSDF_V
+from nprt.workers.settings import RenderSettings
+from nprt.workers.surface import SurfaceTables
+from nprt.workers.toplevel import InstanceTable
 
 RR_START_DEPTH = 3
 SHADOW_TMAX_SCALE = np.float32(1.0 - 1e-4)

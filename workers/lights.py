@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from scene.model import Environment, Scene
-from workers.sampling import normalize
+from nprt.scene.model import Environment, Scene
+from nprt.workers.sampling import normalize
 
 FAR_T = np.float32(1e30)  # tmax of shadow rays toward directional lights
 
@@ -42,7 +42,7 @@ class LightSet:
     def intersect_quads(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray):
         """Closest quad hit from the emitting side within (0, tmax], t compared as the
         float32 that a hit record stores; on equal t the lower light index (the order of
-        `workers.batch.precedes`). The caller decides a tie with tmax's own hit.
+        `nprt.workers.batch.precedes`). The caller decides a tie with tmax's own hit.
 
         origin (n, 3) float64, direction (n, 3) float32; tmax : (n,) float32
         returns t (n,) float32 (inf if none), light (n,) int32 (-1 if none)

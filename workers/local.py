@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers import kernels
-from workers.batch import precedes
-from workers.geometry import MeshGeometry
-from workers.toplevel import InstanceTable
+from nprt.workers import kernels
+from nprt.workers.batch import precedes
+from nprt.workers.geometry import MeshGeometry
+from nprt.workers.toplevel import InstanceTable
 
 _FAR = np.float32(1e30)
 # Instance boxes are culled at tmax stretched by this much (256 float32 ulps): the float32
@@ -49,7 +49,7 @@ class LocalGeometry:
                           hit_prim: np.ndarray | None = None):
         """Closest hit among these instances within (0, tmax), or, given the record a ray
         carries (hit_inst, hit_prim (n,) int32 at t = tmax), the hit that precedes it in
-        the global order (`workers.batch.precedes`: a hit at t == tmax replaces the
+        the global order (`nprt.workers.batch.precedes`: a hit at t == tmax replaces the
         record when its instance ranks lower), so folding shard by shard in any order
         gives the same hit as one fold over every instance.
 

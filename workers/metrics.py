@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.film import tonemap_srgb
+from nprt.workers.film import tonemap_srgb
 
 
 def compare(reference: np.ndarray, test: np.ndarray) -> dict:

@@ -1,7 +1,7 @@
 """Spawned-ray origins: the hit point pushed off its surface by a bound on its own rounding
 error, as pbrt-v4 does (Pharr, Jakob, Humphreys, "Physically Based Rendering", 4th ed.,
 section 6.8). embreex fixes tnear at 0, so every shadow and bounce ray starts here. These
-are the numpy formulas; `workers.shade_kernels` runs the same operations, in the same
+are the numpy formulas; `nprt.workers.shade_kernels` runs the same operations, in the same
 order, per row.
 
 Precision design (the image must not depend on where the scene sits or how big it is):
@@ -25,7 +25,7 @@ Precision design (the image must not depend on where the scene sits or how big i
   The push is relative: about 4e-7 of the local coordinates near the origin, and at
   1e7 from the origin the float64 terms add 2e-9 (a fixed 256 float32 ulps used to be
   16 units at 1e6; a fixed epsilon cannot fit both a 1e-6 and a 1e6 scene).
-- Origins travel as float64 (`workers.batch.ORIGIN_DTYPE`): 12 bytes more per ray
+- Origins travel as float64 (`nprt.workers.batch.ORIGIN_DTYPE`): 12 bytes more per ray
   than float32 (80 -> 92 for a RayBatch row, 53 -> 65 for a ShadowRayBatch row).
   Alternatives: float32 world origins snap to ulp/2 (1/256 at 1e5) whatever the offset;
   a float32 origin in the hit instance's space plus its index (+4 bytes) keeps float32
@@ -41,7 +41,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.shade_kernels import GAMMA64_3, LOCAL_REL
+from nprt.workers.shade_kernels import GAMMA64_3, LOCAL_REL
 
 
 def _rowdot(m: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.settings import RenderSettings
+from nprt.workers.settings import RenderSettings
 
 
 @dataclass(frozen=True)

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.batch import FLAG_EXACT, FLAG_TARGETED, SECONDARY, RayBatch, ShadowRayBatch
-from workers.local import LocalGeometry
-from workers.proxy_query import predict
-from workers.routing import DONE, route_exact, route_shadow_exact
-from workers.settings import RenderSettings
-from workers.stats import SplitStats
-from workers.world import EVERYWHERE, ShardWorld
+from nprt.workers.batch import FLAG_EXACT, FLAG_TARGETED, SECONDARY, RayBatch, ShadowRayBatch
+from nprt.workers.local import LocalGeometry
+from nprt.workers.proxy_query import predict
+from nprt.workers.routing import DONE, route_exact, route_shadow_exact
+from nprt.workers.settings import RenderSettings
+from nprt.workers.stats import SplitStats
+from nprt.workers.world import EVERYWHERE, ShardWorld
 
 
 class ExactPolicy:

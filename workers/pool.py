@@ -17,12 +17,12 @@ import ray
 from ray.util.placement_group import placement_group, remove_placement_group
 from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
-from scene.model import Scene
-from scene.partition import partition
-from workers.raysession import acquire_ray, release_ray
-from workers.settings import RenderSettings
-from workers.shard import Shard, ShardConfig
-from workers.world import EVERYWHERE, ShardWorld
+from nprt.scene.model import Scene
+from nprt.scene.partition import partition
+from nprt.workers.raysession import acquire_ray, release_ray
+from nprt.workers.settings import RenderSettings
+from nprt.workers.shard import Shard, ShardConfig
+from nprt.workers.world import EVERYWHERE, ShardWorld
 
 log = logging.getLogger(__name__)
 
@@ -53,10 +53,10 @@ def _wait_ready(ref, what: str):
 
 
 def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None, train=True):
-    """Which meshes get a proxy, are replicated, or need nothing (proxies.policy)."""
-    from proxies.cache import ProxyCache
-    from proxies.config import DEFAULT_WIDTHS, ProxyConfig
-    from proxies.policy import plan_proxies
+    """Which meshes get a proxy, are replicated, or need nothing (nprt.proxies.policy)."""
+    from nprt.proxies.cache import ProxyCache
+    from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig
+    from nprt.proxies.policy import plan_proxies
 
     knobs = settings.proxy
     return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,

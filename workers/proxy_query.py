@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from workers.sampling import normalize
-from workers.world import ShardWorld
+from nprt.workers.sampling import normalize
+from nprt.workers.world import ShardWorld
 
 
 @dataclass(frozen=True)

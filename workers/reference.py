@@ -11,13 +11,13 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from scene.model import Scene
-from workers.batch import KIND_NAMES
-from workers.passes import Pass
-from workers.settings import RenderSettings
-from workers.shard import Shard, ShardConfig, WorkItem
-from workers.stats import RenderStats
-from workers.world import ShardWorld
+from nprt.scene.model import Scene
+from nprt.workers.batch import KIND_NAMES
+from nprt.workers.passes import Pass
+from nprt.workers.settings import RenderSettings
+from nprt.workers.shard import Shard, ShardConfig, WorkItem
+from nprt.workers.stats import RenderStats
+from nprt.workers.world import ShardWorld
 
 
 class ReferenceRenderer:

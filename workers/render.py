@@ -11,11 +11,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scene.model import Scene
-from workers.film import Film
-from workers.passes import Pass, count_passes, iter_passes
-from workers.settings import RenderSettings
-from workers.stats import RenderStats
+from nprt.scene.model import Scene
+from nprt.workers.film import Film
+from nprt.workers.passes import Pass, count_passes, iter_passes
+from nprt.workers.settings import RenderSettings
+from nprt.workers.stats import RenderStats
 
 log = logging.getLogger(__name__)
 
@@ -83,10 +83,10 @@ def make_renderer(scene: Scene, settings: RenderSettings, ray_address: str | Non
     """The reference renderer for shards == 0, else a coordinator (on a warm pool from the
     PoolRegistry `pools` if given)."""
     if settings.shards == 0:
-        from workers.reference import ReferenceRenderer
+        from nprt.workers.reference import ReferenceRenderer
 
         return ReferenceRenderer(scene, settings)
-    from workers.coordinator import Coordinator
+    from nprt.workers.coordinator import Coordinator
 
     return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir, pools=pools)
 

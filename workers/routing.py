@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.batch import RayBatch, ShadowRayBatch
-from workers.local import BOX_TMAX_SLACK_REL
-from workers.world import EVERYWHERE, ShardWorld
+from nprt.workers.batch import RayBatch, ShadowRayBatch
+from nprt.workers.local import BOX_TMAX_SLACK_REL
+from nprt.workers.world import EVERYWHERE, ShardWorld
 
 DONE = -1
 
@@ -26,7 +26,7 @@ def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, 
     returns (n,) int32 target shard or DONE
     """
     target = np.full(len(origin), DONE, np.int32)
-    # Stretched as local intersection culls (workers.local): a hit on another shard tied
+    # Stretched as local intersection culls (nprt.workers.local): a hit on another shard tied
     # with tmax must still be visited, or the global tie rule could not see it.
     box_tmax = np.asarray(tmax, np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
     ray, inst, t_enter, _ = world.table.box_entries(origin, direction, box_tmax, remote)

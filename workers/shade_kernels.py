@@ -2,7 +2,7 @@
 and surface interactions, row by row with exactly the float operations (and their order)
 of the numpy formulas they replace, so film sums stay bit-identical.
 
-One fixed sum order, written out in the numpy oracles too (`workers.surface.surface_at`):
+One fixed sum order, written out in the numpy oracles too (`nprt.workers.surface.surface_at`):
 three-term dot products, instance transforms included, sum (p0 + p2) + p1 (`_dot`), then
 add a translation; norms sum (x0² + x1²) + x2² (`_norm`). These are also the orders numpy
 2.x takes for `np.einsum("ij,ij->i")` and `np.linalg.norm(v, axis=1)` on C-ordered rows,
@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from workers.rng import DIM_BSDF_U, DIM_LIGHT_BASE, DIM_RR
+from nprt.workers.rng import DIM_BSDF_U, DIM_LIGHT_BASE, DIM_RR
 
 # error_model="numpy": x / 0.0 is inf or NaN (as in numpy), not a ZeroDivisionError.
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
@@ -36,13 +36,13 @@ def _mix(x):
 
 @njit(inline="always", **JIT)
 def dim_key(seed, dim):
-    """The per-(seed, dimension) key of `workers.rng.uniform`; seed and dim uint64."""
+    """The per-(seed, dimension) key of `nprt.workers.rng.uniform`; seed and dim uint64."""
     return _mix(seed + _GOLDEN * (dim + np.uint64(1)))
 
 
 @njit(inline="always", **JIT)
 def uniform_keyed(key, pixel, sample, bounce):
-    """`workers.rng.uniform` for one row, given its dimension's key (uint64)."""
+    """`nprt.workers.rng.uniform` for one row, given its dimension's key (uint64)."""
     x = key ^ (np.uint64(pixel) << np.uint64(32)) ^ np.uint64(sample)
     x = _mix(x)
     x = _mix(x ^ (np.uint64(bounce) * _GOLDEN))
@@ -61,7 +61,7 @@ def uniform_rows(seed, rows, pixel, sample, bounce, dim):
     return out
 
 
-# The rounding-error constants of workers.offset, whose formulas the next three copy.
+# The rounding-error constants of nprt.workers.offset, whose formulas the next three copy.
 # They live here, not there: numba's cache is keyed on this file, so a constant taken
 # from another module would stay frozen in cached code after it changed.
 # pbrt's gamma(n) = n u / (1 - n u), u the unit roundoff of the format.
@@ -84,7 +84,7 @@ def _abs_rowdot(m, it, c, v0, v1, v2):
 
 @njit(inline="always", **JIT)
 def point_error(l2w, w2l, it, v_max, pl, p, i, out):
-    """out[i] = `workers.offset.hit_point_error` of world point p[i] (3,) float64 of
+    """out[i] = `nprt.workers.offset.hit_point_error` of world point p[i] (3,) float64 of
     instance it, from its local point pl (3,) float64 and its triangle's largest
     |local vertex coordinate| v_max."""
     e = _LOCAL_REL * v_max
@@ -103,7 +103,7 @@ def point_error(l2w, w2l, it, v_max, pl, p, i, out):
 
 @njit(inline="always", **JIT)
 def offset_origin(p, p_err, n, i, out, k):
-    """out[k] = `workers.offset.offset_ray_origin` of row i of p, p_err, n (h, 3)
+    """out[k] = `nprt.workers.offset.offset_ray_origin` of row i of p, p_err, n (h, 3)
     float64, in float64 with its one-step rounding away from the surface."""
     d = (abs(n[i, 0]) * p_err[i, 0] + abs(n[i, 1]) * p_err[i, 1]) + abs(n[i, 2]) * p_err[i, 2]
     for c in range(3):
@@ -118,7 +118,7 @@ def offset_origin(p, p_err, n, i, out, k):
 
 @njit(**JIT)
 def offset_rows(p, p_err, n):
-    """`workers.offset.offset_ray_origin` for (k, 3) float64 p, p_err and n (its oracle
+    """`nprt.workers.offset.offset_ray_origin` for (k, 3) float64 p, p_err and n (its oracle
     test)."""
     out = np.empty_like(p)
     for i in range(len(p)):
@@ -149,7 +149,7 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, al
     pixel, sample (n,) u32; depth (n,) u8 per ray; p, p_err, ns, ng, albedo, thr (h, 3)
     float64 per hit; light arrays as in `LightSet` (float64); far_t, tmax_scale float64.
     returns k and, in their first k rows: origin (m, 3) float64 (offset as
-    `workers.offset`), direction (m, 3) float32,
+    `nprt.workers.offset`), direction (m, 3) float32,
     tmax (m,) float32, contribution (m, 3) float32, pixel (m,) uint32; m = len(rows) * S.
     """
     n_quads, n_points = len(q_area), len(pt_pos)
@@ -244,7 +244,7 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, al
 def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, verts,
             faces, normals, uvs, mesh_vbase, mesh_fbase, mesh_has_n, mesh_has_uv, mesh_mat,
             mat_albedo, mat_emission, mat_tex, tex_base, tex_h, tex_w, texels, w2l):
-    """Surface interactions of `workers.surface.surface_at` for `rows` (k,) int64 of the
+    """Surface interactions of `nprt.workers.surface.surface_at` for `rows` (k,) int64 of the
     hit records inst, prim (n,) int32; u, v (n,) float32; direction (n, 3) float32.
     slot_of_mesh (M,) int64 base mesh -> slot here (-1: not held); inst_mesh (m,) int32;
     l2w (m, 3, 4), nmat (m, 3, 3) float64 (rows applied in `_dot`'s order);
@@ -253,7 +253,7 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
     material: albedo, emission (3,) float64, texture (-1: none). Per texture: texel base,
     height, width; texels (T, 3) float32; w2l (m, 3, 4) float64 (inverses of l2w).
     returns bad (the first of rows whose mesh is not held, else -1), p, ng, ns, albedo,
-    emission, p_err (k, 3) float64 (p's error bound, `workers.offset.hit_point_error`).
+    emission, p_err (k, 3) float64 (p's error bound, `nprt.workers.offset.hit_point_error`).
     """
     n = len(rows)
     p = np.empty((n, 3))
@@ -345,14 +345,14 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
 @njit(**JIT)
 def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p, p_err, ng,
                   ns, albedo, thr, russian_roulette, rr_start_depth):
-    """Cosine-hemisphere continuation of `rows` (k,) int64 (of `workers.sampling.
+    """Cosine-hemisphere continuation of `rows` (k,) int64 (of `nprt.workers.sampling.
     cosine_hemisphere` and `PathIntegrator._continue`): cos_phi, sin_phi (k,) float64 of
     phi = 2 pi u2 come from numpy, whose SIMD sines need not round like libm's.
 
     ray_of (h,) int64 hit -> ray; pixel, sample (n,) u32; depth (n,) u8 per ray;
     p, p_err, ng, ns, albedo, thr (h, 3) float64 per hit.
     returns c and, in their first c rows: row (c,) int64 (into the per-hit arrays),
-    origin (c, 3) float64 (offset as `workers.offset`), direction, throughput (c, 3)
+    origin (c, 3) float64 (offset as `nprt.workers.offset`), direction, throughput (c, 3)
     float32, pdf (c,) float32.
     """
     k = len(rows)
@@ -374,7 +374,7 @@ def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p,
         x, y = r * cos_phi[j], r * sin_phi[j]
         z = np.sqrt(max(0.0, 1.0 - u1))
         n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
-        sign = 1.0 if n2 >= 0 else -1.0  # Duff et al. frame, as workers.sampling.frame
+        sign = 1.0 if n2 >= 0 else -1.0  # Duff et al. frame, as nprt.workers.sampling.frame
         a = -1.0 / (sign + n2)
         b = n0 * n1 * a
         d0 = x * (1.0 + sign * (n0 * n0) * a) + y * b + z * n0

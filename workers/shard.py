@@ -19,18 +19,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from scene.model import Mesh
-from workers.batch import FLAG_SHADE, KIND_NAMES, SHADOW, RayBatch, ShadowRayBatch
-from workers.geometry import MeshGeometry
-from workers.integrator import PathIntegrator
-from workers.local import LocalGeometry
-from workers.passes import Pass
-from workers.policies import ExactPolicy, OraclePolicy, ProxyPolicy
-from workers.routing import DONE, nearest_unvisited, visited_bit
-from workers.settings import RenderSettings
-from workers.stats import RenderStats, SplitStats
-from workers.tracer import resolve_closest
-from workers.world import EVERYWHERE, ShardWorld
+from nprt.scene.model import Mesh
+from nprt.workers.batch import FLAG_SHADE, KIND_NAMES, SHADOW, RayBatch, ShadowRayBatch
+from nprt.workers.geometry import MeshGeometry
+from nprt.workers.integrator import PathIntegrator
+from nprt.workers.local import LocalGeometry
+from nprt.workers.passes import Pass
+from nprt.workers.policies import ExactPolicy, OraclePolicy, ProxyPolicy
+from nprt.workers.routing import DONE, nearest_unvisited, visited_bit
+from nprt.workers.settings import RenderSettings
+from nprt.workers.stats import RenderStats, SplitStats
+from nprt.workers.tracer import resolve_closest
+from nprt.workers.world import EVERYWHERE, ShardWorld
 
 log = logging.getLogger(__name__)
 
@@ -140,7 +140,7 @@ class Shard:
     def __init__(self, config: ShardConfig, world: ShardWorld, meshes: dict[int, Mesh],
                  proxies: dict | None = None, all_meshes: dict[int, Mesh] | None = None):
         """meshes: the geometry this shard owns (plus replicated meshes); proxies: mesh index
-        -> proxies.inference.Proxy for remote meshes (proxy mode); all_meshes: the whole
+        -> nprt.proxies.inference.Proxy for remote meshes (proxy mode); all_meshes: the whole
         scene, for the benchmark-only oracle policy."""
         self.config, self.world = config, world
         self.id, self.k = config.shard_id, config.k

@@ -12,7 +12,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from workers.batch import KIND_NAMES
+from nprt.workers.batch import KIND_NAMES
 
 MAX_HOPS = 64
 

@@ -1,5 +1,5 @@
 """Surface interactions from hit records: position from barycentrics (float64, local then
-world) with a bound on its rounding error (workers.offset), geometric and shading normals,
+world) with a bound on its rounding error (nprt.workers.offset), geometric and shading normals,
 UVs and albedo. Only meshes held here can be shaded."""
 
 from __future__ import annotations
@@ -9,17 +9,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scene.model import Material, Mesh
-from workers import shade_kernels
-from workers.offset import hit_point_error
-from workers.toplevel import InstanceTable
+from nprt.scene.model import Material, Mesh
+from nprt.workers import shade_kernels
+from nprt.workers.offset import hit_point_error
+from nprt.workers.toplevel import InstanceTable
 
 
 @dataclass(frozen=True)
 class Surface:
     """p (n,3) f64 world point; ng, ns (n,3) f64 unit geometric / shading normals facing
     the incoming ray; albedo (n,3) f64; emission (n,3) f64; p_err (n,3) f64 bound on p's
-    rounding error per coordinate (`workers.offset.hit_point_error`)."""
+    rounding error per coordinate (`nprt.workers.offset.hit_point_error`)."""
 
     p: np.ndarray
     ng: np.ndarray

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from scene.model import Scene
-from workers import kernels
+from nprt.scene.model import Scene
+from nprt.workers import kernels
 
 # Boxes are padded so flat geometry (a ground quad) never yields a zero-width slab.
 BOX_PAD_REL = 1e-5

@@ -6,14 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from workers.batch import LIGHT_BASE, RayBatch, ShadowRayBatch, precedes
-from workers.lights import LightSet
-from workers.local import LocalGeometry
+from nprt.workers.batch import LIGHT_BASE, RayBatch, ShadowRayBatch, precedes
+from nprt.workers.lights import LightSet
+from nprt.workers.local import LocalGeometry
 
 
 def resolve_closest(rays: RayBatch, geometry: LocalGeometry, lights: LightSet) -> RayBatch:
     """Fill the hit record (tmax, hit_inst, hit_prim, hit_u, hit_v) with the first, in
-    the global order (`workers.batch.precedes`), of the record the rays carry, this
+    the global order (`nprt.workers.batch.precedes`), of the record the rays carry, this
     geometry's hits and the quad lights' (replicated everywhere, so every shard folds
     them in the same way)."""
     t, inst, prim, u, v = geometry.intersect_closest(rays.origin, rays.direction, rays.tmax,

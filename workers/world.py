@@ -8,9 +8,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from scene.model import Camera, Material, Scene
-from workers.lights import LightSet
-from workers.toplevel import InstanceTable
+from nprt.scene.model import Camera, Material, Scene
+from nprt.workers.lights import LightSet
+from nprt.workers.toplevel import InstanceTable
 
 EVERYWHERE = -1  # owner of an instance whose mesh is replicated on every shard
 

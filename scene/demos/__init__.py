@@ -7,9 +7,9 @@ from __future__ import annotations
 import logging
 import time
 
-from scene.demos import city, forest, sculpture
-from scene.errors import SceneError
-from scene.model import Scene
+from nprt.scene.demos import city, forest, sculpture
+from nprt.scene.errors import SceneError
+from nprt.scene.model import Scene
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scene.model import (
+from nprt.scene.model import (
     INDEX_DTYPE,
     TRANSFORM_DTYPE,
     VERTEX_DTYPE,

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from scene.demos._common import concat, ground, make_mesh, placement, quads, sky, sun_panel
-from scene.model import Camera, Instances, Material, Scene
+from nprt.scene.demos._common import concat, ground, make_mesh, placement, quads, sky, sun_panel
+from nprt.scene.model import Camera, Instances, Material, Scene
 
 # Per size: window bay width and storey height (m), lots per side (x, z), lot pitch (m).
 SIZES = {

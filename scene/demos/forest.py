@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from scene.demos._common import (
+from nprt.scene.demos._common import (
     concat,
     ground,
     placement,
@@ -17,7 +17,7 @@ from scene.demos._common import (
     sun_panel,
     tube,
 )
-from scene.model import VERTEX_DTYPE, Camera, Instances, Material, Mesh, Scene
+from nprt.scene.model import VERTEX_DTYPE, Camera, Instances, Material, Mesh, Scene
 
 # Per size: leaves per species (oak, pine, birch, bush), instances per species, half extent
 # of the planted square (m), trunk sections, branches per tree.

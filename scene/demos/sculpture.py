@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from scene.demos._common import ground, make_mesh, placement, sky, sun_panel
-from scene.model import Camera, Instances, Material, Scene
+from nprt.scene.demos._common import ground, make_mesh, placement, sky, sun_panel
+from nprt.scene.model import Camera, Instances, Material, Scene
 
 # Per size: icosphere subdivisions, torus (major, minor) and column (around, along) segments,
 # gallery grid (columns, rows) and its pitch (m).

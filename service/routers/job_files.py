@@ -8,10 +8,10 @@ from pathlib import Path
 from fastapi import APIRouter, Response, status
 from fastapi.concurrency import run_in_threadpool
 
-from service import images
-from service.deps import ManagerDep, TokenDep
-from service.schemas import error_responses
-from workers.film import read_exr
+from nprt.service import images
+from nprt.service.deps import ManagerDep, TokenDep
+from nprt.service.schemas import error_responses
+from nprt.workers.film import read_exr
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 

@@ -9,11 +9,11 @@ from fastapi import APIRouter, Header, HTTPException, Query, Response, status
 from fastapi.concurrency import run_in_threadpool
 from sse_starlette.sse import EventSourceResponse
 
-from service import images
-from service.deps import ManagerDep, TokenDep
-from service.errors import InvalidJob, TooManyWatchers
-from service.events import AsyncWatch
-from service.schemas import (
+from nprt.service import images
+from nprt.service.deps import ManagerDep, TokenDep
+from nprt.service.errors import InvalidJob, TooManyWatchers
+from nprt.service.events import AsyncWatch
+from nprt.service.schemas import (
     JobCreate,
     JobPublic,
     JobsPublic,
@@ -21,7 +21,7 @@ from service.schemas import (
     TileEvent,
     error_responses,
 )
-from service.store import TERMINAL
+from nprt.service.store import TERMINAL
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 

@@ -11,11 +11,11 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import PlainTextResponse
 from sse_starlette.sse import EventSourceResponse
 
-from service.deps import ManagerDep
-from service.errors import NotFound
-from service.joblog import LOG_NAME, LogTail, read_lines
-from service.schemas import error_responses
-from service.store import TERMINAL
+from nprt.service.deps import ManagerDep
+from nprt.service.errors import NotFound
+from nprt.service.joblog import LOG_NAME, LogTail, read_lines
+from nprt.service.schemas import error_responses
+from nprt.service.store import TERMINAL
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 

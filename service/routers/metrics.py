@@ -9,7 +9,7 @@ from fastapi.concurrency import run_in_threadpool
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from prometheus_client.process_collector import ProcessCollector
 
-from service.metrics import JobMetrics
+from nprt.service.metrics import JobMetrics
 
 router = APIRouter(tags=["health"])
 # Counters count the jobs that finished after this: about when the service started.

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter
 
-from service.routers import job_files, logs, metrics
+from nprt.service.routers import job_files, logs, metrics
 
 router = APIRouter()
 for _sub in (logs.router, job_files.router, metrics.router):

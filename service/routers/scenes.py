@@ -12,10 +12,10 @@ from fastapi import APIRouter, Query, Request, Response, status
 from fastapi.concurrency import run_in_threadpool
 from starlette.formparsers import MultiPartParser
 
-from service.deps import ScenesDep, SettingsDep, TokenDep
-from service.errors import BadUpload, TooLarge
-from service.scenes import demo_names
-from service.schemas import ErrorPublic, ScenePublic, ScenesPublic, error_responses
+from nprt.service.deps import ScenesDep, SettingsDep, TokenDep
+from nprt.service.errors import BadUpload, TooLarge
+from nprt.service.scenes import demo_names
+from nprt.service.schemas import ErrorPublic, ScenePublic, ScenesPublic, error_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
 

@@ -16,7 +16,7 @@ import pytest
 import ray
 import yaml
 
-from service.cli import build_parser
+from nprt.service.cli import build_parser
 
 DEPLOY = Path(__file__).resolve().parents[2] / "deploy"
 REPO = DEPLOY.parent

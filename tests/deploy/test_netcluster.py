@@ -38,7 +38,7 @@ def test_up_render_on_two_nodes_down_leaves_nothing(tmp_path):
         status = cluster.run("status", *cluster.opts).stdout
         assert "links 1gbit" in status, status
         stats = tmp_path / "stats.json"
-        cmd = [sys.executable, "-m", "service.cli", "render", "sculpture", "--size", "small",
+        cmd = [sys.executable, "-m", "nprt.service.cli", "render", "sculpture", "--size", "small",
                "--width", "32", "--height", "24", "--spp", "1", "--bounces", "2",
                "--shards", "2", "--ray-address", address, "-o", str(tmp_path / "out.png"),
                "--stats", str(stats)]
@@ -58,9 +58,9 @@ def test_up_render_on_two_nodes_down_leaves_nothing(tmp_path):
 _FAILURE_DRIVER = """
 import json, sys
 import numpy as np
-from scene.demos import make_demo
-from workers.render import render
-from workers.settings import RenderSettings
+from nprt.scene.demos import make_demo
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
 
 scene = make_demo("sculpture", "small")
 s = RenderSettings.model_validate_json(sys.argv[2])
@@ -81,9 +81,9 @@ print(json.dumps({"done": True}), flush=True)
 def test_killing_a_node_mid_render_gives_the_same_image_or_a_clear_error(tmp_path):
     """Three nodes, two shards: the shard of the killed node may restart on the spare one.
     The render must end (same image as the single-process reference, or a clear error)."""
-    from scene.demos import make_demo
+    from nprt.scene.demos import make_demo
+    from nprt.workers.settings import RenderSettings
     from tests.distributed.helpers import reference
-    from workers.settings import RenderSettings
 
     s = RenderSettings(width=48, height=32, spp=4, spp_per_pass=1, tile_size=16, bounces=3,
                        shards=2, seed=5)

@@ -5,10 +5,10 @@ from __future__ import annotations
 
 import pytest
 
-from scene.demos import make_demo
-from workers.coordinator import Coordinator
-from workers.render import render
-from workers.settings import RenderSettings
+from nprt.scene.demos import make_demo
+from nprt.workers.coordinator import Coordinator
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
 
 K = 3  # several targets per call, so the producer -> consumer matching is exercised
 

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import ray
 
-from scene.demos import make_demo
+from nprt.scene.demos import make_demo
 from tests.distributed.helpers import SCENES, SIZE, reference, settings
 
 RAY_CPUS = 4

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from workers.batch import RayBatch, ShadowRayBatch
-from workers.render import RenderResult, render
-from workers.settings import RenderSettings
+from nprt.workers.batch import RayBatch, ShadowRayBatch
+from nprt.workers.render import RenderResult, render
+from nprt.workers.settings import RenderSettings
 
 SCENES = ("forest", "city", "sculpture")
 SIZE = "small"

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import json
 
-from service.cli import main
+from nprt.service.cli import main
 
 
 def test_demo_renders_exact_and_proxy_side_by_side(ray_local, tmp_path, capsys):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from nprt.workers.render import render
 from tests.distributed.helpers import SCENES, assert_matches, settings
-from workers.render import render
 
 SHARD_COUNTS = (1, 2, 3, 4, 8)
 

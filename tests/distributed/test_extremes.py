@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 from hypothesis import HealthCheck, example, given, settings
 
-from scene.transform import similarity, transform_scene
+from nprt.scene.transform import similarity, transform_scene
 from tests.workers.extremes import (
     SEEDS,
     SETTINGS,

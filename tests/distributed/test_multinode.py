@@ -10,10 +10,10 @@ import pytest
 import ray
 from ray.cluster_utils import Cluster
 
+from nprt.workers.batch import KIND_NAMES
+from nprt.workers.coordinator import Coordinator
+from nprt.workers.render import render
 from tests.distributed.helpers import assert_matches, settings
-from workers.batch import KIND_NAMES
-from workers.coordinator import Coordinator
-from workers.render import render
 
 NODES = 3
 OBJECT_STORE_BYTES = 128 * 1024**2  # per node; the test moves a few MB at most

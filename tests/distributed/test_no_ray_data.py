@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import ray
 
-import workers.coordinator as coordinator_module
+import nprt.workers.coordinator as coordinator_module
+from nprt.workers.batch import RayBatch, ShadowRayBatch
+from nprt.workers.coordinator import Coordinator
+from nprt.workers.render import render
+from nprt.workers.shard import Manifest, Parcel
 from tests.distributed.helpers import assert_matches, settings
-from workers.batch import RayBatch, ShadowRayBatch
-from workers.coordinator import Coordinator
-from workers.render import render
-from workers.shard import Manifest, Parcel
 
 RAY_DATA = (RayBatch, ShadowRayBatch, Parcel)
 
@@ -33,7 +33,7 @@ def _types(x, out: set) -> set:
 
 
 class RecordingRay:
-    """Stands in for the `ray` module inside workers.coordinator; records what get returns."""
+    """Stands in for the `ray` module inside nprt.workers.coordinator; records what get returns."""
 
     def __init__(self):
         self.got: set[type] = set()

@@ -8,10 +8,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from nprt.workers.metrics import compare
+from nprt.workers.render import render
+from nprt.workers.settings import ProxySettings
 from tests.distributed.helpers import assert_matches, settings
-from workers.metrics import compare
-from workers.render import render
-from workers.settings import ProxySettings
 
 K = 4
 # Measured with the shipped proxies at these settings (48x32, 2 spp, 3 bounces, K=4):

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from nprt.workers.batch import KIND_NAMES
+from nprt.workers.render import render
 from tests.distributed.helpers import RAY_ROW_BYTES, SHADOW_ROW_BYTES, settings
-from workers.batch import KIND_NAMES
-from workers.render import render
 
 SCENE = "city"  # the most secondary rays of the three demos
 

@@ -8,12 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scene.model import Environment, Instance, Material, QuadLight, Scene
-from scene.partition import partition
+from nprt.scene.model import Environment, Instance, Material, QuadLight, Scene
+from nprt.scene.partition import partition
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
 from tests.distributed.helpers import dump_images
 from tests.workers.helpers import Camera, plane_mesh, trs
-from workers.render import render
-from workers.settings import RenderSettings
 
 # One contribution per path (no next-event rays, one sample per pass), so every pixel's
 # sum is a single float and the images can be compared bit for bit.

@@ -7,9 +7,9 @@ import onnx
 import trimesh
 from onnx import TensorProto, helper
 
-from proxies.inference import NETS, Proxy
-from proxies.sampling import proxy_box
-from scene.model import Mesh
+from nprt.proxies.inference import NETS, Proxy
+from nprt.proxies.sampling import proxy_box
+from nprt.scene.model import Mesh
 
 
 def from_trimesh(name: str, tm: trimesh.Trimesh) -> Mesh:
@@ -66,7 +66,7 @@ def stand_in_proxy(mesh: Mesh, config) -> Proxy:
 
 def scene_of(*meshes: Mesh, copies: int = 1):
     """A scene with `copies` instances of every mesh, spread along x."""
-    from scene.model import Instance, Scene
+    from nprt.scene.model import Instance, Scene
 
     insts = []
     for i, _ in enumerate(meshes):

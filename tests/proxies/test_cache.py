@@ -7,10 +7,10 @@ import sys
 
 import pytest
 
-from proxies.cache import ProxyCache, ProxyUnavailable, file_name
-from proxies.config import ProxyConfig
-from proxies.policy import plan_proxies
-from scene.partition import partition
+from nprt.proxies.cache import ProxyCache, ProxyUnavailable, file_name
+from nprt.proxies.config import ProxyConfig
+from nprt.proxies.policy import plan_proxies
+from nprt.scene.partition import partition
 from tests.proxies.helpers import scene_of, sphere, stand_in_proxy, torus
 
 TINY = ProxyConfig(width=16, budget_s=0, max_steps=20, n_samples=4096, grid=8,
@@ -77,7 +77,7 @@ def test_a_corrupted_file_is_detected_and_retrained(cache, damage):
 def no_torch(monkeypatch):
     """Make `import torch` fail as on an install without the 'train' extra."""
     monkeypatch.setitem(sys.modules, "torch", None)
-    for mod in ("proxies.train", "proxies.model", "proxies.export"):
+    for mod in ("nprt.proxies.train", "nprt.proxies.model", "nprt.proxies.export"):
         monkeypatch.delitem(sys.modules, mod, raising=False)
 
 

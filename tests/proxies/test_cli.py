@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import trimesh
 
-from proxies.cli import main
+from nprt.proxies.cli import main
 
 
 def test_proxy_train_on_a_mesh_file_prints_the_report_and_caches(tmp_path, capsys):

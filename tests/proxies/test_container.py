@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from ray import cloudpickle
 
-from proxies.config import ProxyConfig
-from proxies.inference import Proxy, ProxyFormatError
+from nprt.proxies.config import ProxyConfig
+from nprt.proxies.inference import Proxy, ProxyFormatError
 from tests.proxies.helpers import sphere, stand_in_proxy
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -91,7 +91,7 @@ def test_points_on_the_mesh_box_give_distances_from_those_points(proxy):
 
 
 def test_the_render_path_never_imports_torch():
-    code = ("import sys; import proxies.inference, proxies.cache, proxies.policy, "
-            "proxies.evaluate, proxies.sampling, proxies.cli; "
+    code = ("import sys; import nprt.proxies.inference, nprt.proxies.cache, nprt.proxies.policy, "
+            "nprt.proxies.evaluate, nprt.proxies.sampling, nprt.proxies.cli; "
             "assert 'torch' not in sys.modules, 'torch imported'")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)

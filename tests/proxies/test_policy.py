@@ -7,10 +7,10 @@ import json
 
 import pytest
 
-from proxies.cache import ProxyCache
-from proxies.config import ProxyConfig
-from proxies.policy import plan_proxies
-from scene.partition import partition
+from nprt.proxies.cache import ProxyCache
+from nprt.proxies.config import ProxyConfig
+from nprt.proxies.policy import plan_proxies
+from nprt.scene.partition import partition
 from tests.proxies.helpers import scene_of, sphere, torus, triangle
 
 QUICK = ProxyConfig(budget_s=0, max_steps=600, n_samples=1 << 17, grid=32,

@@ -6,15 +6,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from proxies.sampling import (
+from nprt.proxies.sampling import (
     DIR_BANDS,
     DIR_SECTORS,
     proxy_box,
     sample_internal_rays,
     sample_rays,
 )
+from nprt.workers.geometry import MeshGeometry
 from tests.proxies.helpers import box, sphere, torus, triangle
-from workers.geometry import MeshGeometry
 
 
 def test_sampling_is_deterministic_in_the_seed():

@@ -7,12 +7,12 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="training needs PyTorch (the 'train' extra)")
 
-from proxies.config import ProxyConfig  # noqa: E402
-from proxies.encoding import N_INPUTS  # noqa: E402
-from proxies.export import export_onnx  # noqa: E402
-from proxies.inference import Proxy  # noqa: E402
-from proxies.model import ResidualMLP  # noqa: E402
-from proxies.train import train_proxy  # noqa: E402
+from nprt.proxies.config import ProxyConfig  # noqa: E402
+from nprt.proxies.encoding import N_INPUTS  # noqa: E402
+from nprt.proxies.export import export_onnx  # noqa: E402
+from nprt.proxies.inference import Proxy  # noqa: E402
+from nprt.proxies.model import ResidualMLP  # noqa: E402
+from nprt.proxies.train import train_proxy  # noqa: E402
 from tests.proxies.helpers import box, sphere, torus  # noqa: E402
 
 # Step-capped so the result does not depend on how busy the machine is. The torus gets

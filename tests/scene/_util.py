@@ -9,7 +9,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from scene.model import (
+from nprt.scene.model import (
     Camera,
     DirectionalLight,
     Environment,

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from scene.errors import SceneError
-from scene.gltf import load_gltf
-from scene.io import load_scene, save_scene
-from scene.model import NEAR_REL, Camera
-from scene.transform import similarity, transform_scene
+from nprt.scene.errors import SceneError
+from nprt.scene.gltf import load_gltf
+from nprt.scene.io import load_scene, save_scene
+from nprt.scene.model import NEAR_REL, Camera
+from nprt.scene.transform import similarity, transform_scene
 from tests.scene._util import rich_scene
 
 

@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from scene.demos import DEMOS, SIZES, make_demo
-from scene.errors import SceneError
-from scene.model import instance_world_bounds
+from nprt.scene.demos import DEMOS, SIZES, make_demo
+from nprt.scene.errors import SceneError
+from nprt.scene.model import instance_world_bounds
 
 MB = 1_000_000
 

@@ -14,8 +14,8 @@ from trimesh.exchange.obj import export_obj
 from trimesh.exchange.ply import export_ply
 from trimesh.exchange.stl import export_stl, export_stl_ascii
 
-from scene.io import load_any, srgb_to_linear
-from scene.model import Mesh
+from nprt.scene.io import load_any, srgb_to_linear
+from nprt.scene.model import Mesh
 
 RNG = np.random.default_rng(5)
 TEXELS = (RNG.random((4, 6, 3)) * 255).astype(np.uint8)  # (h, w, 3) sRGB

@@ -8,9 +8,9 @@ import trimesh
 from PIL import Image
 from trimesh.visual.material import PBRMaterial
 
-from scene.errors import SceneError
-from scene.gltf import load_gltf
-from scene.io import srgb_to_linear
+from nprt.scene.errors import SceneError
+from nprt.scene.gltf import load_gltf
+from nprt.scene.io import srgb_to_linear
 from tests.scene._util import translate
 
 

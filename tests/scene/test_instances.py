@@ -10,12 +10,12 @@ import pickle
 import numpy as np
 import pytest
 
-import scene.model as model
-from scene.errors import SceneError
-from scene.instances import read_instance_file, write_instance_file
-from scene.io import load_scene, save_scene
-from scene.model import Instance, Instances, Scene
-from scene.partition import partition
+import nprt.scene.model as model
+from nprt.scene.errors import SceneError
+from nprt.scene.instances import read_instance_file, write_instance_file
+from nprt.scene.io import load_scene, save_scene
+from nprt.scene.model import Instance, Instances, Scene
+from nprt.scene.partition import partition
 from tests.scene._util import assert_scenes_equal, rich_scene, tetra, translate
 
 TRI = {"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "faces": [[0, 1, 2]]}
@@ -169,7 +169,7 @@ def test_partition_of_arrays_equals_partition_of_a_list():
 def test_many_instances_set_up_without_an_object_per_instance(tmp_path, monkeypatch):
     """20k instances: load, partition, table, BVH and the world's pickle round trip never
     make an `Instance` (a per-instance Python object on the setup path)."""
-    from workers.world import ShardWorld
+    from nprt.workers.world import ShardWorld
 
     n = 20_000
     rng = np.random.default_rng(5)

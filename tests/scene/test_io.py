@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from scene.demos import make_demo
-from scene.io import load_any, load_scene, save_scene
-from scene.model import Instance, Material, Scene
+from nprt.scene.demos import make_demo
+from nprt.scene.io import load_any, load_scene, save_scene
+from nprt.scene.model import Instance, Material, Scene
 from tests.scene._util import assert_scenes_equal, rich_scene, tetra, translate
 
 
@@ -118,7 +118,7 @@ def test_load_any_accepts_json_glb_and_mesh_files(tmp_path):
 
 @pytest.mark.parametrize("albedo", [(1.2, 0.5, 0.5), (-0.1, 0.5, 0.5)])
 def test_save_refuses_what_load_would_reject(tmp_path, albedo):
-    from scene.errors import SceneError
+    from nprt.scene.errors import SceneError
 
     bad = Scene((tetra(),), (Instance(0, np.eye(4)),), (Material("m", albedo),))
     with pytest.raises(SceneError, match=r"materials\[0\]\.albedo\[0\]"):

@@ -6,8 +6,8 @@ import json
 
 import pytest
 
-from scene.errors import SceneError
-from scene.io import load_any, load_scene
+from nprt.scene.errors import SceneError
+from nprt.scene.io import load_any, load_scene
 
 TRI = {"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "faces": [[0, 1, 2]]}
 

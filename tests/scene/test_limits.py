@@ -10,9 +10,9 @@ import json
 import numpy as np
 import pytest
 
-from scene.errors import SceneError
-from scene.io import load_scene
-from scene.model import (
+from nprt.scene.errors import SceneError
+from nprt.scene.io import load_scene
+from nprt.scene.model import (
     MAX_RADIOMETRY,
     Camera,
     DirectionalLight,
@@ -23,7 +23,7 @@ from scene.model import (
     QuadLight,
     Scene,
 )
-from scene.transform import similarity, transform_scene
+from nprt.scene.transform import similarity, transform_scene
 from tests.scene._util import rich_scene, tetra
 
 
@@ -112,8 +112,8 @@ def test_scene_file_with_an_overflowing_light_names_the_file_and_the_field(tmp_p
 
 def test_accepted_scenes_render_finite_images():
     # The limits keep every sample of a scene at the edge finite in float32.
-    from workers.render import render
-    from workers.settings import RenderSettings
+    from nprt.workers.render import render
+    from nprt.workers.settings import RenderSettings
 
     scene = _with(environment=Environment(radiance=(MAX_RADIOMETRY,) * 3),
                   materials=(rich_scene().materials[0],

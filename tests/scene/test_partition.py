@@ -7,10 +7,10 @@ import itertools
 import numpy as np
 import pytest
 
-from scene.demos import make_demo
-from scene.errors import SceneError
-from scene.model import Instance, Mesh, Scene, instance_world_bounds
-from scene.partition import partition
+from nprt.scene.demos import make_demo
+from nprt.scene.errors import SceneError
+from nprt.scene.model import Instance, Mesh, Scene, instance_world_bounds
+from nprt.scene.partition import partition
 from tests.scene._util import translate
 
 

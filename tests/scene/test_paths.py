@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from scene.errors import SceneError, UnsafePath
-from scene.gltf import load_gltf
-from scene.io import load_any, load_scene
+from nprt.scene.errors import SceneError, UnsafePath
+from nprt.scene.gltf import load_gltf
+from nprt.scene.io import load_any, load_scene
 from tests.scene._util import recording_opens
 
 TRI = {"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "faces": [[0, 1, 2]]}

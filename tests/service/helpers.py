@@ -15,8 +15,8 @@ import trimesh
 import uvicorn
 from PIL import Image
 
-from service.app import create_app
-from service.config import ServiceSettings
+from nprt.service.app import create_app
+from nprt.service.config import ServiceSettings
 
 TINY = {"width": 32, "height": 32, "spp": 4, "bounces": 2, "shadow_rays": 1,
         "tile_size": 16, "spp_per_pass": 2}

@@ -6,8 +6,8 @@ import grpc
 import httpx
 import pytest
 
-from protos import nprt_pb2 as pb
-from protos import nprt_pb2_grpc
+from nprt.protos import nprt_pb2 as pb
+from nprt.protos import nprt_pb2_grpc
 from tests.service.helpers import TINY, LiveServer, settings_for
 
 TOKEN = "s3cret-token"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.__main__ import main
+from nprt.service.__main__ import main
 from tests.service.helpers import png_pixels
 
 

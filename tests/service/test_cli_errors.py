@@ -13,10 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from service.cli import main
-from service.preflight import CliError, check_memory, estimate_memory
-from service.ray_reach import check_ray_reachable, ray_endpoint
-from workers.settings import RenderSettings
+from nprt.service.cli import main
+from nprt.service.preflight import CliError, check_memory, estimate_memory
+from nprt.service.ray_reach import check_ray_reachable, ray_endpoint
+from nprt.workers.settings import RenderSettings
 
 TRI = {"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]], "faces": [[0, 1, 2]]}
 ROOT = Path(__file__).resolve().parents[2]
@@ -148,7 +148,7 @@ def test_cli_under_an_address_space_limit_refuses_a_huge_film(tmp_path):
 
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     run = subprocess.run(
-        [sys.executable, "-m", "service.cli", "render", _scene(tmp_path), "--width", "16384",
+        [sys.executable, "-m", "nprt.service.cli", "render", _scene(tmp_path), "--width", "16384",
          "--height", "16384", "-o", str(tmp_path / "big.png")],
         preexec_fn=limit, env=env, capture_output=True, text=True, timeout=120)
     assert run.returncode == 2, run.stderr

@@ -10,7 +10,7 @@ from importlib.metadata import version
 
 import pytest
 
-from service.cli import build_parser, log_level, main
+from nprt.service.cli import build_parser, log_level, main
 from tests.service.helpers import TINY, HeldSlots, wait_for
 
 
@@ -124,7 +124,7 @@ def test_log_level_and_json_logs_reach_stderr(capsys, restore_logging):
     rc, _, err = _nprt(capsys, "--log-level", "INFO", "--log-json", "scenes", "--sizes", "tiny")
     assert rc == 0
     records = [json.loads(line) for line in err.splitlines()]
-    assert any(r["logger"] == "scene.demos" and r["level"] == "INFO" for r in records)
+    assert any(r["logger"] == "nprt.scene.demos" and r["level"] == "INFO" for r in records)
     assert all({"time", "level", "logger", "message", "thread"} <= r.keys() for r in records)
     rc, _, err = _nprt(capsys, "scenes", "--sizes", "tiny")
     assert rc == 0 and err == ""  # WARNING by default: the INFO records stay quiet

@@ -9,8 +9,8 @@ import threading
 import numpy as np
 import pytest
 
-from service.errors import TooManyWatchers
-from service.events import AsyncWatch, EventBroker
+from nprt.service.errors import TooManyWatchers
+from nprt.service.events import AsyncWatch, EventBroker
 
 
 def _tile(rect, value: float, edge: int = 16) -> dict:

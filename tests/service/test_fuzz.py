@@ -30,7 +30,7 @@ from schemathesis.checks import (  # noqa: E402
     status_code_conformance,
 )
 
-from service.manager import JobManager  # noqa: E402
+from nprt.service.manager import JobManager  # noqa: E402
 from tests.service.helpers import LiveServer, settings_for  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from protos import nprt_pb2 as pb
-from protos import nprt_pb2_grpc
+from nprt.protos import nprt_pb2 as pb
+from nprt.protos import nprt_pb2_grpc
+from nprt.workers.film import read_exr, tonemap_srgb
 from tests.service.helpers import (
     TINY,
     HeldSlots,
@@ -18,7 +19,6 @@ from tests.service.helpers import (
     settings_for,
     stored_queued_job,
 )
-from workers.film import read_exr, tonemap_srgb
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +119,7 @@ def test_unknown_job_is_not_found(stub, rpc, request_type):
 
 
 def test_tile_over_message_limit_is_sent_without_pixels():
-    from service.grpc_convert import tile_to_pb
+    from nprt.service.grpc_convert import tile_to_pb
 
     ev = {"rect": (0, 0, 64, 32), "rgb": np.ones((32, 64, 3), np.float32), "pass_index": 0,
           "passes_total": 1, "sample0": 0, "sample1": 1, "progress": 1.0}

@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
-from scene.io import load_any
+from nprt.scene.io import load_any
+from nprt.workers.film import read_exr, tonemap_srgb
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
 from tests.service.helpers import TINY, HeldSlots, png_pixels, sse_events, wait_for
-from workers.film import read_exr, tonemap_srgb
-from workers.render import render
-from workers.settings import RenderSettings
 
 
 def _upload(client, path):

@@ -10,17 +10,17 @@ import time
 import numpy as np
 import pytest
 
-import workers.coordinator as coordinator
-import workers.raysession as raysession
-from service import manager as manager_module
-from service.errors import Conflict
-from service.manager import JobManager, RayUnavailable
-from service.scenes import SceneStore
-from service.store import TERMINAL
+import nprt.workers.coordinator as coordinator
+import nprt.workers.raysession as raysession
+from nprt.service import manager as manager_module
+from nprt.service.errors import Conflict
+from nprt.service.manager import JobManager, RayUnavailable
+from nprt.service.scenes import SceneStore
+from nprt.service.store import TERMINAL
+from nprt.workers.passes import count_passes, plan_passes
+from nprt.workers.render import render as real_render
+from nprt.workers.settings import RenderSettings
 from tests.service.helpers import settings_for, wait_for
-from workers.passes import count_passes, plan_passes
-from workers.render import render as real_render
-from workers.settings import RenderSettings
 
 FAST = {"width": 8, "height": 8, "spp": 1, "bounces": 1, "shadow_rays": 1, "tile_size": 8,
         "spp_per_pass": 1}

@@ -14,11 +14,11 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from scene.io import load_any
+from nprt.scene.io import load_any
+from nprt.workers.film import tonemap_srgb
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
 from tests.service.helpers import png_pixels, wait_for
-from workers.film import tonemap_srgb
-from workers.render import render
-from workers.settings import RenderSettings
 
 REPO = Path(__file__).resolve().parents[2]
 # 128 passes of one 32x32 tile-sample each: a few seconds, with many pass boundaries.

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from scene.errors import UnsafePath
-from service.scenes import SceneStore
+from nprt.scene.errors import UnsafePath
+from nprt.service.scenes import SceneStore
 from tests.scene._util import recording_opens
 from tests.service.helpers import LiveServer, settings_for
 

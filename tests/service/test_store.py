@@ -9,8 +9,8 @@ import threading
 import numpy as np
 import pytest
 
-from service.checkpoint import clear_checkpoint, load_checkpoint, save_checkpoint
-from service.store import JobStore
+from nprt.service.checkpoint import clear_checkpoint, load_checkpoint, save_checkpoint
+from nprt.service.store import JobStore
 
 
 def test_store_uses_wal_and_lists_unfinished_oldest_first(tmp_path):

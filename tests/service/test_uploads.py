@@ -9,8 +9,8 @@ from pathlib import PurePosixPath
 
 import pytest
 
-from service.errors import BadUpload
-from service.uploads import find_entry, safe_member_path
+from nprt.service.errors import BadUpload
+from nprt.service.uploads import find_entry, safe_member_path
 from tests.service.helpers import LiveServer, settings_for
 
 

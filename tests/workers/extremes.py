@@ -8,8 +8,9 @@ import numpy as np
 import trimesh
 from hypothesis import strategies as st
 
-from scene.model import DirectionalLight, Environment, Material, PointLight, QuadLight
-from scene.transform import similarity
+from nprt.scene.model import DirectionalLight, Environment, Material, PointLight, QuadLight
+from nprt.scene.transform import similarity
+from nprt.workers.blocks import block_z
 from tests.workers.helpers import (
     Camera,
     Instance,
@@ -19,7 +20,6 @@ from tests.workers.helpers import (
     plane_mesh,
     trs,
 )
-from workers.blocks import block_z
 
 Z_LIMIT = 4.0
 # Small and quick; 16 spp so a block's noise (about 2 %) leaves drift visible.

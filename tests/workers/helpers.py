@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from scene.model import Camera, Environment, Instance, Material, Mesh, Scene
-from workers.render import render
-from workers.settings import RenderSettings
+from nprt.scene.model import Camera, Environment, Instance, Material, Mesh, Scene
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
 
 
 def mesh_from_trimesh(tm: trimesh.Trimesh, name: str = "mesh", material: int = 0) -> Mesh:

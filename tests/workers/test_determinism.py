@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from scene.model import PointLight, QuadLight
+from nprt.scene.model import PointLight, QuadLight
+from nprt.workers.render import PassDone, ResumeState, render
 from tests.workers.helpers import (
     Camera,
     Environment,
@@ -21,7 +22,6 @@ from tests.workers.helpers import (
     render_image,
     trs,
 )
-from workers.render import PassDone, ResumeState, render
 
 # Width and height are not multiples of any tile size below, so edge tiles are partial.
 BASE = dict(width=40, height=28, spp=6, bounces=4, russian_roulette=True, seed=9)
@@ -99,9 +99,9 @@ def test_resumed_render_equals_uninterrupted_render(scene):
 def test_resume_from_passes_finished_out_of_order_equals_uninterrupted_render(scene):
     # A pipelined render finishes passes out of order; its checkpoint holds every pass
     # below next_pass plus a few above it (done). Resuming renders exactly the others.
-    from workers.passes import iter_passes
-    from workers.reference import ReferenceRenderer
-    from workers.render import Progress
+    from nprt.workers.passes import iter_passes
+    from nprt.workers.reference import ReferenceRenderer
+    from nprt.workers.render import Progress
 
     settings = RenderSettings(**BASE, tile_size=16, spp_per_pass=2)
     full = render(scene, settings).film.image()

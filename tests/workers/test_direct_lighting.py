@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scene.model import DirectionalLight, PointLight, QuadLight
+from nprt.scene.model import DirectionalLight, PointLight, QuadLight
 from tests.workers.helpers import (
     Material,
     assert_image_close,

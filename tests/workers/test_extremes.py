@@ -1,13 +1,13 @@
 """Numerical stability at the extremes (reference renderer): a small scene moved by any
 similarity, translation up to 1e7 in any direction and uniform scale from 1e-6 to 1e6
-with radiometry adjusted (scene.transform), renders the same image within noise."""
+with radiometry adjusted (nprt.scene.transform), renders the same image within noise."""
 
 from __future__ import annotations
 
 import pytest
 from hypothesis import HealthCheck, example, given, settings
 
-from scene.transform import similarity, transform_scene
+from nprt.scene.transform import similarity, transform_scene
 from tests.workers.extremes import (
     SEEDS,
     SETTINGS,

@@ -109,8 +109,8 @@ def test_white_furnace_on_demo_scene_neither_creates_nor_loses_energy(tmp_path, 
     # normal sends some bounces below the true surface, where they are absorbed by design.
     # Measured: city 1.0 everywhere; forest loses 1 path in 24k (64 bounces inside a
     # hollow trunk).
-    from scene.demos import make_demo
-    from scene.model import Mesh, Scene
+    from nprt.scene.demos import make_demo
+    from nprt.scene.model import Mesh, Scene
 
     src = make_demo(demo, "tiny")
     meshes = tuple(Mesh(m.name, m.vertices, m.faces, material=m.material)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from scene.model import DirectionalLight, PointLight
+from nprt.scene.model import DirectionalLight, PointLight
 from tests.workers.helpers import (
     Camera,
     Environment,

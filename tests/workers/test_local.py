@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from scene.model import Instance, Mesh, Scene
+from nprt.scene.model import Instance, Mesh, Scene
+from nprt.workers.geometry import MeshGeometry
+from nprt.workers.local import LocalGeometry
+from nprt.workers.toplevel import InstanceTable
 from tests.workers.helpers import trs
-from workers.geometry import MeshGeometry
-from workers.local import LocalGeometry
-from workers.toplevel import InstanceTable
 
 # One triangle in the x = 0 plane covering y + z <= 1 of the unit square; its box is the
 # whole square, so a ray along +x crosses the box of every instance below.

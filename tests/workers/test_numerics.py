@@ -7,7 +7,11 @@ import numpy as np
 import pytest
 import trimesh
 
-from scene.model import DirectionalLight, PointLight
+from nprt.scene.model import DirectionalLight, PointLight
+from nprt.workers.geometry import MeshGeometry
+from nprt.workers.reference import ReferenceRenderer
+from nprt.workers.render import render
+from nprt.workers.toplevel import InstanceTable
 from tests.workers.helpers import (
     Camera,
     Environment,
@@ -25,10 +29,6 @@ from tests.workers.helpers import (
     single,
     trs,
 )
-from workers.geometry import MeshGeometry
-from workers.reference import ReferenceRenderer
-from workers.render import render
-from workers.toplevel import InstanceTable
 
 
 def test_mesh_geometry_leaves_caller_tmax_unchanged():

@@ -1,4 +1,4 @@
-"""Spawned-ray origins (workers.offset): rays leaving a flat or convex surface never hit it
+"""Spawned-ray origins (nprt.workers.offset): rays leaving a flat or convex surface never hit it
 again, at any grazing angle, scale or distance from the origin, and the push off the
 surface is a small fraction of the object, not a fixed epsilon."""
 
@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from scene.model import Instance, Scene
-from scene.transform import similarity
+from nprt.scene.model import Instance, Scene
+from nprt.scene.transform import similarity
+from nprt.workers import shade_kernels
+from nprt.workers.geometry import MeshGeometry
+from nprt.workers.local import LocalGeometry
+from nprt.workers.sampling import frame, normalize
+from nprt.workers.surface import SurfaceTables
+from nprt.workers.toplevel import InstanceTable
 from tests.workers.helpers import mesh_from_trimesh, plane_mesh, trs
-from workers import shade_kernels
-from workers.geometry import MeshGeometry
-from workers.local import LocalGeometry
-from workers.sampling import frame, normalize
-from workers.surface import SurfaceTables
-from workers.toplevel import InstanceTable
 
 N_RAYS = 6000
 SHAPES = {

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from workers.settings import RenderSettings
+from nprt.workers.settings import RenderSettings
 
 
 @pytest.mark.parametrize("field,value", [
@@ -30,7 +30,7 @@ def test_unknown_setting_is_refused_naming_it():
 
 def test_zero_width_is_refused_before_any_rendering_starts():
     # The error must come from the settings model, not from an empty film deep in a pass.
-    from workers.render import render
+    from nprt.workers.render import render
 
     with pytest.raises(ValidationError, match="width"):
         render(None, RenderSettings(width=0))  # scene is never looked at

@@ -9,15 +9,15 @@ from types import SimpleNamespace as NS
 import numpy as np
 import pytest
 
-from scene.demos import make_demo
-from workers import shade_kernels
-from workers.integrator import RR_START_DEPTH, SHADOW_TMAX_SCALE, PathIntegrator
-from workers.lights import FAR_T, LightSet
-from workers.offset import offset_ray_origin
-from workers.rng import DIM_BSDF_U, DIM_BSDF_V, DIM_LIGHT_BASE, DIM_RR, uniform
-from workers.sampling import cosine_hemisphere, normalize
-from workers.surface import SurfaceTables, surface_at
-from workers.toplevel import InstanceTable
+from nprt.scene.demos import make_demo
+from nprt.workers import shade_kernels
+from nprt.workers.integrator import RR_START_DEPTH, SHADOW_TMAX_SCALE, PathIntegrator
+from nprt.workers.lights import FAR_T, LightSet
+from nprt.workers.offset import offset_ray_origin
+from nprt.workers.rng import DIM_BSDF_U, DIM_BSDF_V, DIM_LIGHT_BASE, DIM_RR, uniform
+from nprt.workers.sampling import cosine_hemisphere, normalize
+from nprt.workers.surface import SurfaceTables, surface_at
+from nprt.workers.toplevel import InstanceTable
 
 
 def _lights(rng, quads=2, points=2, dirs=1) -> LightSet:

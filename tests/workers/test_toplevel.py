@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import trimesh
 
+from nprt.workers import kernels
+from nprt.workers.toplevel import BVH_MIN_INSTANCES, InstanceTable
 from tests.workers.helpers import Instance, Scene, mesh_from_trimesh, plane_mesh, trs
-from workers import kernels
-from workers.toplevel import BVH_MIN_INSTANCES, InstanceTable
 
 
 def _oracle(boxes, origin, direction, tmax, instances):
