@@ -14,6 +14,7 @@ from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException
 
 from nprt.service.auth import TokenMiddleware
@@ -31,6 +32,7 @@ from nprt.service.errors import (
     redact_paths,
 )
 from nprt.service.manager import JobManager
+from nprt.service.problems import describe_fields, document_problems, problem_response, type_name
 from nprt.service.routers import jobs, operations, scenes
 from nprt.service.scenes import SceneStore
 
@@ -80,19 +82,42 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
     app.include_router(jobs.router)
     app.include_router(operations.router)
 
+    # Every error answer is RFC 9457 problem details (service/problems.py).
     @app.exception_handler(ServiceError)
-    async def service_error(_: Request, exc: ServiceError) -> JSONResponse:
-        return JSONResponse({"detail": redact_paths(str(exc), roots)},
-                            status_code=_STATUS.get(type(exc), 400))
+    async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        return problem_response(_STATUS.get(type(exc), 400), redact_paths(str(exc), roots),
+                                type_=type_name(type(exc)), title=_title(type(exc)),
+                                instance=request.url.path)
 
     @app.exception_handler(MultiPartException)
-    async def multipart_error(_: Request, exc: MultiPartException) -> JSONResponse:
-        return JSONResponse({"detail": f"bad multipart upload: {exc.message}"}, status_code=400)
+    async def multipart_error(request: Request, exc: MultiPartException) -> JSONResponse:
+        return problem_response(400, f"bad multipart upload: {exc.message}",
+                                type_=type_name(BadUpload), title=_title(BadUpload),
+                                instance=request.url.path)
 
     @app.exception_handler(RequestValidationError)
-    async def validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
-        """FastAPI's 422, able to echo NaN and Infinity (strict JSON has neither)."""
-        return JSONResponse({"detail": _json_safe(exc.errors())}, status_code=422)
+    async def validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+        """FastAPI's 422 with each field under `errors`, able to echo NaN and Infinity
+        (strict JSON has neither)."""
+        errors = _json_safe(exc.errors())
+        return problem_response(422, describe_fields(errors), type_="urn:nprt:problem:"
+                                "invalid-request", title="Invalid request",
+                                instance=request.url.path, errors=errors)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        """Starlette's own answers (unknown route, wrong method, 401) in the same shape."""
+        return problem_response(exc.status_code, str(exc.detail), instance=request.url.path,
+                                headers=getattr(exc, "headers", None))
+
+    openapi = app.openapi
+
+    def openapi_with_problems() -> dict:
+        if app.openapi_schema is None:
+            document_problems(openapi())
+        return app.openapi_schema
+
+    app.openapi = openapi_with_problems
 
     @app.get("/", include_in_schema=False)
     async def dashboard() -> FileResponse:
@@ -104,6 +129,11 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app
+
+
+def _title(cls: type) -> str:
+    """`InvalidScene` -> `Invalid scene`: the problem type's summary."""
+    return type_name(cls).removeprefix("urn:nprt:problem:").replace("-", " ").capitalize()
 
 
 def _json_safe(errors) -> list:

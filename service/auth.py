@@ -38,10 +38,10 @@ class TokenMiddleware:
             headers = dict(scope["headers"])
             why = bearer_error(headers.get(b"authorization"), self.token)
             if why is not None:
-                from starlette.responses import JSONResponse
+                from nprt.service.problems import problem_response
 
-                response = JSONResponse({"detail": why}, status_code=401,
-                                        headers={"WWW-Authenticate": "Bearer"})
+                response = problem_response(401, why, instance=scope["path"],
+                                            headers={"WWW-Authenticate": "Bearer"})
                 await response(scope, receive, send)
                 return
         await self.app(scope, receive, send)

@@ -17,13 +17,11 @@ _UPLOAD_TYPES = {".glb": "model/gltf-binary", ".gltf": "model/gltf+json",
 class ApiError(RuntimeError):
     def __init__(self, response: httpx.Response):
         self.status_code = response.status_code
-        try:
-            detail = response.json().get("detail")
-        except ValueError:
+        try:  # RFC 9457 problem details; a 422's detail already names each field
+            problem = response.json()
+            detail = problem.get("detail") or problem.get("title")
+        except (ValueError, AttributeError):
             detail = response.text
-        if isinstance(detail, list):  # FastAPI validation errors: name each field
-            detail = "; ".join(f"{'.'.join(map(str, e['loc'][1:]))}: {e['msg']} "
-                               f"(got {e.get('input')!r})" for e in detail)
         super().__init__(f"{response.request.method} {response.request.url} -> "
                          f"{response.status_code}: {detail}")
 

@@ -7,6 +7,7 @@ from typing import Literal
 
 from pydantic import BaseModel, Field
 
+from nprt.service.problems import Problem
 from nprt.service.store import JobRecord
 from nprt.workers.settings import RenderSettings
 
@@ -57,12 +58,6 @@ class JobPublic(BaseModel):
                    finished_at=_time(r.finished_at), error=r.error, stats=r.stats,
                    pixel_samples=r.pixel_samples, cancel_requested=r.cancel_requested,
                    retries=r.retries)
-
-
-class ErrorPublic(BaseModel):
-    """Every error answer: what went wrong, for a person (422s carry FastAPI's list)."""
-
-    detail: str | list[dict]
 
 
 class JobsPublic(BaseModel):
@@ -124,4 +119,4 @@ _ERRORS = {
 
 def error_responses(*codes: int) -> dict:
     """`responses=` for a route: the error codes it can answer, in the OpenAPI schema."""
-    return {c: {"model": ErrorPublic, "description": _ERRORS[c]} for c in codes}
+    return {c: {"model": Problem, "description": _ERRORS[c]} for c in codes}

@@ -5,8 +5,9 @@ from __future__ import annotations
 import base64
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Header, HTTPException, Query, Response, status
+from fastapi import APIRouter, Header, Query, Response, status
 from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
 from sse_starlette.sse import EventSourceResponse
 
 from nprt.service import images
@@ -45,8 +46,8 @@ async def create_job(body: JobCreate, manager: ManagerDep, response: Response,
     try:
         rec, created = manager.submit(body.scene, body.render_settings(), idempotency_key)
     except InvalidJob as e:
-        # Same shape as FastAPI's own validation errors, so clients see the field.
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, [
+        # Same answer as FastAPI's own validation errors, so clients see the field.
+        raise RequestValidationError([
             {"type": "value_error", "loc": ["body", e.field], "msg": str(e),
              "input": getattr(body, e.field)}]) from None
     response.headers["Location"] = f"/v1/jobs/{rec.id}"

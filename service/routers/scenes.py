@@ -14,8 +14,9 @@ from starlette.formparsers import MultiPartParser
 
 from nprt.service.deps import ScenesDep, SettingsDep, TokenDep
 from nprt.service.errors import BadUpload, TooLarge
+from nprt.service.problems import Problem
 from nprt.service.scenes import demo_names
-from nprt.service.schemas import ErrorPublic, ScenePublic, ScenesPublic, error_responses
+from nprt.service.schemas import ScenePublic, ScenesPublic, error_responses
 
 router = APIRouter(prefix="/v1/scenes", tags=["scenes"])
 
@@ -76,7 +77,7 @@ async def _spool(request: Request, dest: Path, max_bytes: int) -> tuple[str, int
              responses={200: {"model": ScenePublic,
                               "description": "identical upload already stored"}}
              | error_responses(400, 401, 413)
-             | {422: {"model": ErrorPublic,
+             | {422: {"model": Problem,
                       "description": "the scene does not load (SceneError message)"}})
 async def upload_scene(request: Request, response: Response, scenes: ScenesDep,
                        settings: SettingsDep,

@@ -126,9 +126,9 @@ def test_dockerfile_copies_every_package_and_no_virtualenv():
     dockerfile = (DEPLOY / "Dockerfile").read_text()
     copied = {line.split()[-2] for line in dockerfile.splitlines() if line.startswith("COPY")}
     assert "." not in copied  # never the whole context
-    packages = tomllib.loads((REPO / "pyproject.toml").read_text())[
-        "tool"]["setuptools"]["packages"]["find"]["include"]
-    for pattern in packages:
-        assert pattern.rstrip("*") in copied, pattern
+    folders = tomllib.loads((REPO / "pyproject.toml").read_text())[
+        "tool"]["setuptools"]["package-dir"].values()
+    for folder in folders:
+        assert folder in copied, folder
     ignore = (DEPLOY / "Dockerfile.dockerignore").read_text().split()
     assert "**/.venv" in ignore

@@ -143,3 +143,11 @@ def stored_queued_job(server: LiveServer, settings: dict | None = None) -> str:
     manager = server.app.state.manager
     manager.store.insert(job_id, "forest:tiny", {**TINY, **(settings or {})}, passes_total=8)
     return job_id
+
+
+def problem_detail(r: httpx.Response) -> str:
+    """The `detail` of an error answer, after checking it is RFC 9457 problem details."""
+    assert r.headers["content-type"] == "application/problem+json", r.headers
+    body = r.json()
+    assert body["status"] == r.status_code and body["title"] and body["type"], body
+    return body["detail"]

@@ -31,6 +31,7 @@ from schemathesis.checks import (  # noqa: E402
 )
 
 from nprt.service.manager import JobManager  # noqa: E402
+from nprt.service.problems import PROBLEM_MEDIA_TYPE, Problem  # noqa: E402
 from tests.service.helpers import LiveServer, settings_for  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
@@ -235,7 +236,9 @@ def test_upload_endpoint_fuzzed(fuzzed):
                 assert r.status_code in UPLOAD_STATUSES, r.text[:300]
                 body = r.json()
                 if r.status_code >= 400:
-                    assert isinstance(body["detail"], str | list), body
+                    problem = Problem.model_validate(body)
+                    assert problem.status == r.status_code, body
+                    assert r.headers["content-type"] == PROBLEM_MEDIA_TYPE, r.headers
                 _check_no_paths(fuzzed, r.text)
             except (AssertionError, ValueError) as e:
                 failures.append(f"{kind} -> {r.status_code}: {e}")

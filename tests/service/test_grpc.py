@@ -16,6 +16,7 @@ from tests.service.helpers import (
     HeldSlots,
     LiveServer,
     png_pixels,
+    problem_detail,
     settings_for,
     stored_queued_job,
 )
@@ -168,7 +169,7 @@ def test_watch_streams_over_the_limit_get_resource_exhausted(tmp_path):
         assert e.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED
         assert "NPRT_MAX_WATCHERS" in e.value.details()
         sse = httpx.get(f"{server.url}/v1/jobs/{job_id}/events", timeout=10)
-        assert sse.status_code == 503 and "NPRT_MAX_WATCHERS" in sse.json()["detail"]
+        assert sse.status_code == 503 and "NPRT_MAX_WATCHERS" in problem_detail(sse)
         stub.CancelJob(pb.CancelJobRequest(job_id=job_id), timeout=10)
         for s in streams:
             assert [ev.job.state for ev in s] == [pb.JOB_STATE_CANCELED]

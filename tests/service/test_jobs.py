@@ -11,7 +11,7 @@ from nprt.scene.io import load_any
 from nprt.workers.film import read_exr, tonemap_srgb
 from nprt.workers.render import render
 from nprt.workers.settings import RenderSettings
-from tests.service.helpers import TINY, HeldSlots, png_pixels, sse_events, wait_for
+from tests.service.helpers import TINY, HeldSlots, png_pixels, problem_detail, sse_events, wait_for
 
 
 def _upload(client, path):
@@ -65,27 +65,27 @@ def test_uploaded_gltf_job_streams_tiles_and_matches_direct_render(live, client,
 def test_create_job_rejects_zero_spp(client):
     r = client.post("/v1/jobs", json={"scene": "forest:tiny", "spp": 0})
     assert r.status_code == 422
-    err = r.json()["detail"][0]
+    err = r.json()["errors"][0]
     assert err["loc"] == ["body", "spp"] and err["input"] == 0
 
 
 def test_create_job_rejects_unknown_field(client):
     r = client.post("/v1/jobs", json={"scene": "forest:tiny", "spp_typo": 3})
     assert r.status_code == 422
-    assert r.json()["detail"][0]["loc"] == ["body", "spp_typo"]
+    assert r.json()["errors"][0]["loc"] == ["body", "spp_typo"]
 
 
 def test_create_job_rejects_proxy_mode_without_shards(client):
     r = client.post("/v1/jobs", json={"scene": "forest:tiny", "mode": "proxy", "shards": 0})
     assert r.status_code == 422
-    assert "shards" in r.json()["detail"][0]["msg"]
+    assert "shards" in r.json()["errors"][0]["msg"]
 
 
 def test_create_job_rejects_image_over_pixel_limit(client, live):
     limit = live.settings.max_image_pixels
     r = client.post("/v1/jobs", json={"scene": "forest:tiny", "width": 16384, "height": 16384})
     assert r.status_code == 422
-    detail = r.json()["detail"][0]
+    detail = r.json()["errors"][0]
     assert detail["loc"] == ["body", "width"] and detail["msg"] == (
         f"16384x16384 = 268435456 pixels is over the service limit of {limit} "
         "(NPRT_MAX_IMAGE_PIXELS)")
@@ -95,7 +95,7 @@ def test_create_job_rejects_image_over_pixel_limit(client, live):
 def test_create_job_rejects_unknown_scene(client, scene):
     r = client.post("/v1/jobs", json={"scene": scene, **TINY})
     assert r.status_code == 422
-    detail = r.json()["detail"][0]
+    detail = r.json()["errors"][0]
     assert detail["loc"] == ["body", "scene"] and detail["msg"].startswith(
         f"unknown scene {scene!r}: not a stored scene id nor a demo name")
 
@@ -106,7 +106,7 @@ def test_create_job_rejects_unknown_scene(client, scene):
 def test_unknown_job_is_404(client, method, path):
     r = client.request(method, path.format("0123abcd"))
     assert r.status_code == 404
-    assert r.json() == {"detail": "no job with id '0123abcd'"}
+    assert problem_detail(r) == "no job with id '0123abcd'"
 
 
 def test_list_jobs_pages_newest_first(client):
@@ -134,7 +134,7 @@ def test_cancel_stops_running_and_queued_jobs_and_keeps_partial_image(client):
     r = client.post(f"/v1/jobs/{queued}/cancel")
     assert r.status_code == 202 and r.json()["state"] == "canceled"
     again = client.post(f"/v1/jobs/{queued}/cancel")
-    assert again.status_code == 409 and "already canceled" in again.json()["detail"]
+    assert again.status_code == 409 and "already canceled" in problem_detail(again)
 
     wait_for(lambda: client.get(f"/v1/jobs/{running[0]}").json()["passes_done"] >= 1, 30,
              what="a finished pass")
@@ -170,7 +170,7 @@ def test_non_finite_numbers_are_422_naming_the_field(client, field, value):
     body = f'{{"scene": "forest:tiny", "mode": "proxy", "shards": 2, "{head}": {literal}}}'
     r = client.post("/v1/jobs", content=body, headers={"Content-Type": "application/json"})
     assert r.status_code == 422, r.text
-    err = r.json()["detail"][0]
+    err = r.json()["errors"][0]
     assert err["loc"] == ["body", *field.split(".")] and err["input"] == value
 
 
@@ -178,7 +178,7 @@ def test_non_finite_numbers_are_422_naming_the_field(client, field, value):
 def test_out_of_range_paging_is_422(client, offset):
     r = client.get("/v1/jobs", params={"offset": offset})
     assert r.status_code == 422
-    assert r.json()["detail"][0]["loc"] == ["query", "offset"]
+    assert r.json()["errors"][0]["loc"] == ["query", "offset"]
 
 
 def test_job_over_the_sample_cap_is_refused_at_once_naming_the_limit(client, live):
@@ -189,7 +189,7 @@ def test_job_over_the_sample_cap_is_refused_at_once_naming_the_limit(client, liv
            "tile_size": 8, "spp_per_pass": 1}
     r = client.post("/v1/jobs", json=job)
     assert r.status_code == 422
-    detail = r.json()["detail"][0]
+    detail = r.json()["errors"][0]
     assert detail["loc"] == ["body", "spp"] and detail["msg"] == (
         f"4096x4096 x 4096 spp = {4096 ** 3} samples is over the service limit of {limit} "
         "(NPRT_MAX_JOB_SAMPLES)")
@@ -218,8 +218,8 @@ def test_same_idempotency_key_returns_the_same_job(client):
     assert sum(j["settings"]["seed"] == 7 for j in listed) == 1
     other = client.post("/v1/jobs", json={**job, "spp": 2}, headers=key)
     assert other.status_code == 409
-    assert other.json() == {"detail": f"Idempotency-Key 'client-retry-42' was used for job "
-                                      f"{first.json()['id']} with a different request"}
+    assert problem_detail(other) == (f"Idempotency-Key 'client-retry-42' was used for job "
+                                     f"{first.json()['id']} with a different request")
     fresh = client.post("/v1/jobs", json=job, headers={"Idempotency-Key": "another"})
     assert fresh.status_code == 202 and fresh.json()["id"] != first.json()["id"]
     for job_id in (first.json()["id"], fresh.json()["id"]):

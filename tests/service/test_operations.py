@@ -15,7 +15,7 @@ from prometheus_client.parser import text_string_to_metric_families
 from nprt.protos import nprt_pb2 as pb
 from nprt.protos import nprt_pb2_grpc
 from nprt.workers.film import read_exr
-from tests.service.helpers import TINY, HeldSlots, sse_events, wait_for
+from tests.service.helpers import TINY, HeldSlots, problem_detail, sse_events, wait_for
 
 TERMINAL = ("succeeded", "failed", "canceled")
 
@@ -109,7 +109,7 @@ def test_delete_refuses_a_live_job_and_forgets_a_finished_one(live, client):
     held = HeldSlots(live.url, live.settings.max_concurrent_jobs)
     job_id = held.ids[0]
     r = client.delete(f"/v1/jobs/{job_id}")
-    assert r.status_code == 409 and "cancel it before deleting" in r.json()["detail"]
+    assert r.status_code == 409 and "cancel it before deleting" in problem_detail(r)
     held.release()
     job_dir = live.settings.jobs_dir / job_id
     assert job_dir.exists()

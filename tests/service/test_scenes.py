@@ -15,7 +15,7 @@ import trimesh
 from nprt.scene.errors import UnsafePath
 from nprt.service.scenes import SceneStore
 from tests.scene._util import recording_opens
-from tests.service.helpers import LiveServer, settings_for
+from tests.service.helpers import LiveServer, problem_detail, settings_for
 
 LIMIT_BYTES = 64 * 1024
 
@@ -91,8 +91,8 @@ def test_upload_over_content_length_limit_is_413(small):
     client, root = small
     r = _post(client, b"PK" + b"\0" * (LIMIT_BYTES + 1))
     assert r.status_code == 413
-    assert r.json() == {"detail": f"upload of {LIMIT_BYTES + 3} bytes is larger than the "
-                                  f"limit of {LIMIT_BYTES}"}
+    assert problem_detail(r) == (f"upload of {LIMIT_BYTES + 3} bytes is larger than the "
+                                 f"limit of {LIMIT_BYTES}")
 
 
 def test_chunked_upload_over_limit_is_413_while_streaming(small):
@@ -105,7 +105,7 @@ def test_chunked_upload_over_limit_is_413_while_streaming(small):
 
     r = client.post("/v1/scenes", content=chunks(), headers={"Content-Type": "application/zip"})
     assert r.status_code == 413
-    assert r.json() == {"detail": f"upload is larger than the limit of {LIMIT_BYTES} bytes"}
+    assert problem_detail(r) == f"upload is larger than the limit of {LIMIT_BYTES} bytes"
     assert _stored(root) == before and list((root / "data" / "tmp").iterdir()) == []
 
 
@@ -116,7 +116,7 @@ def test_zip_slip_is_refused_and_nothing_is_written(small, evil):
     before = _stored(root)
     r = _post(client, _scene_zip({evil: b"pwned"}))
     assert r.status_code == 400
-    assert r.json()["detail"].startswith(f"zip member {evil!r}")
+    assert problem_detail(r).startswith(f"zip member {evil!r}")
     assert _stored(root) == before
     assert not list(root.rglob("evil.txt")) and not (root.parent / "evil.txt").exists()
     assert list((root / "data" / "tmp").iterdir()) == []
@@ -130,8 +130,8 @@ def test_zip_symlink_is_refused(small):
         info.external_attr = 0o120777 << 16
         zf.writestr(info, "/etc/passwd")
     r = _post(client, buf.getvalue())
-    assert r.status_code == 400 and r.json() == {
-        "detail": "zip member 'link': symlinks are not allowed"}
+    assert r.status_code == 400
+    assert problem_detail(r) == "zip member 'link': symlinks are not allowed"
 
 
 def test_zip_bomb_over_extracted_limit_is_413(small):
@@ -139,7 +139,7 @@ def test_zip_bomb_over_extracted_limit_is_413(small):
     body = _scene_zip({"big.bin": b"\0" * (5 * LIMIT_BYTES)})  # compresses to a few KiB
     assert len(body) < LIMIT_BYTES
     r = _post(client, body)
-    assert r.status_code == 413 and "extracts to more than" in r.json()["detail"]
+    assert r.status_code == 413 and "extracts to more than" in problem_detail(r)
 
 
 def test_scene_that_does_not_load_is_422_with_scene_error(small):
@@ -147,7 +147,7 @@ def test_scene_that_does_not_load_is_422_with_scene_error(small):
     before = _stored(root)
     r = _post(client, _scene_zip(instances=[{"mesh": "nosuchmesh"}]))
     assert r.status_code == 422
-    detail = r.json()["detail"]
+    detail = problem_detail(r)
     assert "nosuchmesh" in detail and str(root) not in detail
     assert _stored(root) == before
 
@@ -155,15 +155,15 @@ def test_scene_that_does_not_load_is_422_with_scene_error(small):
 def test_unknown_format_is_400(small):
     client, _ = small
     r = _post(client, b"hello, not a scene", **{"Content-Type": "application/octet-stream"})
-    assert r.status_code == 400 and "is not a GLB, glTF, JSON scene or zip" in r.json()["detail"]
+    assert r.status_code == 400 and "is not a GLB, glTF, JSON scene or zip" in problem_detail(r)
 
 
 def test_zip_without_scene_file_is_400(small):
     client, _ = small
     r = _post(client, _zip({"readme.txt": b"hi"}))
     assert r.status_code == 400
-    assert r.json() == {"detail": "zip holds no scene file (.json, .glb, .gltf); "
-                                  "found readme.txt"}
+    assert problem_detail(r) == ("zip holds no scene file (.json, .glb, .gltf); "
+                                 "found readme.txt")
 
 
 def test_demo_scene_has_summary_and_unknown_scene_is_404(small):
@@ -173,7 +173,7 @@ def test_demo_scene_has_summary_and_unknown_scene_is_404(small):
     assert r.json()["summary"]["instances"] >= 1
     missing = client.get("/v1/scenes/" + "0" * 64)
     assert missing.status_code == 404
-    assert missing.json() == {"detail": f"no stored scene with id {'0' * 64!r}"}
+    assert problem_detail(missing) == f"no stored scene with id {'0' * 64!r}"
 
 
 @pytest.fixture(scope="module")
@@ -205,7 +205,7 @@ def test_scene_path_leaving_the_upload_is_400_and_nothing_outside_is_read(small,
     with recording_opens() as opened:
         r = _post(client, body)
     assert r.status_code == 400, r.text
-    detail = r.json()["detail"]
+    detail = problem_detail(r)
     assert detail.startswith("scene.json: ") and repr(ref) in detail
     assert "is absolute" in detail if ref.startswith("/") else "leaves the upload" in detail
     assert str(root) not in detail.replace(ref, "")  # no server path but the scene's own
@@ -224,7 +224,7 @@ def test_zip_member_symlink_to_a_mesh_outside_is_refused(small, outside):
         zf.writestr(info, str(outside / "secret.ply"))
     with recording_opens() as opened:
         r = _post(client, buf.getvalue())
-    assert r.status_code == 400 and "symlinks are not allowed" in r.json()["detail"]
+    assert r.status_code == 400 and "symlinks are not allowed" in problem_detail(r)
     assert not [p for p in opened if p.startswith(str(outside.resolve()))]
 
 
@@ -241,8 +241,8 @@ def test_gltf_buffer_leaving_the_upload_is_400(small, outside, where):
                         content=json.dumps(doc).encode(),
                         headers={"Content-Type": "model/gltf+json"})
     assert r.status_code == 400, r.text
-    assert r.json()["detail"].startswith("box.gltf: referenced file path ")
-    assert repr(uri) in r.json()["detail"]
+    assert problem_detail(r).startswith("box.gltf: referenced file path ")
+    assert repr(uri) in problem_detail(r)
     assert not [p for p in opened if p.startswith(str(outside.resolve()))]
 
 

@@ -11,7 +11,7 @@ import pytest
 
 from nprt.service.errors import BadUpload
 from nprt.service.uploads import find_entry, safe_member_path
-from tests.service.helpers import LiveServer, settings_for
+from tests.service.helpers import LiveServer, problem_detail, settings_for
 
 
 @pytest.mark.parametrize("name", ["scene.json", "meshes/a.ply", "a/b/c.ply", "dir/"])
@@ -115,8 +115,8 @@ def test_every_member_error_is_a_400_naming_the_member(client, case):
     data, expected = MEMBER_ERRORS[case]
     r = client.post("/v1/scenes", content=data, params={"filename": "upload.zip"})
     assert r.status_code == 400, r.text
-    assert expected in r.json()["detail"], r.json()
-    assert "/tmp" not in r.json()["detail"] and "/work" not in r.json()["detail"]
+    assert expected in problem_detail(r), r.json()
+    assert "/tmp" not in problem_detail(r) and "/work" not in problem_detail(r)
 
 
 def test_leftover_upload_files_are_removed_at_start(tmp_path):

@@ -15,14 +15,14 @@ export function authHeaders() {
   return t ? { Authorization: `Bearer ${t}` } : {};
 }
 
-// fetch + JSON, throwing Error("<status>: <detail>") on a non-2xx answer.
+// fetch + JSON, throwing Error("<status>: <detail>") on a non-2xx answer (an RFC 9457
+// problem: its detail names each invalid field).
 export async function api(path, options = {}) {
   const r = await fetch(path, { ...options, headers: { ...authHeaders(), ...(options.headers || {}) } });
   if (r.status === 204) return null;
   const body = r.headers.get("content-type")?.includes("json") ? await r.json() : await r.text();
   if (!r.ok) {
-    const d = body && body.detail;
-    const msg = Array.isArray(d) ? d.map((e) => `${e.loc.slice(1).join(".")}: ${e.msg}`).join("; ") : d || body;
+    const msg = (body && (body.detail || body.title)) || body;
     throw new Error(`${r.status}: ${msg}`);
   }
   return body;
