@@ -95,11 +95,29 @@ def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: Pro
     return found[best], tried, None
 
 
+def needs_training(mesh, config: ProxyConfig, widths, target: float, cache: ProxyCache) -> bool:
+    """Whether `narrowest_proxy(..., train=True)` would train: some width, up to the
+    narrowest cached one meeting `target`, is not cached. mesh: a Mesh or MeshMeta."""
+    for w in sorted(widths):
+        proxy = cache.get(mesh, config.with_width(w))
+        if proxy is None:
+            return True
+        if _accuracy(proxy) >= target:
+            return False
+    return False
+
+
 def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCache | None = None,
                  train: bool = True, config: ProxyConfig | None = None,
-                 widths: tuple[int, ...] = DEFAULT_WIDTHS, progress: bool = False) -> ProxyPlan:
+                 widths: tuple[int, ...] = DEFAULT_WIDTHS, progress: bool = False,
+                 trainer=None) -> ProxyPlan:
     """Decide, for every base mesh of `scene` split by `partition` (its shard_meshes: per
-    shard, the mesh indices it holds), whether shards need a proxy of it, and get them."""
+    shard, the mesh indices it holds), whether shards need a proxy of it, and get them.
+
+    scene: a Scene, or a SceneMeta when `trainer` is given (or train is False): then no
+    vertex array is read here. trainer(meshes: list[int], config, widths, target) fills
+    the cache with the proxies of those meshes (nprt.proxies.tasks.RayTrainer: one Ray task per
+    mesh, in parallel) and returns {mesh: why it failed} for those it could not train."""
     cache = cache or ProxyCache()
     config = config or ProxyConfig()
     k = len(partition.shard_meshes)
@@ -110,6 +128,14 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
     used = set(np.unique(scene.instance_mesh).tolist())
     decisions, proxies, replicated = [], {}, set()
     smallest = estimate_proxy_bytes(config.with_width(min(widths)))
+    failed: dict[int, str] = {}
+    if train and trainer is not None:
+        wanted = [i for i, m in enumerate(scene.meshes)
+                  if i in used and holders[i] < k and m.nbytes >= smallest
+                  and needs_training(m, config, widths, target_accuracy, cache)]
+        if wanted:
+            failed = trainer(wanted, config, widths, target_accuracy)
+        train = False  # what could be trained is in the cache now
     for i, mesh in enumerate(scene.meshes):
         d = ProxyDecision(i, mesh.name, mesh.content_hash, "none", "", int(mesh.nbytes))
         decisions.append(d)
@@ -124,6 +150,7 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
         else:
             proxy, d.tried, why = narrowest_proxy(mesh, config, widths, target_accuracy,
                                                   cache, train, progress)
+            why = failed.get(i, why)
             if proxy is None:
                 d.decision, d.reason = "fallback", f"traced exactly: {why}"
             else:

@@ -1,5 +1,7 @@
 """`python -m nprt.proxies.ship`: train the proxies the demo scenes need (default config and
-policy) into proxies/shipped/, so rendering the demos needs no torch. Needs torch itself."""
+policy) into proxies/shipped/, so rendering the demos needs no torch. Needs torch itself.
+`--sizes massive` opens forest:massive as metadata (written once to the scene cache) and
+trains its proxies as parallel Ray tasks (nprt.proxies.tasks) on a local Ray."""
 
 from __future__ import annotations
 
@@ -19,13 +21,32 @@ SHARDS = 2  # with 2 or more shards every demo mesh is non-local somewhere
 TARGET_ACCURACY = 0.97  # the render path's default in plan_proxies
 
 
+def _open(name: str, size: str):
+    """(scene or metadata, trainer): massive scenes train as Ray tasks, never in memory."""
+    from nprt.scene.demos import make_demo
+
+    if size != "massive":
+        return make_demo(name, size=size), None
+    import ray
+
+    from nprt.proxies.tasks import RayTrainer
+    from nprt.scene.store import open_scene
+
+    meta = open_scene(f"{name}:{size}")
+    if not ray.is_initialized():
+        ray.init(include_dashboard=False, log_to_driver=False)
+    return meta, lambda out: RayTrainer(meta.source, out,
+                                        names={i: m.name for i, m in enumerate(meta.meshes)})
+
+
 def main(argv=None) -> int:
-    from nprt.scene.demos import DEMOS, make_demo
+    from nprt.scene.demos import DEMO_SIZES, DEMOS
     from nprt.scene.partition import partition
 
     ap = argparse.ArgumentParser(prog="python -m nprt.proxies.ship", description=__doc__)
     ap.add_argument("--demos", nargs="*", default=list(DEMOS))
-    ap.add_argument("--sizes", nargs="*", default=list(SIZES))
+    ap.add_argument("--sizes", nargs="*", default=list(SIZES),
+                    choices=[*SIZES, "massive"])
     ap.add_argument("--out", default=str(SHIPPED_DIR))
     ap.add_argument("--budget-s", type=float, default=ProxyConfig.budget_s,
                     help="smoke runs only: a non-default budget gives files the render "
@@ -39,10 +60,13 @@ def main(argv=None) -> int:
     keep, t0 = set(), time.perf_counter()
     for name in args.demos:
         for size in args.sizes:
-            scene = make_demo(name, size=size)
+            if size not in DEMO_SIZES[name]:
+                continue
+            scene, trainer = _open(name, size)
             plan = plan_proxies(scene, partition(scene, SHARDS), TARGET_ACCURACY, cache,
                                 train=True, config=config, widths=DEFAULT_WIDTHS,
-                                progress=sys.stderr.isatty())
+                                progress=sys.stderr.isatty(),
+                                trainer=trainer and trainer(cache.dir))
             for d in plan.decisions:
                 mesh = scene.meshes[d.mesh]
                 keep.update(file_name(mesh, config.with_width(w)) for w in d.tried)

@@ -10,11 +10,10 @@ import logging
 import re
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 from pydantic import ValidationError
-from trimesh.exchange.ply import export_ply
 
 from nprt.scene import schema
 from nprt.scene.errors import SceneError
@@ -38,6 +37,9 @@ from nprt.scene.model import (
     validate_transforms,
 )
 from nprt.scene.paths import FileRefs, load_trimesh
+
+if TYPE_CHECKING:
+    import trimesh
 
 log = logging.getLogger(__name__)
 
@@ -128,6 +130,8 @@ def open_mesh_file(path: Path, where: str,
     """Read one mesh file through trimesh (multi-mesh files are flattened into one); `path`
     comes from `refs.resolve`, and the files it names (MTL, textures, glTF buffers) are
     read through `refs` too. Returns the mesh and those other files."""
+    import trimesh  # here, not at import: a driver planning from metadata never needs it
+
     refs = refs or FileRefs(path.parent)
     if path.suffix.lower() not in MESH_SUFFIXES:
         raise SceneError(f"{where}: unsupported mesh format {path.suffix!r} ({refs.show(path)})")
@@ -183,6 +187,9 @@ def _ply_normals(tm: trimesh.Trimesh) -> np.ndarray | None:
 
 
 def _write_ply(mesh: Mesh, path: Path) -> None:
+    import trimesh
+    from trimesh.exchange.ply import export_ply
+
     tm = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False, validate=False)
     if mesh.normals is not None:
         for i, axis in enumerate("xyz"):
@@ -231,6 +238,8 @@ def trs_matrix(translate=None, rotate_deg=None, scale=None) -> np.ndarray:
     if scale is not None:
         m[:3, :3] = np.diag(np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)))
     if rotate_deg is not None:
+        import trimesh
+
         r = np.eye(4)
         for axis, deg in zip("xyz", rotate_deg, strict=True):
             r = trimesh.transformations.rotation_matrix(np.radians(deg), _AXES[axis]) @ r
@@ -249,6 +258,16 @@ _AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}
 def load_scene(path, root: Path | None = None) -> Scene:
     """Load a JSON scene file; mesh and texture paths are relative to it, and with `root`
     set (an upload) they must stay inside `root`."""
+    spec, refs, shown = read_spec(path, root)
+    try:
+        return scene_from_spec(spec, refs)
+    except SceneError as e:
+        raise type(e)(f"{shown}: {e}") from None  # keeps UnsafePath an UnsafePath
+
+
+def read_spec(path, root: Path | None = None) -> tuple[schema.SceneFile, FileRefs, str]:
+    """Parse and validate a JSON scene file without reading any file it names. Returns
+    (spec, the resolver for the files it names, the file's name for messages)."""
     refs = FileRefs(Path(path).parent, root)
     path = refs.resolve(Path(path).name, "scene file", "")
     shown = refs.show(path)
@@ -269,10 +288,7 @@ def load_scene(path, root: Path | None = None) -> Scene:
         spec = schema.SceneFile.model_validate(data)
     except ValidationError as e:
         raise validation_error(e, shown) from None
-    try:
-        return scene_from_spec(spec, refs)
-    except SceneError as e:
-        raise type(e)(f"{shown}: {e}") from None  # keeps UnsafePath an UnsafePath
+    return spec, refs, shown
 
 
 def validation_error(err: ValidationError, source: str) -> SceneError:
@@ -321,24 +337,33 @@ def scene_from_spec(spec: schema.SceneFile, refs: FileRefs | Path) -> Scene:
     """Convert a validated SceneFile; file paths resolve through `refs` (a bare directory:
     relative to it, unconfined)."""
     refs = refs if isinstance(refs, FileRefs) else FileRefs(Path(refs))
-    mat_names = [m.name for m in spec.materials]
+    meshes = tuple(spec_mesh(spec, i, refs) for i in range(len(spec.meshes)))
+    return Scene(meshes=meshes, **scene_parts(spec, refs))
+
+
+def spec_mesh(spec: schema.SceneFile, i: int, refs: FileRefs) -> Mesh:
+    """Read and build mesh i of a validated SceneFile (its file, or its inline arrays)."""
+    ms = spec.meshes[i]
+    where = f"meshes[{i}] ({ms.name!r})"
+    mat = 0 if ms.material is None else _resolve(
+        ms.material, [m.name for m in spec.materials], "material", f"{where}.material"
+    )
+    if ms.path is not None:
+        arrays = read_mesh_file(refs.resolve(ms.path, "mesh file", where), where, refs)
+    else:
+        arrays = {"vertices": ms.vertices, "faces": ms.faces,
+                  "normals": ms.normals, "uvs": ms.uvs}
+    return build_mesh(ms.name, material=mat, where=where, **arrays)
+
+
+def scene_parts(spec: schema.SceneFile, refs: FileRefs) -> dict:
+    """Everything of a scene but its meshes (materials, instances, lights, environment,
+    camera, name), as keyword arguments of `Scene`; reads no mesh file."""
     materials = tuple(
         Material(m.name, m.albedo, m.emission, _texture(m.texture, refs, f"materials[{i}] "
                                                         f"({m.name!r})"))
         for i, m in enumerate(spec.materials)
     ) or (Material(),)
-    meshes = []
-    for i, ms in enumerate(spec.meshes):
-        where = f"meshes[{i}] ({ms.name!r})"
-        mat = 0 if ms.material is None else _resolve(
-            ms.material, mat_names, "material", f"{where}.material"
-        )
-        if ms.path is not None:
-            arrays = read_mesh_file(refs.resolve(ms.path, "mesh file", where), where, refs)
-        else:
-            arrays = {"vertices": ms.vertices, "faces": ms.faces,
-                      "normals": ms.normals, "uvs": ms.uvs}
-        meshes.append(build_mesh(ms.name, material=mat, where=where, **arrays))
     mesh_names = [m.name for m in spec.meshes]
     if isinstance(spec.instances, schema.InstanceFileSpec):  # arrays in an .npz
         instances = read_instance_file(
@@ -347,8 +372,7 @@ def scene_from_spec(spec: schema.SceneFile, refs: FileRefs | Path) -> Scene:
     else:
         instances = _listed_instances(spec.instances, mesh_names)
     lights = spec.lights
-    return Scene(
-        meshes=tuple(meshes),
+    return dict(
         instances=instances,
         materials=materials,
         quad_lights=tuple(QuadLight(**q.model_dump()) for q in lights.quads),

@@ -58,6 +58,10 @@ class Mesh:
         return h.hexdigest()
 
     @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+    @property
     def nbytes(self) -> int:
         """Bytes of geometry a shard holds for this mesh (vertices, faces, normals, uvs)."""
         extra = sum(a.nbytes for a in (self.normals, self.uvs) if a is not None)
@@ -220,23 +224,10 @@ class Camera:
         return NEAR_REL * float(np.linalg.norm(view))
 
 
-@dataclass(frozen=True, eq=False)
-class Scene:
-    """`instances` may be given as a sequence of `Instance`; it is kept as `Instances`."""
-
-    meshes: tuple[Mesh, ...]
-    instances: Instances
-    materials: tuple[Material, ...] = (Material(),)
-    quad_lights: tuple[QuadLight, ...] = ()
-    point_lights: tuple[PointLight, ...] = ()
-    directional_lights: tuple[DirectionalLight, ...] = ()
-    environment: Environment = field(default_factory=Environment)
-    camera: Camera = field(default_factory=Camera)
-    name: str = "scene"
-
-    def __post_init__(self):
-        object.__setattr__(self, "instances", Instances.of(self.instances))
-        validate_scene(self)
+class SceneViews:
+    """What a scene offers besides its fields, for a `Scene` and for a `nprt.scene.meta.SceneMeta`
+    alike: both have `meshes` (each with name, n_faces, nbytes, bounds, content_hash) and
+    `instances`, so partitioning and planning run on either."""
 
     @property
     def instance_mesh(self) -> np.ndarray:
@@ -254,7 +245,7 @@ class Scene:
 
     @property
     def instanced_triangles(self) -> int:
-        faces = np.array([len(m.faces) for m in self.meshes], np.int64)
+        faces = np.array([m.n_faces for m in self.meshes], np.int64)
         return int(faces[self.instance_mesh].sum())
 
     @property
@@ -267,11 +258,30 @@ class Scene:
             "base_meshes": len(self.meshes),
             "instances": len(self.instances),
             "instanced_triangles": self.instanced_triangles,
-            "base_mesh_triangles": int(sum(len(m.faces) for m in self.meshes)),
+            "base_mesh_triangles": int(sum(m.n_faces for m in self.meshes)),
             "mesh_bytes": self.mesh_bytes,
             "lights": len(self.quad_lights) + len(self.point_lights)
             + len(self.directional_lights),
         }
+
+
+@dataclass(frozen=True, eq=False)
+class Scene(SceneViews):
+    """`instances` may be given as a sequence of `Instance`; it is kept as `Instances`."""
+
+    meshes: tuple[Mesh, ...]
+    instances: Instances
+    materials: tuple[Material, ...] = (Material(),)
+    quad_lights: tuple[QuadLight, ...] = ()
+    point_lights: tuple[PointLight, ...] = ()
+    directional_lights: tuple[DirectionalLight, ...] = ()
+    environment: Environment = field(default_factory=Environment)
+    camera: Camera = field(default_factory=Camera)
+    name: str = "scene"
+
+    def __post_init__(self):
+        object.__setattr__(self, "instances", Instances.of(self.instances))
+        validate_scene(self)
 
 
 def validate_mesh(mesh: Mesh, where: str) -> None:
@@ -329,13 +339,16 @@ def validate_transforms(t: np.ndarray, where) -> None:
     raise SceneError(f"{where(i)}: transform is singular (det={det[i]:.3g})")
 
 
-def validate_scene(scene: Scene) -> None:
+def validate_scene(scene: SceneViews, check_meshes: bool = True) -> None:
+    """check_meshes=False for metadata (`SceneMeta`), whose meshes were checked when it
+    was computed and whose vertex arrays are not here."""
     if not scene.meshes:
         raise SceneError(f"scene {scene.name!r}: no meshes")
     if not len(scene.instances):
         raise SceneError(f"scene {scene.name!r}: no instances")
     for i, m in enumerate(scene.meshes):
-        validate_mesh(m, f"mesh {i} ({m.name!r})")
+        if check_meshes:
+            validate_mesh(m, f"mesh {i} ({m.name!r})")
         if not 0 <= m.material < len(scene.materials):
             raise SceneError(f"mesh {i} ({m.name!r}): material {m.material} does not exist")
     mesh = scene.instance_mesh

@@ -10,8 +10,6 @@ import stat
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
-import trimesh
-
 from nprt.scene.errors import SceneError, UnsafePath
 
 
@@ -99,36 +97,56 @@ class ReadLog:
     refused: UnsafePath | None = None
 
 
-class TrimeshResolver(trimesh.resolvers.Resolver):
-    """Hands trimesh the files a mesh file names, through FileRefs."""
+def _resolver_class():
+    """TrimeshResolver, defined on first use: importing trimesh costs ~90 MB, which a
+    driver that only plans from metadata never pays (nprt.scene.meta)."""
+    global _RESOLVER
+    if _RESOLVER is not None:
+        return _RESOLVER
+    import trimesh
 
-    def __init__(self, refs: FileRefs, where: str, file_name: str = "",
-                 log: ReadLog | None = None):
-        self.refs, self.where, self.file_name = refs, where, file_name
-        self.log = log or ReadLog()
+    class TrimeshResolver(trimesh.resolvers.Resolver):
+        """Hands trimesh the files a mesh file names, through FileRefs."""
 
-    def get(self, name: str) -> bytes:
-        try:
-            path = self.refs.resolve(name, "referenced file", self.where)
-        except UnsafePath as e:
-            self.log.refused = self.log.refused or e
-            raise
-        data = path.read_bytes()
-        self.log.read.append(path)
-        return data
+        def __init__(self, refs: FileRefs, where: str, file_name: str = "",
+                     log: ReadLog | None = None):
+            self.refs, self.where, self.file_name = refs, where, file_name
+            self.log = log or ReadLog()
 
-    def keys(self):
-        """Names of the files next to the mesh file (trimesh asks for `name in resolver`)."""
-        for folder, _, names in os.walk(self.refs.base):
-            for name in names:
-                yield os.path.relpath(os.path.join(folder, name), self.refs.base)
+        def get(self, name: str) -> bytes:
+            try:
+                path = self.refs.resolve(name, "referenced file", self.where)
+            except UnsafePath as e:
+                self.log.refused = self.log.refused or e
+                raise
+            data = path.read_bytes()
+            self.log.read.append(path)
+            return data
 
-    def write(self, name: str, data) -> None:
-        raise SceneError(f"{self.where}: loading a scene never writes files (asked: {name})")
+        def keys(self):
+            """Names of the files next to the mesh file (trimesh asks for `name in resolver`)."""
+            for folder, _, names in os.walk(self.refs.base):
+                for name in names:
+                    yield os.path.relpath(os.path.join(folder, name), self.refs.base)
 
-    def namespaced(self, namespace: str) -> TrimeshResolver:
-        return TrimeshResolver(FileRefs(self.refs.base / namespace, self.refs.root),
-                               self.where, self.file_name, self.log)
+        def write(self, name: str, data) -> None:
+            raise SceneError(f"{self.where}: loading a scene never writes files (asked: {name})")
+
+        def namespaced(self, namespace: str):
+            return type(self)(FileRefs(self.refs.base / namespace, self.refs.root),
+                                   self.where, self.file_name, self.log)
+
+    _RESOLVER = TrimeshResolver
+    return _RESOLVER
+
+
+_RESOLVER = None
+
+
+def __getattr__(name: str):
+    if name == "TrimeshResolver":
+        return _resolver_class()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def load_trimesh(path: Path, refs: FileRefs, what: str, where: str,
@@ -136,7 +154,9 @@ def load_trimesh(path: Path, refs: FileRefs, what: str, where: str,
     """trimesh.load(path, **kwargs) with every file it names read through `refs`; `what`
     names the file in messages ("mesh file rock.obj"). Returns what trimesh loaded and the
     files it read besides `path` (an OBJ's MTL, textures, glTF buffers)."""
-    resolver = TrimeshResolver(refs.beside(path), where, Path(path).name)
+    import trimesh
+
+    resolver = _resolver_class()(refs.beside(path), where, Path(path).name)
     try:
         loaded = trimesh.load(path, resolver=resolver, **kwargs)
     except SceneError:  # from the resolver: already names the file and the problem

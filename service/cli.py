@@ -75,7 +75,7 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
                    help="training budget per proxy, seconds (shipped proxies: 45)")
     p.add_argument("--ray-address", default=None,
                    help="join this Ray cluster (default: start a local Ray)")
-    p.add_argument("--size", default="default", choices=["default", "small", "tiny"],
+    p.add_argument("--size", default="default", choices=["default", "small", "tiny", "massive"],
                    help="size of a demo scene")
 
 
@@ -137,6 +137,7 @@ def preflight(settings, ray_address: str | None, uses_ray: bool) -> None:
 
 def cmd_render(a: argparse.Namespace) -> int:
     from nprt.scene.io import load_any
+    from nprt.scene.store import open_scene
     from nprt.service.preflight import check_writable
 
     settings = settings_from_args(a)
@@ -144,7 +145,8 @@ def cmd_render(a: argparse.Namespace) -> int:
     if a.stats:
         check_writable(a.stats, "--stats")
     preflight(settings, a.ray_address, uses_ray=settings.shards > 0)
-    scene = load_any(a.scene, size=a.size)
+    # Distributed: metadata only here, each shard loads its own meshes (nprt.scene.store).
+    scene = (open_scene if settings.shards > 0 else load_any)(a.scene, size=a.size)
     res = render_with_progress(scene, settings, a.ray_address)
     out = res.film.save(a.output)
     print(f"wrote {out} ({settings.width}x{settings.height}, {settings.spp} spp) "
@@ -157,14 +159,19 @@ def cmd_render(a: argparse.Namespace) -> int:
 
 
 def cmd_scenes(a: argparse.Namespace) -> int:
-    from nprt.scene.demos import DEMOS, make_demo
+    from nprt.scene.demos import DEMO_SIZES, DEMOS, make_demo
+    from nprt.scene.store import open_scene
 
     cols = ("base_meshes", "instances", "instanced_triangles", "mesh_bytes")
     print(f"| demo | size | {' | '.join(cols)} |")
     print("|" + "---|" * (len(cols) + 2))
     for name in DEMOS:
         for size in a.sizes:
-            s = make_demo(name, size).summary()
+            if size not in DEMO_SIZES[name]:
+                continue
+            # massive: written once to the scene cache, summarised from its metadata
+            s = (open_scene(f"{name}:{size}") if size == "massive"
+                 else make_demo(name, size)).summary()
             print(f"| {name} | {size} | " + " | ".join(f"{s[c]:,}" for c in cols) + " |")
     return 0
 
@@ -195,7 +202,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("scenes", help="list the demo scenes and their statistics")
     p.add_argument("--sizes", nargs="+", default=["default"],
-                   choices=["default", "small", "tiny"], help="demo sizes to list")
+                   choices=["default", "small", "tiny", "massive"],
+                   help="demo sizes to list (massive is generated once into "
+                        "$NPRT_SCENE_CACHE, over 1 GiB)")
     p.set_defaults(func=cmd_scenes)
 
     from nprt.proxies.cli import add_proxy_parsers

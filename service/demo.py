@@ -18,14 +18,14 @@ from nprt.workers.film import save_image
 def cmd_demo(a) -> int:
     import ray
 
-    from nprt.scene.io import load_any
+    from nprt.scene.store import open_scene
     from nprt.service.cli import render_with_progress, settings_from_args
     from nprt.workers.metrics import compare
     from nprt.workers.raysession import ensure_ray
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    scene = load_any(a.scene, size=a.size)
+    scene = open_scene(a.scene, size=a.size)  # metadata: the shards load the meshes
     print(f"scene {scene.name}: " + ", ".join(f"{k}={v:,}" for k, v in scene.summary().items()
                                               if isinstance(v, int)))
     started = ensure_ray(a.ray_address)

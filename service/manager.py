@@ -295,8 +295,11 @@ class JobManager:
             if settings.shards > 0:
                 self._ensure_ray()
                 _check_cancel(live, "starting Ray")
-            renderer = make_renderer(scene, settings, ray_address=self.settings.ray_address,
-                                     proxy_dir=self.settings.proxies_dir, pools=self.pools)
+            renderer = make_renderer(
+                scene, settings, ray_address=self.settings.ray_address,
+                proxy_dir=self.settings.proxies_dir, pools=self.pools,
+                on_progress=lambda rows: self.store.update(
+                    job_id, stats={"proxy_training": rows}))
             _check_cancel(live, "starting the renderer")
             self._move(job_id, "running", ("preparing",))
             result = render(scene, settings, resume=resume, cancel=live.cancel,

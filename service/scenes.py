@@ -15,6 +15,7 @@ from collections import OrderedDict
 from pathlib import Path
 
 from nprt.scene.errors import SceneError, UnsafePath
+from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
 from nprt.service.config import ServiceSettings
 from nprt.service.errors import BadUpload, InvalidScene, NotFound, UnknownScene
@@ -45,11 +46,13 @@ def is_demo(ref: str) -> bool:
     return name in demo_names() and (not colon or size in demo_sizes())
 
 
-def load_scene_ref(source: str, root: Path | None = None) -> Scene:
-    """Load a demo name or a stored file; with `root`, no file outside it is read."""
-    from nprt.scene.io import load_any
+def load_scene_ref(source: str, root: Path | None = None) -> Scene | SceneMeta:
+    """Open a demo name or a stored file; with `root`, no file outside it is read. JSON
+    scenes and demos come back as metadata with their mesh source (nprt.scene.store): the
+    service plans from it and its shards load the meshes, so it holds no geometry."""
+    from nprt.scene.store import open_scene
 
-    return load_any(source, root=root)
+    return open_scene(source, root=root)
 
 
 class SceneStore:
@@ -58,7 +61,7 @@ class SceneStore:
         self.tmp = settings.tmp_dir
         self.max_extract_bytes = settings.max_extracted_bytes
         self.cache_size = settings.scene_cache_size
-        self._cache: OrderedDict[str, Scene] = OrderedDict()
+        self._cache: OrderedDict[str, Scene | SceneMeta] = OrderedDict()
         self._lock = threading.Lock()
         self.root.mkdir(parents=True, exist_ok=True)
         self.tmp.mkdir(parents=True, exist_ok=True)
@@ -98,7 +101,7 @@ class SceneStore:
         finally:
             shutil.rmtree(work, ignore_errors=True)
 
-    def _validate(self, content: Path, entry) -> Scene:
+    def _validate(self, content: Path, entry) -> Scene | SceneMeta:
         try:
             return load_scene_ref(str(content / entry), root=content)
         except SceneError as e:
@@ -151,7 +154,7 @@ class SceneStore:
             return str(self.root / ref / "content" / meta["entry"])
         return ref
 
-    def load(self, ref: str) -> Scene:
+    def load(self, ref: str) -> Scene | SceneMeta:
         with self._lock:
             if ref in self._cache:
                 self._cache.move_to_end(ref)
@@ -161,7 +164,7 @@ class SceneStore:
         self._remember(ref, scene)
         return scene
 
-    def _remember(self, ref: str, scene: Scene) -> None:
+    def _remember(self, ref: str, scene: Scene | SceneMeta) -> None:
         with self._lock:
             self._cache[ref] = scene
             self._cache.move_to_end(ref)

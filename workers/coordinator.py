@@ -33,6 +33,7 @@ import numpy as np
 import ray
 from ray.exceptions import ActorUnavailableError, RayActorError
 
+from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
 from nprt.workers.passes import Pass
 from nprt.workers.pool import (  # noqa: F401 (ShardStartError re-exported)
@@ -76,19 +77,24 @@ class _Attempt:
 
 class Coordinator:
     """One job on a pool of shards: a warm one from `pools`, or else a private one that it
-    closes with itself."""
+    closes with itself. scene: a stored scene's SceneMeta (nprt.scene.store.open_scene; the
+    driver then holds no geometry) or an in-memory Scene. on_progress: per-mesh proxy
+    training progress while a new pool starts (ShardPool)."""
 
-    def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
-                 proxy_dir=None, shard_options: list[dict] | None = None,
-                 pools: PoolRegistry | None = None, trace: bool = False):
+    def __init__(self, scene: Scene | SceneMeta, settings: RenderSettings,
+                 ray_address: str | None = None, proxy_dir=None,
+                 shard_options: list[dict] | None = None, pools: PoolRegistry | None = None,
+                 trace: bool = False, on_progress=None):
         self.scene, self.s, self.k = scene, settings, settings.shards
         self.trace = TraceRecorder(self.k) if trace else None  # every work call, for models
         self._pools, self._closed = pools, False
         if pools is not None:  # a warm pool, handed back on close
             self.pool = pools.acquire(scene, settings, ray_address=ray_address,
-                                      proxy_dir=proxy_dir, shard_options=shard_options)
+                                      proxy_dir=proxy_dir, shard_options=shard_options,
+                                      on_progress=on_progress)
         else:
-            self.pool = ShardPool(scene, settings, ray_address, proxy_dir, shard_options)
+            self.pool = ShardPool(scene, settings, ray_address, proxy_dir, shard_options,
+                                  on_progress)
         if (self.pool.k, self.pool.mode) != (self.k, settings.mode):
             raise ValueError(f"{self.pool!r} cannot run a K={self.k} {settings.mode!r} job")
         self.pool.jobs += 1
@@ -312,7 +318,8 @@ class Coordinator:
     def info(self) -> dict:
         wall = max(self.wall_s, 1e-9)
         shards = [{"shard": i["shard"], "node": i.get("node"), "pid": i["pid"],
-                   "geometry_bytes": i["geometry_bytes"],
+                   "geometry_bytes": i["geometry_bytes"], "meshes": i.get("meshes"),
+                   "load_s": i.get("load_s"),
                    "busy_s": round(float(self.busy_s[s]), 4),
                    "busy_fraction": round(float(self.busy_s[s]) / wall, 4),
                    "calls": int(self.calls[s]), "bytes_in": int(self.bytes_in[s]),
@@ -332,6 +339,7 @@ class Coordinator:
             "coordinator_wait_s": round(self.wait_s, 4),
             "shard_stats": shards,
             "proxy_plan": None if self.plan is None else self.plan.to_dict(),
+            "proxy_training": self.pool.training,
         }
 
     def close(self) -> None:

@@ -1,7 +1,9 @@
 """Shard pools: K Shard actors holding one scene's geometry placement, started once and
 reused by every job on that scene (the service keeps them, least recently used first out,
-within a memory bound). Starting a pool plans proxies, ships the world and each shard's
-meshes, and warms every kernel, so a job on a warm pool starts tracing at once."""
+within a memory bound). Starting a pool plans the placement from the scene's metadata
+(training missing proxies as parallel Ray tasks), ships the world, and has each shard load
+its own meshes from the scene store and warm every kernel, so a job on a warm pool starts
+tracing at once. The driver holds no geometry of a stored scene (`nprt.scene.store`)."""
 
 from __future__ import annotations
 
@@ -17,12 +19,13 @@ import ray
 from ray.util.placement_group import placement_group, remove_placement_group
 from ray.util.scheduling_strategies import PlacementGroupSchedulingStrategy
 
+from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
-from nprt.scene.partition import partition
+from nprt.scene.store import ObjectStoreSource
+from nprt.workers.placement import make_plan, plan_placement  # noqa: F401 (make_plan re-exported)
 from nprt.workers.raysession import acquire_ray, release_ray
 from nprt.workers.settings import RenderSettings
-from nprt.workers.shard import Shard, ShardConfig
-from nprt.workers.world import EVERYWHERE, ShardWorld
+from nprt.workers.shard import MeshRequest, Shard, ShardConfig
 
 log = logging.getLogger(__name__)
 
@@ -52,20 +55,7 @@ def _wait_ready(ref, what: str):
         raise ShardStartError(f"{what} did not start: {e}") from e
 
 
-def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None, train=True):
-    """Which meshes get a proxy, are replicated, or need nothing (nprt.proxies.policy)."""
-    from nprt.proxies.cache import ProxyCache
-    from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig
-    from nprt.proxies.policy import plan_proxies
-
-    knobs = settings.proxy
-    return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,
-                        cache=ProxyCache(proxy_dir), train=train,
-                        config=ProxyConfig(budget_s=knobs.budget_s),
-                        widths=DEFAULT_WIDTHS if knobs.width is None else (knobs.width,))
-
-
-def pool_key(scene: Scene, settings: RenderSettings) -> str:
+def pool_key(scene: Scene | SceneMeta, settings: RenderSettings) -> str:
     """Scene content plus the settings that decide what each shard holds."""
     h = hashlib.sha256()
     for m in scene.meshes:
@@ -88,46 +78,55 @@ def pool_key(scene: Scene, settings: RenderSettings) -> str:
 class ShardPool:
     """K started, warmed Shard actors for one scene and placement.
 
-    shard_options: per-shard extra actor options (tests pin shards to nodes with them);
-    without them the K shards are gang-scheduled in a SPREAD placement group."""
+    scene: a SceneMeta with a mesh source (a stored scene: each shard loads its own
+    meshes, the driver none), or an in-memory Scene (its meshes are put in Ray's object
+    store once, and each shard gets only its own). shard_options: per-shard extra actor
+    options (tests pin shards to nodes with them); without them the K shards are
+    gang-scheduled in a SPREAD placement group. on_progress: sees per-mesh proxy
+    training progress (a list of dicts) while the pool starts."""
 
-    def __init__(self, scene: Scene, settings: RenderSettings, ray_address: str | None = None,
-                 proxy_dir=None, shard_options: list[dict] | None = None):
+    def __init__(self, scene: Scene | SceneMeta, settings: RenderSettings,
+                 ray_address: str | None = None, proxy_dir=None,
+                 shard_options: list[dict] | None = None, on_progress=None):
         t0 = time.perf_counter()
-        self.key = pool_key(scene, settings)
+        meta = SceneMeta.of(scene)
+        self.key = pool_key(meta, settings)
         self.jobs = 0  # coordinators that ran on it
         self.registered = False  # kept by a PoolRegistry
-        self.scene_name, self.k, self.mode = scene.name, settings.shards, settings.mode
-        self.partition = partition(scene, self.k)
-        owner = np.asarray(self.partition.instance_shard, np.int32).copy()
-        shard_meshes = [set(m) for m in self.partition.shard_meshes]
-        self.plan, proxies = None, {}
-        if settings.mode in ("proxy", "oracle"):
-            # The oracle bounds the proxy mode, so it gets the same placement: meshes
-            # lighter than their proxy are replicated (it trains nothing to learn that).
-            self.plan = make_plan(scene, self.partition, settings, proxy_dir,
-                                  train=settings.mode == "proxy")
-            proxies = self.plan.proxies if settings.mode == "proxy" else {}
-            for m in self.plan.replicated:  # cheaper to copy than to model
-                owner[scene.instances_of_mesh(m)] = EVERYWHERE
-                for held in shard_meshes:
-                    held.add(m)
-        self.world = ShardWorld.build(scene, owner)
+        self.scene_name, self.k, self.mode = meta.name, settings.shards, settings.mode
+        self.pg, self.actors, self.warm_s, self._init_refs = None, [], [0.0], []
+        self.training: list[dict] = []  # per-mesh proxy training, when any ran
         acquire_ray(ray_address)
-        self.pg, self.actors, self.warm_s = None, [], [0.0]
         try:
-            self._start(scene, settings, shard_meshes, proxies, shard_options)
+            # Meshes of a stored scene stay where they are; an in-memory one's go to
+            # the object store once (each shard then fetches only its own).
+            if meta.source is None and isinstance(scene, SceneMeta):
+                raise ValueError(f"scene {meta.name!r}: metadata without a mesh source; "
+                                 f"pass the Scene, or metadata from nprt.scene.store.open_scene")
+            self.source = meta.source or ObjectStoreSource.put(scene.meshes)
+            trainer = None
+            if settings.mode == "proxy":
+                from nprt.proxies.tasks import RayTrainer
+
+                trainer = RayTrainer(self.source, proxy_dir, on_progress,
+                                     names={i: m.name for i, m in enumerate(meta.meshes)})
+            placed = plan_placement(meta, settings, proxy_dir, trainer)
+            self.training = trainer.progress if trainer is not None else []
+            self.partition, self.plan, self.world = placed.partition, placed.plan, placed.world
+            self.shard_meshes = placed.shard_meshes
+            self._start(meta, settings, placed.shard_meshes, placed.proxies, shard_options)
         except BaseException:
             self.close()
             raise
         self.prepare_s = time.perf_counter() - t0
         self.last_used = time.monotonic()
         log.info("pool %s: %d shards of %r ready in %.2f s (warm-up %.2f s)", self.key[:12],
-                 self.k, scene.name, self.prepare_s, max(self.warm_s))
+                 self.k, meta.name, self.prepare_s, max(self.warm_s))
 
-    def _start(self, scene, settings, shard_meshes, proxies, shard_options) -> None:
+    def _start(self, meta, settings, shard_meshes, proxies, shard_options) -> None:
         world_ref = ray.put(self.world)
-        all_ref = ray.put(dict(enumerate(scene.meshes))) if settings.mode == "oracle" else None
+        every = MeshRequest(self.source, tuple(range(len(meta.meshes))))
+        all_req = every if settings.mode == "oracle" else None
         cpus = ray.cluster_resources().get("CPU", 1.0)
         per_shard_cpu = min(1.0, cpus / self.k)
         # Gang-schedule the K shards: with several jobs at once, partial placements of
@@ -138,11 +137,11 @@ class ShardPool:
                         f"{per_shard_cpu:g} CPU ({cpus:g} CPUs in the cluster)")
         # A restarted actor re-reads its constructor arguments from the object store, so
         # they must outlive the constructor (ray-project/ray#53727).
-        self._init_refs = [world_ref, all_ref]
+        self._init_refs = [world_ref]
         for sid in range(self.k):
-            meshes_ref = ray.put({i: scene.meshes[i] for i in sorted(shard_meshes[sid])})
+            held = set(shard_meshes[sid])
             # Only the proxies of meshes this shard does not hold.
-            proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in shard_meshes[sid]})
+            proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in held})
             opts = dict(max_restarts=MAX_SHARD_RESTARTS, max_task_retries=0,
                         num_cpus=per_shard_cpu)
             if self.pg is not None:
@@ -150,9 +149,10 @@ class ShardPool:
                     self.pg, placement_group_bundle_index=sid)
             opts.update((shard_options or [{}] * self.k)[sid])
             actor = ray.remote(Shard).options(**opts).remote(
-                ShardConfig(sid, self.k, settings), world_ref, meshes_ref, proxies_ref, all_ref)
+                ShardConfig(sid, self.k, settings), world_ref,
+                MeshRequest(self.source, tuple(shard_meshes[sid])), proxies_ref, all_req)
             self.actors.append(actor)
-            self._init_refs += [meshes_ref, proxies_ref]
+            self._init_refs.append(proxies_ref)
         self.shard_info = [_wait_ready(a.ready.remote(), f"shard {sid}")
                            for sid, a in enumerate(self.actors)]
         self.warm_s = [_wait_ready(a.warm.remote(), f"shard {sid} (warming its kernels)")
@@ -180,7 +180,7 @@ class ShardPool:
             ray.kill(a, no_restart=True)
         # Drop every handle and reference before Ray may shut down: one released after
         # that makes the core worker wait for a GCS that is gone, then exit the process.
-        self.actors, self._init_refs = None, []
+        self.actors, self._init_refs, self.source = None, [], None
         if self.pg is not None:
             remove_placement_group(self.pg)
             self.pg = None

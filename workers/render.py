@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
 from nprt.workers.film import Film
 from nprt.workers.passes import Pass, count_passes, iter_passes
@@ -78,20 +79,24 @@ class RenderResult:
         return {**self.info, **self.stats.to_dict()}
 
 
-def make_renderer(scene: Scene, settings: RenderSettings, ray_address: str | None = None,
-                  proxy_dir=None, pools=None):
-    """The reference renderer for shards == 0, else a coordinator (on a warm pool from the
-    PoolRegistry `pools` if given)."""
+def make_renderer(scene, settings: RenderSettings, ray_address: str | None = None,
+                  proxy_dir=None, pools=None, on_progress=None):
+    """The reference renderer for shards == 0 (a stored scene's metadata is loaded whole
+    here), else a coordinator (on a warm pool from the PoolRegistry `pools` if given).
+    scene: a Scene, or a SceneMeta from nprt.scene.store.open_scene (the driver then holds no
+    geometry); on_progress: per-mesh proxy training progress (Coordinator)."""
     if settings.shards == 0:
         from nprt.workers.reference import ReferenceRenderer
 
-        return ReferenceRenderer(scene, settings)
+        return ReferenceRenderer(scene.load() if isinstance(scene, SceneMeta) else scene,
+                                 settings)
     from nprt.workers.coordinator import Coordinator
 
-    return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir, pools=pools)
+    return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir,
+                       pools=pools, on_progress=on_progress)
 
 
-def render(scene: Scene, settings: RenderSettings, *,
+def render(scene: Scene | SceneMeta, settings: RenderSettings, *,
            on_pass: Callable[[PassDone], None] | None = None,
            resume: ResumeState | None = None,
            cancel: threading.Event | None = None,

@@ -46,6 +46,18 @@ class ShardConfig:
 
 
 @dataclass(frozen=True)
+class MeshRequest:
+    """Meshes a shard loads itself, on its own node, from the scene store: the driver
+    sends this (a few hundred bytes), never the geometry. indices: mesh indices."""
+
+    source: object  # nprt.scene.store.MeshSource
+    indices: tuple[int, ...]
+
+    def load(self) -> dict[int, Mesh]:
+        return self.source.load_meshes(self.indices)
+
+
+@dataclass(frozen=True)
 class WorkItem:
     """One pass's share of a call: its camera rays (generate) and/or `n_parcels` of the
     call's parcel arguments, in order. token: the pass attempt (a re-run gets a new one)."""
@@ -137,14 +149,23 @@ class _Call:
 
 
 class Shard:
-    def __init__(self, config: ShardConfig, world: ShardWorld, meshes: dict[int, Mesh],
-                 proxies: dict | None = None, all_meshes: dict[int, Mesh] | None = None):
-        """meshes: the geometry this shard owns (plus replicated meshes); proxies: mesh index
-        -> nprt.proxies.inference.Proxy for remote meshes (proxy mode); all_meshes: the whole
-        scene, for the benchmark-only oracle policy."""
+    def __init__(self, config: ShardConfig, world: ShardWorld,
+                 meshes: dict[int, Mesh] | MeshRequest,
+                 proxies: dict | None = None,
+                 all_meshes: dict[int, Mesh] | MeshRequest | None = None):
+        """meshes: the geometry this shard owns (plus replicated meshes), or the request
+        it loads them by; proxies: mesh index -> nprt.proxies.inference.Proxy for remote meshes
+        (proxy mode); all_meshes: the whole scene, for the benchmark-only oracle policy."""
         self.config, self.world = config, world
         self.id, self.k = config.shard_id, config.k
         self.bit = visited_bit(self.id)
+        t0 = time.perf_counter()
+        if isinstance(meshes, MeshRequest):
+            meshes = meshes.load()
+        if isinstance(all_meshes, MeshRequest):
+            rest = [i for i in all_meshes.indices if i not in meshes]
+            all_meshes = {**all_meshes.source.load_meshes(rest), **meshes}
+        self.load_s = time.perf_counter() - t0
         self.meshes = meshes
         self.geometry = {i: MeshGeometry(m) for i, m in meshes.items()}
         local = world.local_instances(self.id)
@@ -201,7 +222,8 @@ class Shard:
 
         node = ray.util.get_node_ip_address() if ray.is_initialized() else "local"
         return {"shard": self.id, "pid": os.getpid(), "node": node,
-                "geometry_bytes": int(sum(m.nbytes for m in self.meshes.values()))}
+                "geometry_bytes": int(sum(m.nbytes for m in self.meshes.values())),
+                "meshes": sorted(self.meshes), "load_s": round(self.load_s, 4)}
 
     def warm(self) -> float:
         """Trace a 4x4-pixel, 1-sample pass and drop it, so every kernel is compiled (or

@@ -35,20 +35,18 @@ BARK_UV, LEAF_UV = (0.25, 0.5), (0.75, 0.5)
 
 
 def build(size: str, seed: int) -> Scene:
+    if size == "massive":
+        from nprt.scene.demos import massive
+
+        return massive.build(seed)
     cfg = SIZES[size]
     rng = np.random.default_rng([seed, 1])
-    species = [
-        ("oak", _oak, (0.30, 0.20, 0.12), (0.18, 0.36, 0.08)),
-        ("pine", _pine, (0.28, 0.18, 0.10), (0.07, 0.22, 0.09)),
-        ("birch", _birch, (0.75, 0.72, 0.66), (0.36, 0.52, 0.12)),
-        ("bush", _bush, (0.25, 0.18, 0.10), (0.20, 0.40, 0.10)),
-    ]
     materials = [Material("dirt", (0.30, 0.24, 0.16))]
     meshes = [ground(cfg["half"] + 25.0, material=0)]
-    for (name, make, bark, leaf), n_leaves in zip(species, cfg["leaves"], strict=True):
+    for (name, make, bark, leaf), n_leaves in zip(SPECIES, cfg["leaves"], strict=True):
         tex = np.array([[bark, leaf]], dtype=np.float32)  # (1, 2, 3) linear
         materials.append(Material(name, leaf, texture=tex))
-        meshes.append(_tree_mesh(name, make(rng, n_leaves, cfg), len(materials) - 1))
+        meshes.append(tree_mesh(name, make(rng, n_leaves, cfg), len(materials) - 1))
 
     kinds = np.repeat(np.arange(1, 5), cfg["counts"])
     rng.shuffle(kinds)
@@ -71,7 +69,7 @@ def build(size: str, seed: int) -> Scene:
     )
 
 
-def _tree_mesh(name: str, parts: tuple[list, list], material: int) -> Mesh:
+def tree_mesh(name: str, parts: tuple[list, list], material: int) -> Mesh:
     """parts: (bark parts, leaf parts), each a list of (vertices, faces)."""
     bark, leaf = parts
     groups = [p for p in (bark, leaf) if p]
@@ -151,3 +149,12 @@ def _bush(rng, n_leaves: int, cfg: dict):
     pts = _in_ellipsoid(rng, n_leaves, (0.0, 0.7, 0.0), (1.2, 0.7, 1.2), shell=0.3)
     pts[:, 1] = np.maximum(pts[:, 1], 0.25)  # keep every leaf above the ground
     return [], [_leaves(rng, pts, 0.2, 0.14)]
+
+
+# (name, builder, bark colour, leaf colour) of each species, in mesh order.
+SPECIES = (
+    ("oak", _oak, (0.30, 0.20, 0.12), (0.18, 0.36, 0.08)),
+    ("pine", _pine, (0.28, 0.18, 0.10), (0.07, 0.22, 0.09)),
+    ("birch", _birch, (0.75, 0.72, 0.66), (0.36, 0.52, 0.12)),
+    ("bush", _bush, (0.25, 0.18, 0.10), (0.20, 0.40, 0.10)),
+)

@@ -80,3 +80,18 @@ def assert_matches(tmp_path: Path, name: str, img: np.ndarray, ref: np.ndarray) 
 
 def reference(scene, s: RenderSettings) -> RenderResult:
     return render(scene, s.model_copy(update={"shards": 0}))
+
+
+def _refuse(*a, **kw):
+    raise AssertionError("the driver read a mesh")
+
+
+def refuse_mesh_reads(monkeypatch) -> None:
+    """From now on any mesh read in this (the driver's) process fails the test; shard
+    actors and training tasks are other processes and load theirs as usual."""
+    from nprt.scene import io as scene_io
+    from nprt.scene.store import DirectorySource
+
+    monkeypatch.setattr(scene_io, "read_mesh_file", _refuse)
+    monkeypatch.setattr(scene_io, "build_mesh", _refuse)
+    monkeypatch.setattr(DirectorySource, "_load", _refuse)

@@ -133,4 +133,7 @@ def test_unknown_demo_or_size_is_refused(name, size):
 
 
 def test_sizes_are_listed():
-    assert SIZES == ("default", "small", "tiny")
+    assert SIZES == ("default", "small", "tiny", "massive")
+    # massive is forest's alone; asking another demo for it names the sizes it has
+    with pytest.raises(SceneError, match="unknown size 'massive'.*default, small, tiny$"):
+        make_demo("city", "massive")

@@ -67,6 +67,11 @@ export function showStats(job, baseline) {
     if (s.coordinator_wait_s !== undefined) rows.push(["coordinator waiting", fmtSeconds(s.coordinator_wait_s)]);
     if (s.hops_histogram?.length) rows.push(["hops histogram", s.hops_histogram.join(" / ")]);
     for (const [k, v] of Object.entries(s.counters || {})) rows.push([k.replaceAll("_", " "), fmtInt(v)]);
+    for (const t of s.proxy_training || []) {  // one Ray task per proxy, live while preparing
+      const took = t.seconds == null ? "" : ` in ${fmtSeconds(t.seconds)}`;
+      const acc = t.accuracy == null ? "" : `, ${(100 * t.accuracy).toFixed(2)}% held-out`;
+      rows.push([`training ${t.name ?? "mesh " + t.mesh}`, `${t.state}${took}${acc}${t.error ? ": " + t.error : ""}`]);
+    }
     for (const d of s.proxy_plan?.decisions || []) {
       const what = d.decision === "proxy" ? `proxy, width ${d.width}, ${(100 * d.accuracy).toFixed(2)}% held-out, ${fmtBytes(d.proxy_bytes)}` : d.decision;
       rows.push([`mesh ${d.name}`, `${what}: ${d.reason}`]);
