@@ -25,7 +25,8 @@ def test_default_near_is_relative_to_the_view_distance_and_moves_with_the_scene(
         moved = transform_scene(scene, similarity(scale=s, translate=(1e7, -3e6, 2e5)))
         assert moved.camera.near_distance == pytest.approx(s * cam.near_distance, rel=1e-6)
     set_near = dataclasses.replace(scene, camera=dataclasses.replace(cam, near=0.5))
-    assert transform_scene(set_near, similarity(scale=4.0)).camera.near == pytest.approx(2.0, rel=1e-12)
+    near = transform_scene(set_near, similarity(scale=4.0)).camera.near
+    assert near == pytest.approx(2.0, rel=1e-12)
 
 
 @pytest.mark.parametrize("near", [None, 0.0, 0.125])
