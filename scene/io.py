@@ -347,7 +347,7 @@ def scene_from_spec(spec: schema.SceneFile, refs: FileRefs | Path) -> Scene:
     else:
         instances = _listed_instances(spec.instances, mesh_names)
     lights = spec.lights
-    return Scene(
+    scene = Scene(
         meshes=tuple(meshes),
         instances=instances,
         materials=materials,
@@ -358,6 +358,11 @@ def scene_from_spec(spec: schema.SceneFile, refs: FileRefs | Path) -> Scene:
         camera=Camera(**spec.camera.model_dump()),
         name=spec.name,
     )
+    if spec.animation is None:
+        return scene
+    from nprt.scene.animation_io import animate  # deferred: it imports this module
+
+    return animate(scene, spec.animation)
 
 
 def _texture(ref: str | None, refs: FileRefs, where: str) -> np.ndarray | None:
@@ -383,6 +388,9 @@ def _listed_instances(specs: list[schema.InstanceSpec], mesh_names: list[str]) -
 def save_scene(scene: Scene, path, instance_file: bool = False) -> Path:
     """Write `path` (JSON) plus one binary PLY per mesh and one .npy per texture beside it;
     with instance_file, the instances go to `<stem>.instances.npz` (`nprt.scene.instances`)."""
+    if scene.animation is not None:
+        raise SceneError(f"save_scene({path}): scene {scene.name!r} has an animation, which "
+                         f"save_scene does not write; save scene.at_frame(f) for one frame")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     stem = path.stem

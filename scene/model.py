@@ -7,7 +7,7 @@ write lives in `nprt.scene.schema` and is converted into these by `nprt.scene.io
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -222,7 +222,10 @@ class Camera:
 
 @dataclass(frozen=True, eq=False)
 class Scene:
-    """`instances` may be given as a sequence of `Instance`; it is kept as `Instances`."""
+    """`instances` may be given as a sequence of `Instance`; it is kept as `Instances`.
+    animation: a `nprt.scene.animation.Animation` (frames of instance transforms and lights),
+    or None; the scene's own instances and lights are those of frame 0. check_meshes=False
+    skips re-validating meshes known valid (`nprt.scene.animation.scene_at` makes frames)."""
 
     meshes: tuple[Mesh, ...]
     instances: Instances
@@ -233,10 +236,28 @@ class Scene:
     environment: Environment = field(default_factory=Environment)
     camera: Camera = field(default_factory=Camera)
     name: str = "scene"
+    animation: object | None = None
+    check_meshes: InitVar[bool] = True
 
-    def __post_init__(self):
+    def __post_init__(self, check_meshes: bool):
         object.__setattr__(self, "instances", Instances.of(self.instances))
-        validate_scene(self)
+        validate_scene(self, check_meshes)
+        anim = self.animation
+        if anim is not None and len(anim.instances) and \
+                int(anim.instances.max()) >= len(self.instances):
+            raise SceneError(f"animation: instance {int(anim.instances.max())} does not "
+                             f"exist (the scene has {len(self.instances)})")
+
+    @property
+    def frames(self) -> int:
+        """Number of frames: 1 for a scene without animation."""
+        return 1 if self.animation is None else self.animation.frames
+
+    def at_frame(self, frame: int) -> Scene:
+        """This scene on `frame`, sharing its meshes (`nprt.scene.animation.scene_at`)."""
+        from nprt.scene.animation import scene_at
+
+        return scene_at(self, frame)
 
     @property
     def instance_mesh(self) -> np.ndarray:
@@ -271,6 +292,7 @@ class Scene:
             "mesh_bytes": self.mesh_bytes,
             "lights": len(self.quad_lights) + len(self.point_lights)
             + len(self.directional_lights),
+            "frames": self.frames,
         }
 
 
@@ -329,13 +351,15 @@ def validate_transforms(t: np.ndarray, where) -> None:
     raise SceneError(f"{where(i)}: transform is singular (det={det[i]:.3g})")
 
 
-def validate_scene(scene: Scene) -> None:
+def validate_scene(scene: Scene, check_meshes: bool = True) -> None:
+    """check_meshes=False trusts the meshes' arrays (a frame of a validated scene)."""
     if not scene.meshes:
         raise SceneError(f"scene {scene.name!r}: no meshes")
     if not len(scene.instances):
         raise SceneError(f"scene {scene.name!r}: no instances")
     for i, m in enumerate(scene.meshes):
-        validate_mesh(m, f"mesh {i} ({m.name!r})")
+        if check_meshes:
+            validate_mesh(m, f"mesh {i} ({m.name!r})")
         if not 0 <= m.material < len(scene.materials):
             raise SceneError(f"mesh {i} ({m.name!r}): material {m.material} does not exist")
     mesh = scene.instance_mesh

@@ -85,6 +85,13 @@ def pool_key(scene: Scene, settings: RenderSettings) -> str:
     return h.hexdigest()
 
 
+def frame_key(scene: Scene) -> str:
+    """What changes between frames: instance transforms and lights."""
+    h = hashlib.sha256(np.ascontiguousarray(scene.instance_transform, np.float64).tobytes())
+    h.update(repr((scene.quad_lights, scene.point_lights, scene.directional_lights)).encode())
+    return h.hexdigest()
+
+
 class ShardPool:
     """K started, warmed Shard actors for one scene and placement.
 
@@ -113,6 +120,7 @@ class ShardPool:
                 for held in shard_meshes:
                     held.add(m)
         self.world = ShardWorld.build(scene, owner)
+        self.shown, self._world_ref = frame_key(scene), None  # None: the start-up world
         acquire_ray(ray_address)
         self.pg, self.actors, self.warm_s = None, [], [0.0]
         try:
@@ -157,6 +165,28 @@ class ShardPool:
                            for sid, a in enumerate(self.actors)]
         self.warm_s = [_wait_ready(a.warm.remote(), f"shard {sid} (warming its kernels)")
                        for sid, a in enumerate(self.actors)]
+
+    def show(self, scene: Scene) -> None:
+        """Make every shard render `scene`: a frame of the pool's scene (its meshes and
+        instance meshes), with its own instance transforms and lights. Only the instance
+        table and lights travel; each instance keeps its owner, so no geometry moves and
+        no proxy changes. A no-op when the shards show it already."""
+        key = frame_key(scene)
+        if key == self.shown:
+            return
+        if not np.array_equal(scene.instance_mesh, self.world.table.mesh):
+            raise ValueError(f"{self!r} cannot show scene {scene.name!r}: it is not a frame "
+                             f"of the pool's scene (its instances place other meshes)")
+        self.world = ShardWorld.build(scene, self.world.owner)
+        self._world_ref = ray.put(self.world)
+        self.resync()
+        self.shown = key
+
+    def resync(self) -> None:
+        """Send the shown world to every shard again (a restarted shard comes back with
+        the one it was started with)."""
+        if self._world_ref is not None:
+            ray.get([a.set_world.remote(self._world_ref) for a in self.actors])
 
     def __repr__(self) -> str:
         return f"ShardPool({self.scene_name!r}, k={self.k}, mode={self.mode!r})"

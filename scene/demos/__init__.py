@@ -1,4 +1,5 @@
-"""Procedural demo scenes (forest, city, sculpture), deterministic from a seed, in three sizes:
+"""Procedural demo scenes (forest, city, sculpture, and windy: the forest animated over 8
+frames), deterministic from a seed, in three sizes:
 "default" (>= 1M instanced triangles), "small" (~100k) and "tiny" (a few thousand, for tests).
 """
 
@@ -7,13 +8,14 @@ from __future__ import annotations
 import logging
 import time
 
-from nprt.scene.demos import city, forest, sculpture
+from nprt.scene.demos import city, forest, sculpture, windy
 from nprt.scene.errors import SceneError
 from nprt.scene.model import Scene
 
 log = logging.getLogger(__name__)
 
-DEMOS = {"forest": forest.build, "city": city.build, "sculpture": sculpture.build}
+DEMOS = {"forest": forest.build, "city": city.build, "sculpture": sculpture.build,
+         "windy": windy.build}
 SIZES = ("default", "small", "tiny")
 
 
