@@ -88,7 +88,7 @@ class RenderSettings(_message.Message):
     def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., spp: _Optional[int] = ..., bounces: _Optional[int] = ..., shadow_rays: _Optional[int] = ..., seed: _Optional[int] = ..., russian_roulette: _Optional[bool] = ..., mode: _Optional[str] = ..., shards: _Optional[int] = ..., tile_size: _Optional[int] = ..., spp_per_pass: _Optional[int] = ..., proxy: _Optional[_Union[ProxySettings, _Mapping]] = ...) -> None: ...
 
 class Job(_message.Message):
-    __slots__ = ("id", "scene", "state", "settings", "passes_done", "passes_total", "progress", "error", "created_at_unix_s", "started_at_unix_s", "finished_at_unix_s", "stats", "cancel_requested", "retries")
+    __slots__ = ("id", "scene", "state", "settings", "passes_done", "passes_total", "progress", "error", "created_at_unix_s", "started_at_unix_s", "finished_at_unix_s", "stats", "cancel_requested", "retries", "frames")
     ID_FIELD_NUMBER: _ClassVar[int]
     SCENE_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
@@ -103,6 +103,7 @@ class Job(_message.Message):
     STATS_FIELD_NUMBER: _ClassVar[int]
     CANCEL_REQUESTED_FIELD_NUMBER: _ClassVar[int]
     RETRIES_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
     id: str
     scene: str
     state: JobState
@@ -117,15 +118,26 @@ class Job(_message.Message):
     stats: _struct_pb2.Struct
     cancel_requested: bool
     retries: int
-    def __init__(self, id: _Optional[str] = ..., scene: _Optional[str] = ..., state: _Optional[_Union[JobState, str]] = ..., settings: _Optional[_Union[RenderSettings, _Mapping]] = ..., passes_done: _Optional[int] = ..., passes_total: _Optional[int] = ..., progress: _Optional[float] = ..., error: _Optional[str] = ..., created_at_unix_s: _Optional[float] = ..., started_at_unix_s: _Optional[float] = ..., finished_at_unix_s: _Optional[float] = ..., stats: _Optional[_Union[_struct_pb2.Struct, _Mapping]] = ..., cancel_requested: _Optional[bool] = ..., retries: _Optional[int] = ...) -> None: ...
+    frames: FrameRange
+    def __init__(self, id: _Optional[str] = ..., scene: _Optional[str] = ..., state: _Optional[_Union[JobState, str]] = ..., settings: _Optional[_Union[RenderSettings, _Mapping]] = ..., passes_done: _Optional[int] = ..., passes_total: _Optional[int] = ..., progress: _Optional[float] = ..., error: _Optional[str] = ..., created_at_unix_s: _Optional[float] = ..., started_at_unix_s: _Optional[float] = ..., finished_at_unix_s: _Optional[float] = ..., stats: _Optional[_Union[_struct_pb2.Struct, _Mapping]] = ..., cancel_requested: _Optional[bool] = ..., retries: _Optional[int] = ..., frames: _Optional[_Union[FrameRange, _Mapping]] = ...) -> None: ...
+
+class FrameRange(_message.Message):
+    __slots__ = ("first", "last")
+    FIRST_FIELD_NUMBER: _ClassVar[int]
+    LAST_FIELD_NUMBER: _ClassVar[int]
+    first: int
+    last: int
+    def __init__(self, first: _Optional[int] = ..., last: _Optional[int] = ...) -> None: ...
 
 class SubmitJobRequest(_message.Message):
-    __slots__ = ("scene", "settings")
+    __slots__ = ("scene", "settings", "frames")
     SCENE_FIELD_NUMBER: _ClassVar[int]
     SETTINGS_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
     scene: str
     settings: RenderSettings
-    def __init__(self, scene: _Optional[str] = ..., settings: _Optional[_Union[RenderSettings, _Mapping]] = ...) -> None: ...
+    frames: FrameRange
+    def __init__(self, scene: _Optional[str] = ..., settings: _Optional[_Union[RenderSettings, _Mapping]] = ..., frames: _Optional[_Union[FrameRange, _Mapping]] = ...) -> None: ...
 
 class GetJobRequest(_message.Message):
     __slots__ = ("job_id",)
@@ -210,6 +222,16 @@ class GetImageRequest(_message.Message):
     job_id: str
     format: ImageFormat
     def __init__(self, job_id: _Optional[str] = ..., format: _Optional[_Union[ImageFormat, str]] = ...) -> None: ...
+
+class GetFrameRequest(_message.Message):
+    __slots__ = ("job_id", "frame", "format")
+    JOB_ID_FIELD_NUMBER: _ClassVar[int]
+    FRAME_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    job_id: str
+    frame: int
+    format: ImageFormat
+    def __init__(self, job_id: _Optional[str] = ..., frame: _Optional[int] = ..., format: _Optional[_Union[ImageFormat, str]] = ...) -> None: ...
 
 class Image(_message.Message):
     __slots__ = ("job_id", "format", "data", "width", "height", "partial")

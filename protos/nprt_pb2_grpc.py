@@ -64,6 +64,11 @@ class RenderServiceStub:
                 request_serializer=nprt__pb2.GetImageRequest.SerializeToString,
                 response_deserializer=nprt__pb2.Image.FromString,
                 _registered_method=True)
+        self.GetFrame = channel.unary_unary(
+                '/nprt.v1.RenderService/GetFrame',
+                request_serializer=nprt__pb2.GetFrameRequest.SerializeToString,
+                response_deserializer=nprt__pb2.Image.FromString,
+                _registered_method=True)
         self.StreamJobLog = channel.unary_stream(
                 '/nprt.v1.RenderService/StreamJobLog',
                 request_serializer=nprt__pb2.StreamJobLogRequest.SerializeToString,
@@ -123,6 +128,13 @@ class RenderServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def GetFrame(self, request, context):
+        """one finished frame of a frames job
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def StreamJobLog(self, request, context):
         """The job's log (job.log: its render thread's records, INFO and above), one line per
         message from `offset`; with `follow`, new lines as they are written until the job ends.
@@ -163,6 +175,11 @@ def add_RenderServiceServicer_to_server(servicer, server):
             'GetImage': grpc.unary_unary_rpc_method_handler(
                     servicer.GetImage,
                     request_deserializer=nprt__pb2.GetImageRequest.FromString,
+                    response_serializer=nprt__pb2.Image.SerializeToString,
+            ),
+            'GetFrame': grpc.unary_unary_rpc_method_handler(
+                    servicer.GetFrame,
+                    request_deserializer=nprt__pb2.GetFrameRequest.FromString,
                     response_serializer=nprt__pb2.Image.SerializeToString,
             ),
             'StreamJobLog': grpc.unary_stream_rpc_method_handler(
@@ -332,6 +349,33 @@ class RenderService:
             target,
             '/nprt.v1.RenderService/GetImage',
             nprt__pb2.GetImageRequest.SerializeToString,
+            nprt__pb2.Image.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetFrame(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/nprt.v1.RenderService/GetFrame',
+            nprt__pb2.GetFrameRequest.SerializeToString,
             nprt__pb2.Image.FromString,
             options,
             channel_credentials,

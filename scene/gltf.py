@@ -13,6 +13,7 @@ import numpy as np
 import trimesh
 
 from nprt.scene.errors import SceneError
+from nprt.scene.gltf_anim import gltf_animation
 from nprt.scene.io import build_mesh, file_normals, scene_from_meshes, srgb_to_linear
 from nprt.scene.model import TRANSFORM_DTYPE, Material, Mesh, Scene, validate_transform
 from nprt.scene.paths import FileRefs, load_trimesh
@@ -36,6 +37,7 @@ def load_gltf(path, root: Path | None = None) -> Scene:
     mesh_of_content: dict[tuple, int] = {}  # _content_key -> base mesh index
     material_of: dict = {}  # id(trimesh material) or content key -> material index
     placements: list[tuple[int, np.ndarray]] = []
+    node_names: list[tuple] = []  # (trimesh frame, its parent frame) of each placement
     for node in sorted(tm.graph.nodes_geometry, key=str):
         xf, geom_name = tm.graph[node]
         geom = tm.geometry[geom_name]
@@ -61,14 +63,20 @@ def load_gltf(path, root: Path | None = None) -> Scene:
         xf = np.asarray(xf, dtype=TRANSFORM_DTYPE)
         validate_transform(xf, f"{shown}: node {node!r} (mesh {geom_name!r})")
         placements.append((mesh_of[geom_name], xf))
+        # A node with several primitives places each under a child frame of its own.
+        node_names.append((node, tm.graph.transforms.parents.get(node)))
     if not placements:
         raise SceneError(f"{shown}: no triangle meshes in the glTF scene")
     log.info("%s: %d base meshes, %d instances", shown, len(meshes), len(placements))
     scene = scene_from_meshes(meshes, placements, tuple(materials) or (Material(),), path.stem)
     znear = _file_znear(tm)
-    if znear is None:
+    if znear is not None:
+        scene = dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, near=znear))
+    anim = gltf_animation(path, refs, shown, node_names)
+    if anim is None:
         return scene
-    return dataclasses.replace(scene, camera=dataclasses.replace(scene.camera, near=znear))
+    return dataclasses.replace(scene, animation=anim, check_meshes=False).at_frame(0)
+
 
 
 def _file_znear(tm: trimesh.Scene) -> float | None:

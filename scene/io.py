@@ -338,7 +338,7 @@ def scene_from_spec(spec: schema.SceneFile, refs: FileRefs | Path) -> Scene:
     relative to it, unconfined)."""
     refs = refs if isinstance(refs, FileRefs) else FileRefs(Path(refs))
     meshes = tuple(spec_mesh(spec, i, refs) for i in range(len(spec.meshes)))
-    return Scene(meshes=meshes, **scene_parts(spec, refs))
+    return animated(Scene(meshes=meshes, **scene_parts(spec, refs)), spec)
 
 
 def spec_mesh(spec: schema.SceneFile, i: int, refs: FileRefs) -> Mesh:
@@ -384,6 +384,16 @@ def scene_parts(spec: schema.SceneFile, refs: FileRefs) -> dict:
     )
 
 
+def animated(scene, spec: schema.SceneFile):
+    """`scene` (a Scene or SceneMeta of `spec`) with the spec's animation, on frame 0;
+    the keyframes are sampled from the spec alone, so metadata gets them without any mesh."""
+    if spec.animation is None:
+        return scene
+    from nprt.scene.animation_io import animate  # deferred: it imports this module
+
+    return animate(scene, spec.animation)
+
+
 def _texture(ref: str | None, refs: FileRefs, where: str) -> np.ndarray | None:
     return None if ref is None else read_texture(refs.resolve(ref, "texture", where), where, refs)
 
@@ -406,7 +416,9 @@ def _listed_instances(specs: list[schema.InstanceSpec], mesh_names: list[str]) -
 
 def save_scene(scene: Scene, path, instance_file: bool = False) -> Path:
     """Write `path` (JSON) plus one binary PLY per mesh and one .npy per texture beside it;
-    with instance_file, the instances go to `<stem>.instances.npz` (`nprt.scene.instances`)."""
+    with instance_file, the instances go to `<stem>.instances.npz` (`nprt.scene.instances`).
+    An animation is written as keyframes on every frame (`animation_io.animation_doc`), so
+    the scene loads back with the same frames; it loads on frame 0."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     stem = path.stem
@@ -445,6 +457,10 @@ def save_scene(scene: Scene, path, instance_file: bool = False) -> Path:
                         **_floats_dict(scene.environment, skip=("kind",))},
         "camera": _floats_dict(scene.camera),
     }
+    if scene.animation is not None:
+        from nprt.scene.animation_io import animation_doc  # deferred: it imports this module
+
+        doc["animation"] = animation_doc(scene)
     try:  # refuse to write a file that load_scene would reject
         spec = schema.SceneFile.model_validate(doc)
     except ValidationError as e:

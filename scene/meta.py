@@ -72,7 +72,9 @@ class MeshMeta:
 class SceneMeta(SceneViews):
     """A scene without vertex arrays: `Scene`'s fields, with `MeshMeta` for meshes, plus
     `source`, the `nprt.scene.store.MeshSource` its shards load meshes from (None for metadata
-    of an in-memory scene, whose meshes the pool puts in Ray's object store)."""
+    of an in-memory scene, whose meshes the pool puts in Ray's object store). animation:
+    as a Scene's (sampled from the scene file's keyframes, which need no mesh); `frames`
+    and `at_frame(f)` work as on a Scene."""
 
     meshes: tuple[MeshMeta, ...]
     instances: Instances
@@ -84,10 +86,12 @@ class SceneMeta(SceneViews):
     camera: Camera = field(default_factory=Camera)
     name: str = "scene"
     source: object = None
+    animation: object | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "instances", Instances.of(self.instances))
         validate_scene(self, check_meshes=False)
+        self._check_animation()
 
     @classmethod
     def of(cls, scene) -> SceneMeta:
@@ -96,7 +100,8 @@ class SceneMeta(SceneViews):
             return scene
         return cls(tuple(MeshMeta.of(m) for m in scene.meshes), scene.instances,
                    scene.materials, scene.quad_lights, scene.point_lights,
-                   scene.directional_lights, scene.environment, scene.camera, scene.name)
+                   scene.directional_lights, scene.environment, scene.camera, scene.name,
+                   animation=scene.animation)
 
     def load(self):
         """The whole `Scene`, meshes included, from `source` (the in-process reference)."""
@@ -108,7 +113,8 @@ class SceneMeta(SceneViews):
 
         return Scene(tuple(meshes[i] for i in range(len(self.meshes))), self.instances,
                      self.materials, self.quad_lights, self.point_lights,
-                     self.directional_lights, self.environment, self.camera, self.name)
+                     self.directional_lights, self.environment, self.camera, self.name,
+                     self.animation)
 
 
 def meta_path(scene_file: Path) -> Path:
@@ -144,7 +150,7 @@ def load_scene_meta(path, root: Path | None = None, write_cache: bool = True) ->
     """The metadata of a JSON scene file, with a `DirectorySource` for its meshes. Meshes
     whose cached entry is missing or stale are read (one at a time) and the cache is
     rewritten; with the cache current no mesh file is opened."""
-    from nprt.scene.io import read_spec, scene_parts, spec_mesh
+    from nprt.scene.io import animated, read_spec, scene_parts, spec_mesh
     from nprt.scene.store import DirectorySource
 
     spec, refs, shown = read_spec(path, root)
@@ -172,7 +178,10 @@ def load_scene_meta(path, root: Path | None = None, write_cache: bool = True) ->
         _write_cache(cache_file, entries)
     source = DirectorySource(str(scene_file), None if root is None else str(root),
                              tuple(m.content_hash for m in metas))
-    return SceneMeta(tuple(metas), source=source, **parts)
+    try:
+        return animated(SceneMeta(tuple(metas), source=source, **parts), spec)
+    except SceneError as e:
+        raise type(e)(f"{shown}: {e}") from None
 
 
 def _read_cache(path: Path) -> list[dict]:

@@ -7,7 +7,7 @@ write lives in `nprt.scene.schema` and is converted into these by `nprt.scene.io
 from __future__ import annotations
 
 import hashlib
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 from functools import cached_property
 
 import numpy as np
@@ -226,8 +226,26 @@ class Camera:
 
 class SceneViews:
     """What a scene offers besides its fields, for a `Scene` and for a `nprt.scene.meta.SceneMeta`
-    alike: both have `meshes` (each with name, n_faces, nbytes, bounds, content_hash) and
-    `instances`, so partitioning and planning run on either."""
+    alike: both have `meshes` (each with name, n_faces, nbytes, bounds, content_hash),
+    `instances` and `animation`, so partitioning, planning and frames run on either."""
+
+    @property
+    def frames(self) -> int:
+        """Number of frames: 1 for a scene without animation."""
+        return 1 if self.animation is None else self.animation.frames
+
+    def at_frame(self, frame: int):
+        """This scene on `frame`, sharing its meshes (`nprt.scene.animation.scene_at`)."""
+        from nprt.scene.animation import scene_at
+
+        return scene_at(self, frame)
+
+    def _check_animation(self) -> None:
+        anim = self.animation
+        if anim is not None and len(anim.instances) and \
+                int(anim.instances.max()) >= len(self.instances):
+            raise SceneError(f"animation: instance {int(anim.instances.max())} does not "
+                             f"exist (the scene has {len(self.instances)})")
 
     @property
     def instance_mesh(self) -> np.ndarray:
@@ -262,12 +280,16 @@ class SceneViews:
             "mesh_bytes": self.mesh_bytes,
             "lights": len(self.quad_lights) + len(self.point_lights)
             + len(self.directional_lights),
+            "frames": self.frames,
         }
 
 
 @dataclass(frozen=True, eq=False)
 class Scene(SceneViews):
-    """`instances` may be given as a sequence of `Instance`; it is kept as `Instances`."""
+    """`instances` may be given as a sequence of `Instance`; it is kept as `Instances`.
+    animation: a `nprt.scene.animation.Animation` (frames of instance transforms and lights),
+    or None; the scene's own instances and lights are those of frame 0. check_meshes=False
+    skips re-validating meshes known valid (`nprt.scene.animation.scene_at` makes frames)."""
 
     meshes: tuple[Mesh, ...]
     instances: Instances
@@ -278,10 +300,13 @@ class Scene(SceneViews):
     environment: Environment = field(default_factory=Environment)
     camera: Camera = field(default_factory=Camera)
     name: str = "scene"
+    animation: object | None = None
+    check_meshes: InitVar[bool] = True
 
-    def __post_init__(self):
+    def __post_init__(self, check_meshes: bool):
         object.__setattr__(self, "instances", Instances.of(self.instances))
-        validate_scene(self)
+        validate_scene(self, check_meshes)
+        self._check_animation()
 
 
 def validate_mesh(mesh: Mesh, where: str) -> None:
@@ -341,7 +366,8 @@ def validate_transforms(t: np.ndarray, where) -> None:
 
 def validate_scene(scene: SceneViews, check_meshes: bool = True) -> None:
     """check_meshes=False for metadata (`SceneMeta`), whose meshes were checked when it
-    was computed and whose vertex arrays are not here."""
+    was computed and whose vertex arrays are not here, and for a frame of a validated
+    scene, whose meshes it shares."""
     if not scene.meshes:
         raise SceneError(f"scene {scene.name!r}: no meshes")
     if not len(scene.instances):

@@ -160,6 +160,64 @@ class CameraSpec(_Strict):
         return self
 
 
+class InstanceKeySpec(_Strict):
+    """One key of an instance's track: its pose on `frame`, a 4x4 row-major `transform`
+    (without shear) or translate/rotate_deg/scale as in `InstanceSpec` (unset parts are
+    identity)."""
+
+    frame: Index
+    transform: tuple[Row4, Row4, Row4, Row4] | None = None
+    translate: Vec3 | None = None
+    rotate_deg: Vec3 | None = None
+    scale: Finite | Vec3 | None = None
+
+    @model_validator(mode="after")
+    def _one_form(self) -> InstanceKeySpec:
+        trs = self.translate is not None or self.rotate_deg is not None or self.scale is not None
+        if self.transform is not None and trs:
+            raise ValueError("give either 'transform' or translate/rotate_deg/scale, not both")
+        return self
+
+
+class LightKeySpec(_Strict):
+    """One key of a light's track: the fields it sets on `frame` (those of the light's kind:
+    quads corner/edge_u/edge_v/radiance, points position/intensity, directionals
+    direction/irradiance); a field no key sets keeps the light's own value."""
+
+    frame: Index
+    corner: Vec3 | None = None
+    edge_u: Vec3 | None = None
+    edge_v: Vec3 | None = None
+    radiance: Color | None = None
+    position: Vec3 | None = None
+    intensity: Color | None = None
+    direction: Vec3 | None = None
+    irradiance: Color | None = None
+
+
+class LightTracksSpec(_Strict):
+    """Tracks by light index (a JSON object key, "0") within each kind of `lights`."""
+
+    quads: dict[Index, Annotated[list[LightKeySpec], Field(min_length=1)]] = {}
+    points: dict[Index, Annotated[list[LightKeySpec], Field(min_length=1)]] = {}
+    directionals: dict[Index, Annotated[list[LightKeySpec], Field(min_length=1)]] = {}
+
+
+class AnimationSpec(_Strict):
+    """Frames 0 .. frames-1. `instances`: tracks by instance index (a JSON object key,
+    "3"); `lights`: tracks by light. Keys of a track have strictly increasing frames;
+    between keys values are interpolated (`linear`: positions, scales and light fields
+    lerp, rotations slerp along the shorter arc; `step`: the earlier key holds), and
+    before the first key or after the last the end key holds. Instances and lights
+    without a track keep their pose in the scene on every frame; the scene as loaded is
+    frame 0."""
+
+    frames: int = Field(ge=1, le=100_000)
+    interpolation: Literal["linear", "step"] = "linear"
+    instances: dict[Index, Annotated[list[InstanceKeySpec], Field(min_length=1)]] = {}
+    lights: LightTracksSpec = LightTracksSpec()
+
+
 class SceneFile(_Strict):
     """The whole scene file."""
 
@@ -171,3 +229,4 @@ class SceneFile(_Strict):
     lights: LightsSpec = LightsSpec()
     environment: EnvironmentSpec = EnvironmentSpec()
     camera: CameraSpec = CameraSpec()
+    animation: AnimationSpec | None = None

@@ -13,6 +13,7 @@ import dataclasses
 
 import numpy as np
 
+from nprt.scene.errors import SceneError
 from nprt.scene.model import Camera, Instance, Scene
 
 # A 'sky' environment blends by the direction's +y component: only rotations that keep
@@ -49,6 +50,9 @@ def split_similarity(m: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
 def transform_scene(scene: Scene, m: np.ndarray, name: str | None = None) -> Scene:
     """The scene moved by the similarity m (4, 4) float64 (see `similarity`), with
     everything the image depends on moved or rescaled with it."""
+    if scene.animation is not None:
+        raise SceneError(f"transform_scene: scene {scene.name!r} has an animation, which it "
+                         f"does not move; transform scene.at_frame(f)")
     s, rot, t = split_similarity(m)
 
     def point(p):

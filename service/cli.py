@@ -147,6 +147,8 @@ def cmd_render(a: argparse.Namespace) -> int:
     preflight(settings, a.ray_address, uses_ray=settings.shards > 0)
     # Distributed: metadata only here, each shard loads its own meshes (nprt.scene.store).
     scene = (open_scene if settings.shards > 0 else load_any)(a.scene, size=a.size)
+    if a.frames is not None:
+        return _render_frames(a, scene, settings)
     res = render_with_progress(scene, settings, a.ray_address)
     out = res.film.save(a.output)
     print(f"wrote {out} ({settings.width}x{settings.height}, {settings.spp} spp) "
@@ -158,11 +160,39 @@ def cmd_render(a: argparse.Namespace) -> int:
     return 0
 
 
+def _render_frames(a: argparse.Namespace, scene, settings) -> int:
+    """--frames A:B: one image per frame, named by frame_path(-o, f), on one renderer."""
+    from tqdm import tqdm
+
+    from nprt.scene.animation import frame_range
+    from nprt.workers.frames import frame_path, render_frames
+
+    frames = frame_range(a.frames, scene.frames)
+    bar = tqdm(total=settings.width * settings.height * settings.spp * len(frames),
+               unit="path", unit_scale=True, desc="frames", file=sys.stderr)
+    stats = []
+    try:
+        for done in render_frames(scene, settings, frames, ray_address=a.ray_address,
+                                  on_pass=lambda f, d: bar.update(d.pass_.n_paths)):
+            out = done.result.film.save(frame_path(a.output, done.frame))
+            tqdm.write(f"frame {done.frame}: wrote {out} in {done.wall_s:.2f} s",
+                       file=sys.stdout)
+            stats.append({"frame": done.frame, "frame_wall_s": round(done.wall_s, 4),
+                          **done.result.stats_dict()})
+    finally:
+        bar.close()
+    if a.stats:
+        Path(a.stats).parent.mkdir(parents=True, exist_ok=True)
+        Path(a.stats).write_text(json.dumps({"frames": stats}, indent=2))
+        print(f"wrote {a.stats}")
+    return 0
+
+
 def cmd_scenes(a: argparse.Namespace) -> int:
     from nprt.scene.demos import DEMO_SIZES, DEMOS, make_demo
     from nprt.scene.store import open_scene
 
-    cols = ("base_meshes", "instances", "instanced_triangles", "mesh_bytes")
+    cols = ("base_meshes", "instances", "instanced_triangles", "mesh_bytes", "frames")
     print(f"| demo | size | {' | '.join(cols)} |")
     print("|" + "---|" * (len(cols) + 2))
     for name in DEMOS:
@@ -188,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("scene", help="demo name (forest, city, sculpture[:size]) or .json/.glb path")
     p.add_argument("-o", "--output", default="out.png", help=".png (sRGB) or .exr (linear)")
     p.add_argument("--stats", default=None, help="write the render statistics as JSON here")
+    p.add_argument("--frames", default=None, metavar="A:B",
+                   help="render frames A to B (inclusive) of an animated scene, each to "
+                        "its own image: -o out_####.png (#### = the zero-padded frame)")
     _add_settings_flags(p)
     p.set_defaults(func=cmd_render)
 

@@ -56,6 +56,9 @@ def add_serve_parsers(subparsers) -> None:
     s.add_argument("--proxy-width", type=int, choices=(16, 32, 64, 128, 256),
                    help="one proxy width for every mesh")
     s.add_argument("--proxy-budget-s", type=float, help="training budget per proxy, seconds")
+    s.add_argument("--frames", type=_frame_pair, metavar="A:B",
+                   help="render frames A to B (inclusive) of an animated scene; with -o, "
+                        "write each to it (out_####.png: #### = the zero-padded frame)")
     s.add_argument("--wait", action="store_true", help="follow progress until the job ends")
     s.add_argument("-o", "--output", type=Path,
                    help="save the final image here (.png or .exr); implies --wait")
@@ -109,6 +112,31 @@ def cmd_submit(args: argparse.Namespace) -> int:
         return 2
 
 
+def _frame_pair(text: str) -> tuple[int, int]:
+    """'A:B' or 'A' -> (first, last) frame."""
+    first, _, last = text.partition(":")
+    try:
+        pair = int(first), int(last or first)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: want A:B (first and last frame)") from None
+    if not 0 <= pair[0] <= pair[1]:
+        raise argparse.ArgumentTypeError(f"{text!r}: want 0 <= A <= B")
+    return pair
+
+
+def _write_images(client, job_id: str, output: Path, frames: tuple[int, int] | None) -> None:
+    """The job's image to output, or each frame's to frame_path(output, f)."""
+    from nprt.workers.frames import frame_path
+
+    fmt = output.suffix.lstrip(".") or "png"
+    todo = [(output, None)] if frames is None else [
+        (Path(frame_path(str(output), f)), f) for f in range(frames[0], frames[1] + 1)]
+    for path, f in todo:
+        path.write_bytes(client.image(job_id, fmt) if f is None else
+                         client.frame(job_id, f, fmt))
+        print(f"wrote {path}", file=sys.stderr)
+
+
 def _submit(args: argparse.Namespace) -> int:
     from nprt.service.client import Client
 
@@ -121,6 +149,8 @@ def _submit(args: argparse.Namespace) -> int:
     proxy = {k: v for k, v in knobs if v is not None}
     if proxy:
         body["proxy"] = proxy
+    if args.frames:
+        body["frames"] = {"first": args.frames[0], "last": args.frames[1]}
     with Client(args.server, token=args.token, timeout_s=args.timeout_s) as client:
         scene = args.scene
         if Path(scene).is_file():
@@ -135,9 +165,7 @@ def _submit(args: argparse.Namespace) -> int:
             print(f"job {job['id']} {job['state']}: {job.get('error') or ''}", file=sys.stderr)
             return 1
         if args.output:
-            args.output.write_bytes(client.image(job["id"], args.output.suffix.lstrip(".")
-                                                 or "png"))
-            print(f"wrote {args.output}", file=sys.stderr)
+            _write_images(client, job["id"], args.output, args.frames)
         print(json.dumps({k: job["stats"].get(k) for k in ("wall_s", "rays", "total_bytes")}),
               file=sys.stderr)
     return 0

@@ -79,6 +79,10 @@ class Client:
     def image(self, job_id: str, fmt: str = "png") -> bytes:
         return self._ok(self.http.get(f"/v1/jobs/{job_id}/image.{fmt}")).content
 
+    def frame(self, job_id: str, frame: int, fmt: str = "png") -> bytes:
+        """One finished frame of a frames job."""
+        return self._ok(self.http.get(f"/v1/jobs/{job_id}/frames/{frame}.{fmt}")).content
+
     def events(self, job_id: str) -> Iterator[tuple[str, str]]:
         """(event, data) pairs of the job's SSE stream until the server closes it."""
         return self._sse(f"/v1/jobs/{job_id}/events")

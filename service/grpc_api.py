@@ -65,7 +65,10 @@ class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
                                 f"invalid settings: {_validation_message(e)}")
         if not request.scene:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "scene is required (got '')")
-        rec, _ = await _call(context, self.manager.submit, request.scene, settings)
+        frames = (request.frames.first, request.frames.last) \
+            if request.HasField("frames") else None
+        rec, _ = await _call(context, self.manager.submit, request.scene, settings, None,
+                             frames)
         return job_to_pb(rec)
 
     async def GetJob(self, request, context):
@@ -83,18 +86,32 @@ class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
         return job_to_pb(await _call(context, self.manager.cancel, request.job_id))
 
     async def GetImage(self, request, context):
+        fmt = await self._format(request, context)
+        data, partial = await _call(context, self.manager.image, request.job_id, fmt,
+                                    thread=True)
+        return await self._image(request, context, data, partial, f"image.{fmt}")
+
+    async def GetFrame(self, request, context):
+        fmt = await self._format(request, context)
+        data = await _call(context, self.manager.frame_image, request.job_id, request.frame,
+                           fmt, thread=True)
+        return await self._image(request, context, data, False,
+                                 f"frames/{request.frame}.{fmt}")
+
+    async def _format(self, request, context) -> str:
         fmt = _FORMATS.get(request.format)
         if fmt is None:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT,
                                 f"unknown image format {request.format}")
-        data, partial = await _call(context, self.manager.image, request.job_id, fmt,
-                                    thread=True)
+        return fmt
+
+    async def _image(self, request, context, data: bytes, partial: bool, route: str):
         rec = await _call(context, self.manager.get, request.job_id)
         if len(data) > self.max_message_bytes - 1024:
             await context.abort(
                 grpc.StatusCode.RESOURCE_EXHAUSTED,
-                f"the {fmt} image is {len(data)} bytes, over the gRPC message limit of "
-                f"{self.max_message_bytes}; fetch /v1/jobs/{rec.id}/image.{fmt}")
+                f"the image is {len(data)} bytes, over the gRPC message limit of "
+                f"{self.max_message_bytes}; fetch /v1/jobs/{rec.id}/{route}")
         return pb.Image(job_id=rec.id, format=request.format, data=data, partial=partial,
                         width=rec.settings["width"], height=rec.settings["height"])
 

@@ -44,7 +44,9 @@ def job_to_pb(r: JobRecord) -> pb.Job:
                   passes_total=r.passes_total, progress=r.progress, error=r.error or "",
                   created_at_unix_s=r.created_at, started_at_unix_s=r.started_at or 0.0,
                   finished_at_unix_s=r.finished_at or 0.0, stats=stats,
-                  cancel_requested=r.cancel_requested, retries=r.retries)
+                  cancel_requested=r.cancel_requested, retries=r.retries,
+                  frames=None if r.frames is None else pb.FrameRange(first=r.frames[0],
+                                                                     last=r.frames[1]))
 
 
 # Room for the Tile's other fields inside the message limit.

@@ -133,17 +133,24 @@ class JobManager:
     # ------------------------------------------------------------ API
 
     def submit(self, scene: str, settings: RenderSettings,
-               idempotency_key: str | None = None) -> tuple[JobRecord, bool]:
-        """Store a queued job in O(1) time and memory; returns (job, created). A stored
-        idempotency key returns its job again (created False), Conflict if the request
-        differs."""
-        self._check_cost(settings)
+               idempotency_key: str | None = None,
+               frames: tuple[int, int] | None = None) -> tuple[JobRecord, bool]:
+        """Store a queued job in O(1) time and memory; returns (job, created). frames:
+        (first, last) frames of an animated scene, inclusive, one image each (checked
+        against the scene when the job loads it). A stored idempotency key returns its
+        job again (created False), Conflict if the request differs."""
+        frames = None if frames is None else [int(frames[0]), int(frames[1])]
+        n_frames = 1 if frames is None else frames[1] - frames[0] + 1
+        if n_frames < 1:
+            raise InvalidJob("frames", f"last frame {frames[1]} is before first {frames[0]}")
+        self._check_cost(settings, n_frames)
         self.scenes.check(scene)
         stored = settings.model_dump(mode="json")
         job_id = uuid.uuid4().hex
-        rec = self.store.insert(job_id, scene, stored, count_passes(settings), idempotency_key)
+        rec = self.store.insert(job_id, scene, stored, count_passes(settings) * n_frames,
+                                idempotency_key, frames)
         if rec.id != job_id:  # the key was stored already
-            if (rec.scene, rec.settings) != (scene, stored):
+            if (rec.scene, rec.settings, rec.frames) != (scene, stored, frames):
                 raise Conflict(f"Idempotency-Key {idempotency_key!r} was used for job {rec.id} "
                                "with a different request")
             return rec, False
@@ -152,15 +159,18 @@ class JobManager:
                  settings.width, settings.height, settings.spp, settings.mode, settings.shards)
         return rec, True
 
-    def _check_cost(self, s: RenderSettings) -> None:
-        """InvalidJob naming the field when a job is over a configured limit."""
+    def _check_cost(self, s: RenderSettings, n_frames: int = 1) -> None:
+        """InvalidJob naming the field when a job is over a configured limit (its samples
+        count every frame)."""
         pixels, limit = s.width * s.height, self.settings.max_image_pixels
         if pixels > limit:
             raise InvalidJob("width", f"{s.width}x{s.height} = {pixels} pixels is over the "
                              f"service limit of {limit} (NPRT_MAX_IMAGE_PIXELS)")
-        samples, limit = pixels * s.spp, self.settings.max_job_samples
+        samples, limit = pixels * s.spp * n_frames, self.settings.max_job_samples
         if samples > limit:
-            raise InvalidJob("spp", f"{s.width}x{s.height} x {s.spp} spp = {samples} samples "
+            per = f" x {n_frames} frames" if n_frames > 1 else ""
+            raise InvalidJob("frames" if n_frames > 1 else "spp",
+                             f"{s.width}x{s.height} x {s.spp} spp{per} = {samples} samples "
                              f"is over the service limit of {limit} (NPRT_MAX_JOB_SAMPLES)")
 
     def get(self, job_id: str) -> JobRecord:
@@ -223,6 +233,19 @@ class JobManager:
             sums, samples = ck.sums, ck.samples
         img = images.film_image(sums, samples, s["width"], s["height"])
         return images.encode(img, fmt), True
+
+    def frame_image(self, job_id: str, frame: int, fmt: str) -> bytes:
+        """The encoded image of one finished frame of a frames job (NotFound otherwise)."""
+        rec = self.get(job_id)
+        if rec.frames is None or not rec.frames[0] <= frame <= rec.frames[1]:
+            have = "renders no frames" if rec.frames is None else \
+                f"renders frames {rec.frames[0]} to {rec.frames[1]}"
+            raise NotFound(f"job {job_id} {have}; no frame {frame}")
+        path = _frame_file(self.job_dir(job_id), frame, fmt)
+        if not path.exists():
+            raise NotFound(f"job {job_id}: frame {frame} is not rendered yet (state "
+                           f"{rec.state})")
+        return path.read_bytes()
 
     def job_dir(self, job_id: str) -> Path:
         return self.settings.jobs_dir / job_id
@@ -302,9 +325,12 @@ class JobManager:
                     job_id, stats={"proxy_training": rows}))
             _check_cancel(live, "starting the renderer")
             self._move(job_id, "running", ("preparing",))
-            result = render(scene, settings, resume=resume, cancel=live.cancel,
-                            renderer=renderer,
-                            on_pass=lambda p: self._on_pass(job_id, job_dir, live, p))
+            if rec.frames is not None:
+                result = self._render_frames(rec, job_dir, settings, live, scene, renderer)
+            else:
+                result = render(scene, settings, resume=resume, cancel=live.cancel,
+                                renderer=renderer,
+                                on_pass=lambda p: self._on_pass(job_id, job_dir, live, p))
             renderer.close()
             renderer = None
             self._finish(job_id, job_dir, result)
@@ -328,6 +354,38 @@ class JobManager:
             if renderer is not None:
                 renderer.close()
         return False
+
+    def _render_frames(self, rec: JobRecord, job_dir: Path, settings: RenderSettings,
+                       live: _Live, scene, renderer):
+        """Each frame of rec.frames in turn on one renderer (the shards keep geometry and
+        proxies; only the instance table and lights change), each stored as
+        frames/NNNNN.png and .exr. A job resumed after a restart skips the frames stored
+        and re-renders the one it was in. Returns the last frame's RenderResult."""
+        from nprt.scene.animation import frame_range
+
+        frames = frame_range(f"{rec.frames[0]}:{rec.frames[1]}", scene.frames)
+        per = count_passes(settings)
+        checkpoint.clear_checkpoint(job_dir)  # a frame's partial film is not resumed
+        todo = [f for f in frames if not _frame_file(job_dir, f, "exr").exists()]
+        # Every frame was stored before a restart: the last one again, for the final image.
+        result, walls = None, {}
+        for f in todo or [frames[-1]]:
+            i = f - frames[0]
+            t0 = time.perf_counter()
+            at = scene.at_frame(f)
+            renderer.set_frame(at)
+            result = render(at, settings, cancel=live.cancel, renderer=renderer,
+                            on_pass=lambda p, base=i * per: self._on_pass(
+                                rec.id, job_dir, live, p, base, rec.passes_total))
+            img = result.film.image()
+            (job_dir / "frames").mkdir(exist_ok=True)
+            checkpoint.atomic_write_bytes(_frame_file(job_dir, f, "png"), images.png_bytes(img))
+            checkpoint.atomic_write_bytes(_frame_file(job_dir, f, "exr"), images.exr_bytes(img))
+            walls[str(f)] = round(time.perf_counter() - t0, 4)
+            log.info("job %s: frame %d done in %.2f s", rec.id, f, walls[str(f)])
+        result.info["passes"] = per * len(frames)
+        result.info["frames"] = {"first": frames[0], "last": frames[-1], "frame_wall_s": walls}
+        return result
 
     def _requeue(self, job_id: str, exc: Exception) -> bool:
         """Send a job whose Ray node was lost back to the queue; it resumes from its
@@ -381,15 +439,19 @@ class JobManager:
                                                             stats, done)
         live.saved_at = time.monotonic()
 
-    def _on_pass(self, job_id: str, job_dir: Path, live: _Live, p: PassDone) -> None:
+    def _on_pass(self, job_id: str, job_dir: Path, live: _Live, p: PassDone, base: int = 0,
+                 total: int | None = None) -> None:
         """After each pass: a tile event (the tile's pixels only); every
-        checkpoint_interval_s a checkpoint and a progress write to the store."""
+        checkpoint_interval_s a checkpoint and a progress write to the store. base, total:
+        passes of the frames before this one, and of the whole job (frames jobs)."""
+        total = total or p.total
         live.film, live.progress, live.stats = p.film, p.progress, p.stats
         now = time.monotonic()
         if now - live.saved_at >= self.settings.checkpoint_interval_s:
             self._checkpoint(job_dir, live)
         if now - live.stored_at >= min(1.0, self.settings.checkpoint_interval_s):
-            self.store.update(job_id, passes_done=p.progress.count, stats=p.stats.to_dict())
+            self.store.update(job_id, passes_done=base + p.progress.count,
+                              stats=p.stats.to_dict())
             live.stored_at = now
         if not self.broker.subscribers(job_id):
             return
@@ -401,7 +463,7 @@ class JobManager:
         self.broker.publish(job_id, {
             "type": "tile", "pass_index": p.index, "passes_total": p.total,
             "rect": (t.x0, t.y0, t.x1, t.y1), "sample0": t.sample0, "sample1": t.sample1,
-            "progress": p.progress.count / p.total,
+            "progress": (base + p.progress.count) / total,
             "rgb": rgb.reshape(t.y1 - t.y0, t.x1 - t.x0, 3),
         })
 
@@ -445,6 +507,10 @@ class JobManager:
 
     def _redact(self, message: str) -> str:
         return redact_paths(message, self._server_roots)
+
+
+def _frame_file(job_dir: Path, frame: int, fmt: str) -> Path:
+    return job_dir / "frames" / f"{frame:05d}.{fmt}"
 
 
 def _check_cancel(live: _Live, stage: str) -> None:

@@ -5,24 +5,44 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Literal
 
-from pydantic import BaseModel, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from nprt.service.problems import Problem
 from nprt.service.store import JobRecord
 from nprt.workers.settings import RenderSettings
 
+MAX_FRAME = 99_999  # nprt.scene.animation.MAX_FRAMES - 1
 JobState = Literal["queued", "preparing", "running", "succeeded", "failed", "canceled"]
+
+
+class FrameRange(BaseModel):
+    """Frames first to last, inclusive; checked against the scene's frame count when the
+    job loads it (a job past the last frame fails naming it)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    first: int = Field(ge=0, le=MAX_FRAME)
+    last: int = Field(ge=0, le=MAX_FRAME)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> FrameRange:
+        if self.last < self.first:
+            raise ValueError(f"last ({self.last}) is before first ({self.first})")
+        return self
 
 
 class JobCreate(RenderSettings):
     """A render request: the scene plus every RenderSettings field, with its constraints."""
 
     scene: str = Field(min_length=1, max_length=200, examples=["forest:tiny"],
-                       description="demo name (forest, city, sculpture; optional :small/:tiny) "
-                                   "or the id of an uploaded scene")
+                       description="demo name (forest, city, sculpture, windy; optional "
+                                   ":small/:tiny) or the id of an uploaded scene")
+    frames: FrameRange | None = Field(None, description="render these frames of an animated "
+                                      "scene, one image each (GET /v1/jobs/{id}/frames/{f}"
+                                      ".png); unset: one image of frame 0")
 
     def render_settings(self) -> RenderSettings:
-        return RenderSettings.model_validate(self.model_dump(exclude={"scene"}))
+        return RenderSettings.model_validate(self.model_dump(exclude={"scene", "frames"}))
 
 
 class PixelSamples(BaseModel):
@@ -49,6 +69,8 @@ class JobPublic(BaseModel):
                                                       "canceled at its next pass boundary")
     retries: int = Field(0, ge=0, description="times the job was re-queued from its "
                                               "checkpoint after losing a Ray node")
+    frames: FrameRange | None = Field(None, description="the frames this job renders; "
+                                      "each finished one at /v1/jobs/{id}/frames/{f}.png")
 
     @classmethod
     def from_record(cls, r: JobRecord) -> JobPublic:
@@ -57,7 +79,9 @@ class JobPublic(BaseModel):
                    created_at=_time(r.created_at), started_at=_time(r.started_at),
                    finished_at=_time(r.finished_at), error=r.error, stats=r.stats,
                    pixel_samples=r.pixel_samples, cancel_requested=r.cancel_requested,
-                   retries=r.retries)
+                   retries=r.retries,
+                   frames=None if r.frames is None else FrameRange(first=r.frames[0],
+                                                                   last=r.frames[1]))
 
 
 class JobsPublic(BaseModel):
@@ -108,7 +132,7 @@ _ERRORS = {
     400: "a body that does not parse, or a malformed or unsafe upload (the detail names "
          "the zip member)",
     401: "missing or wrong bearer token (only when the server sets NPRT_API_TOKEN)",
-    404: "no such job or scene",
+    404: "no such job or scene, or no such frame (not in the job, or not rendered yet)",
     409: "the request does not fit the job's state, or an Idempotency-Key reused for "
          "another request",
     413: "over NPRT_MAX_UPLOAD_BYTES or NPRT_MAX_EXTRACTED_BYTES",

@@ -37,9 +37,10 @@ _ADDED_COLUMNS = {
     "cancel_requested": "INTEGER NOT NULL DEFAULT 0",
     "retries": "INTEGER NOT NULL DEFAULT 0",
     "idempotency_key": "TEXT",
+    "frames": "TEXT",  # JSON [first, last] of an animated scene's frame range, or NULL
 }
 _INDEXES = "CREATE UNIQUE INDEX IF NOT EXISTS jobs_idempotency_key ON jobs(idempotency_key);"
-_JSON_COLUMNS = ("settings", "stats", "pixel_samples")
+_JSON_COLUMNS = ("settings", "stats", "pixel_samples", "frames")
 _UPDATABLE = frozenset({"started_at", "finished_at", "passes_done", "passes_total", "error",
                         "stats", "pixel_samples"})
 _UNFINISHED_SQL = "state IN ('queued', 'preparing', 'running')"
@@ -63,6 +64,7 @@ class JobRecord:
     cancel_requested: bool = False
     retries: int = 0  # times the job went back to the queue after losing its Ray shards
     idempotency_key: str | None = None
+    frames: list[int] | None = None  # [first, last] frame rendered, inclusive; None: one image
 
     @property
     def progress(self) -> float:
@@ -95,16 +97,18 @@ class JobStore:
             self._db.close()
 
     def insert(self, job_id: str, scene: str, settings: dict, passes_total: int,
-               idempotency_key: str | None = None) -> JobRecord:
+               idempotency_key: str | None = None,
+               frames: list[int] | None = None) -> JobRecord:
         """Store a queued job. With an idempotency key that is already stored, nothing is
         inserted and the stored job is returned (compare its id to tell)."""
         now = time.time()
         with self._lock:
             cur = self._db.execute(
                 "INSERT INTO jobs (id, scene, settings, state, created_at, passes_total, "
-                "idempotency_key) VALUES (?, ?, ?, 'queued', ?, ?, ?) "
+                "idempotency_key, frames) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?) "
                 "ON CONFLICT (idempotency_key) DO NOTHING",
-                (job_id, scene, json.dumps(settings), now, passes_total, idempotency_key))
+                (job_id, scene, json.dumps(settings), now, passes_total, idempotency_key,
+                 None if frames is None else json.dumps(list(frames))))
             if cur.rowcount == 0:  # the key was stored already
                 row = self._db.execute("SELECT * FROM jobs WHERE idempotency_key = ?",
                                        (idempotency_key,)).fetchone()
@@ -112,7 +116,8 @@ class JobStore:
         return JobRecord(seq=cur.lastrowid, id=job_id, scene=scene, settings=settings,
                          state="queued", created_at=now, started_at=None, finished_at=None,
                          passes_done=0, passes_total=passes_total, error=None, stats=None,
-                         pixel_samples=None, idempotency_key=idempotency_key)
+                         pixel_samples=None, idempotency_key=idempotency_key,
+                         frames=None if frames is None else list(frames))
 
     def get(self, job_id: str) -> JobRecord | None:
         with self._lock:

@@ -98,6 +98,7 @@ class Coordinator:
         if (self.pool.k, self.pool.mode) != (self.k, settings.mode):
             raise ValueError(f"{self.pool!r} cannot run a K={self.k} {settings.mode!r} job")
         self.pool.jobs += 1
+        self.pool.show(scene)  # a warm pool may still show another frame of its scene
         self.warm = self.pool.jobs > 1  # the pool was started for an earlier job
         self.window = max(MIN_WINDOW, WINDOW_PER_SHARD * self.k)
         self.fetched: list[type] = []  # what this coordinator read back, for the tests
@@ -109,6 +110,12 @@ class Coordinator:
         self.wait_s = 0.0
         self._tokens = itertools.count()
         self._lock = threading.Lock()
+
+    def set_frame(self, scene: Scene) -> None:
+        """Render `scene`, a frame of this job's scene, from the next pass on: the shards
+        swap their instance table and lights and keep their geometry and proxies."""
+        self.scene = scene
+        self.pool.show(scene)
 
     @property
     def actors(self):
@@ -207,6 +214,7 @@ class Coordinator:
                         self._requeue(live.pop(token).pass_, retry, attempts)
                     inbox = [[] for _ in range(k)]
                     self._abort(lost)
+                    self.pool.resync()  # a restarted shard holds its start-up frame
                 for token in [t for t, a in live.items() if a.pending == 0 and not a.collecting]:
                     live[token].collecting = True
                     for sid in range(k):
@@ -284,6 +292,7 @@ class Coordinator:
                 log.warning("pass %d: shard %s ran fewer calls than sent (it restarted); "
                             "re-running it", att.pass_.index, short)
                 self._requeue(att.pass_, retry, attempts)
+                self.pool.resync()
                 continue
             p = att.pass_
             sums_all = np.zeros((p.n_pixels, 3))

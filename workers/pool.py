@@ -26,6 +26,7 @@ from nprt.workers.placement import make_plan, plan_placement  # noqa: F401 (make
 from nprt.workers.raysession import acquire_ray, release_ray
 from nprt.workers.settings import RenderSettings
 from nprt.workers.shard import MeshRequest, Shard, ShardConfig
+from nprt.workers.world import ShardWorld
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +76,13 @@ def pool_key(scene: Scene | SceneMeta, settings: RenderSettings) -> str:
     return h.hexdigest()
 
 
+def frame_key(scene: Scene | SceneMeta) -> str:
+    """What changes between frames: instance transforms and lights."""
+    h = hashlib.sha256(np.ascontiguousarray(scene.instance_transform, np.float64).tobytes())
+    h.update(repr((scene.quad_lights, scene.point_lights, scene.directional_lights)).encode())
+    return h.hexdigest()
+
+
 class ShardPool:
     """K started, warmed Shard actors for one scene and placement.
 
@@ -96,6 +104,7 @@ class ShardPool:
         self.scene_name, self.k, self.mode = meta.name, settings.shards, settings.mode
         self.pg, self.actors, self.warm_s, self._init_refs = None, [], [0.0], []
         self.training: list[dict] = []  # per-mesh proxy training, when any ran
+        self.shown, self._world_ref = frame_key(meta), None  # None: the start-up world
         acquire_ray(ray_address)
         try:
             # Meshes of a stored scene stay where they are; an in-memory one's go to
@@ -157,6 +166,29 @@ class ShardPool:
                            for sid, a in enumerate(self.actors)]
         self.warm_s = [_wait_ready(a.warm.remote(), f"shard {sid} (warming its kernels)")
                        for sid, a in enumerate(self.actors)]
+
+    def show(self, scene: Scene | SceneMeta) -> None:
+        """Make every shard render `scene`: a frame of the pool's scene (its meshes and
+        instance meshes), with its own instance transforms and lights. Only the instance
+        table and lights travel, built from metadata (per-mesh bounds; no mesh is loaded
+        here); each instance keeps its owner, so no geometry moves and no proxy changes.
+        A no-op when the shards show it already."""
+        key = frame_key(scene)
+        if key == self.shown:
+            return
+        if not np.array_equal(scene.instance_mesh, self.world.table.mesh):
+            raise ValueError(f"{self!r} cannot show scene {scene.name!r}: it is not a frame "
+                             f"of the pool's scene (its instances place other meshes)")
+        self.world = ShardWorld.build(SceneMeta.of(scene), self.world.owner)
+        self._world_ref = ray.put(self.world)
+        self.resync()
+        self.shown = key
+
+    def resync(self) -> None:
+        """Send the shown world to every shard again (a restarted shard comes back with
+        the one it was started with)."""
+        if self._world_ref is not None:
+            ray.get([a.set_world.remote(self._world_ref) for a in self.actors])
 
     def __repr__(self) -> str:
         return f"ShardPool({self.scene_name!r}, k={self.k}, mode={self.mode!r})"

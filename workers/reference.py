@@ -30,6 +30,12 @@ class ReferenceRenderer:
         self.prepare_s = time.perf_counter() - t0
         self._tokens = itertools.count()
 
+    def set_frame(self, scene: Scene) -> None:
+        """Render `scene` (a frame of this one: same meshes and instance meshes) from now on:
+        only the instance table and lights change."""
+        self.scene = scene
+        self.shard.set_world(ShardWorld.build(scene, self.shard.world.owner))
+
     @property
     def geometry(self):
         """The whole scene's LocalGeometry (tests swap in an instrumented one)."""

@@ -168,18 +168,37 @@ class Shard:
         self.load_s = time.perf_counter() - t0
         self.meshes = meshes
         self.geometry = {i: MeshGeometry(m) for i, m in meshes.items()}
-        local = world.local_instances(self.id)
-        self.local = LocalGeometry(self.geometry, world.table, local)
-        is_local = np.zeros(len(world.table), bool)
-        is_local[local] = True
-        self.remote = np.flatnonzero(~is_local).astype(np.int32)
-        # Instances with one owner (not replicated): where camera rays may start.
-        self.owned = np.flatnonzero(world.owner != EVERYWHERE).astype(np.int32)
+        self._place()
         self._proxies, self._all_meshes = proxies or {}, all_meshes
         self.s: RenderSettings | None = None
         self.configure(config.settings)
         self.passes: dict[int, _PassState] = {}
         log.info("%r started in pid %d", self, os.getpid())
+
+    def _place(self) -> None:
+        """What follows from the world's instance table: the instances intersected here."""
+        local = self.world.local_instances(self.id)
+        self.local = LocalGeometry(self.geometry, self.world.table, local)
+        is_local = np.zeros(len(self.world.table), bool)
+        is_local[local] = True
+        self.remote = np.flatnonzero(~is_local).astype(np.int32)
+        # Instances with one owner (not replicated): where camera rays may start.
+        self.owned = np.flatnonzero(self.world.owner != EVERYWHERE).astype(np.int32)
+
+    def set_world(self, world: ShardWorld) -> int:
+        """Show another frame: swap the instance table and lights, keep the geometry (Embree
+        scenes) and proxies. The world must place the same meshes on the same shards (the
+        same owner and instance meshes), so what this shard holds stays right. Returns
+        the instance count."""
+        old = self.world
+        if not (np.array_equal(world.owner, old.owner)
+                and np.array_equal(world.table.mesh, old.table.mesh)):
+            raise ValueError(f"{self!r}: a new frame must keep each instance's mesh and owner")
+        self.world = world
+        self._place()
+        settings, self.s = self.s, None
+        self.configure(settings)  # the policy and integrator read the table and lights
+        return len(world.table)
 
     def configure(self, settings: RenderSettings) -> None:
         """Per-job settings (seed, bounces, knobs): cheap, the geometry stays."""

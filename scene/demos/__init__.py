@@ -1,7 +1,8 @@
-"""Procedural demo scenes (forest, city, sculpture), deterministic from a seed, in three sizes:
-"default" (>= 1M instanced triangles), "small" (~100k) and "tiny" (a few thousand, for tests),
-and forest in a fourth, "massive" (nprt.scene.demos.massive). Each builder module is imported
-when first built: opening a stored demo as metadata imports none (nor trimesh).
+"""Procedural demo scenes (forest, city, sculpture, and windy: the forest animated over 8
+frames), deterministic from a seed, in three sizes: "default" (>= 1M instanced
+triangles), "small" (~100k) and "tiny" (a few thousand, for tests), and forest in a
+fourth, "massive" (nprt.scene.demos.massive). Each builder module is imported when first
+built: opening a stored demo as metadata imports none (nor trimesh).
 """
 
 from __future__ import annotations
@@ -17,11 +18,13 @@ from nprt.scene.model import Scene
 log = logging.getLogger(__name__)
 
 DEMOS = {"forest": "nprt.scene.demos.forest", "city": "nprt.scene.demos.city",
-         "sculpture": "nprt.scene.demos.sculpture"}  # name -> module with build(size, seed)
+         "sculpture": "nprt.scene.demos.sculpture",
+         "windy": "nprt.scene.demos.windy"}  # name -> module with build(size, seed)
 SIZES = ("default", "small", "tiny", "massive")
 # "massive" (forest only: over 1 GiB of base meshes) is written once to the scene cache
 # and opened as metadata (nprt.scene.store.open_scene): no process but a shard holds it whole.
-DEMO_SIZES = {"forest": SIZES, "city": SIZES[:3], "sculpture": SIZES[:3]}
+DEMO_SIZES = {"forest": SIZES, "city": SIZES[:3], "sculpture": SIZES[:3],
+              "windy": SIZES[:3]}
 
 
 def check_demo(name: str, size: str) -> None:
@@ -34,7 +37,8 @@ def check_demo(name: str, size: str) -> None:
 
 def build_demo(name: str, size: str, seed: int, path: Path) -> Path:
     """Write demo `name` at `size` as a JSON scene at `path` (meshes as PLY beside it,
-    instances in an .npz): what `nprt.scene.store.materialize_demo` caches."""
+    instances in an .npz, an animation as keyframes): what
+    `nprt.scene.store.materialize_demo` caches."""
     from nprt.scene.io import save_scene
 
     check_demo(name, size)

@@ -1,16 +1,18 @@
-"""DELETE /v1/jobs/{id} and /v1/jobs/{id}/pixels (the linear image for the dashboard)."""
+"""DELETE /v1/jobs/{id}, /v1/jobs/{id}/pixels (the linear image for the dashboard) and
+/v1/jobs/{id}/frames/{f}.png|exr (each finished frame of a frames job)."""
 
 from __future__ import annotations
 
 import tempfile
-from pathlib import Path
+from pathlib import Path as FilePath
+from typing import Annotated
 
-from fastapi import APIRouter, Response, status
+from fastapi import APIRouter, Path, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from nprt.service import images
 from nprt.service.deps import ManagerDep, TokenDep
-from nprt.service.schemas import error_responses
+from nprt.service.schemas import MAX_FRAME, error_responses
 from nprt.workers.film import read_exr
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
@@ -27,7 +29,7 @@ def linear_pixels(manager, job_id: str):
     """((h, w, 3) float32 linear, partial): the job's image as EXR decoded."""
     data, partial = manager.image(job_id, "exr")
     with tempfile.TemporaryDirectory(prefix="nprt-px-") as d:
-        path = Path(d) / "image.exr"
+        path = FilePath(d) / "image.exr"
         path.write_bytes(data)
         return read_exr(path), partial
 
@@ -44,3 +46,27 @@ async def get_pixels(job_id: str, manager: ManagerDep) -> Response:
                     headers={"X-Nprt-Width": str(w), "X-Nprt-Height": str(h),
                              "X-Nprt-Partial": str(partial).lower(),
                              "Cache-Control": "no-store"})
+
+
+
+FrameDep = Annotated[int, Path(ge=0, le=MAX_FRAME, description="frame number")]
+
+
+async def _frame(manager, job_id: str, frame: int, fmt: str, media: str) -> Response:
+    data = await run_in_threadpool(manager.frame_image, job_id, frame, fmt)
+    return Response(data, media_type=media, headers={"Cache-Control": "no-store"})
+
+
+@router.get("/{job_id}/frames/{frame}.png", response_class=Response,
+            responses={200: {"content": {"image/png": {}}, "description": "sRGB PNG of one "
+                             "finished frame of a frames job"}} | error_responses(404))
+async def get_frame_png(job_id: str, frame: FrameDep, manager: ManagerDep) -> Response:
+    return await _frame(manager, job_id, frame, "png", "image/png")
+
+
+@router.get("/{job_id}/frames/{frame}.exr", response_class=Response,
+            responses={200: {"content": {"image/x-exr": {}}, "description": "linear float32 "
+                             "OpenEXR of one finished frame of a frames job"}}
+            | error_responses(404))
+async def get_frame_exr(job_id: str, frame: FrameDep, manager: ManagerDep) -> Response:
+    return await _frame(manager, job_id, frame, "exr", "image/x-exr")

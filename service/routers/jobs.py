@@ -7,6 +7,7 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Header, Query, Response, status
 from fastapi.concurrency import run_in_threadpool
+from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
 from sse_starlette.sse import EventSourceResponse
 
@@ -44,12 +45,14 @@ async def create_job(body: JobCreate, manager: ManagerDep, response: Response,
                      ] = None) -> JobPublic:
     """Store the job and queue it; rendering starts when a slot is free."""
     try:
-        rec, created = manager.submit(body.scene, body.render_settings(), idempotency_key)
+        frames = None if body.frames is None else (body.frames.first, body.frames.last)
+        rec, created = manager.submit(body.scene, body.render_settings(), idempotency_key,
+                                      frames)
     except InvalidJob as e:
         # Same answer as FastAPI's own validation errors, so clients see the field.
         raise RequestValidationError([
             {"type": "value_error", "loc": ["body", e.field], "msg": str(e),
-             "input": getattr(body, e.field)}]) from None
+             "input": jsonable_encoder(getattr(body, e.field))}]) from None
     response.headers["Location"] = f"/v1/jobs/{rec.id}"
     if not created:
         response.headers["Idempotent-Replayed"] = "true"

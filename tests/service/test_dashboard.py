@@ -301,3 +301,32 @@ def test_proxy_job_shards_phases_and_ab_view_against_exact(server, watched, api,
     assert _canvas_mean(page, "#error-map") > 0.0  # proxy pixels differ from exact ones
     page.screenshot(path=str(tmp_path / "ab-error-map.png"), full_page=True)
     watched.check_clean()
+
+
+def test_frames_job_page_has_a_frame_selector_showing_each_frame(server, watched, api,
+                                                                 tmp_path):
+    from playwright.sync_api import expect
+
+    r = api.post("/v1/jobs", json={"scene": "windy:tiny", **TINY,
+                                   "frames": {"first": 1, "last": 3}})
+    job = _done(api, r.json()["id"])
+    assert job["state"] == "succeeded", job["error"]
+    page = watched.page
+    page.goto(f"{server.url}/#/jobs/{job['id']}")
+    expect(page.locator("#frame-panel")).to_be_visible()
+    expect(page.locator("#frame-select option")).to_have_text(["1", "2", "3"])
+    shown = {}
+    for f in ("1", "3"):
+        page.select_option("#frame-select", f)
+        expect(page.locator("#frame-png-link")).to_have_attribute(
+            "href", f"/v1/jobs/{job['id']}/frames/{f}.png")
+        expect(page.locator("#frame-image")).to_be_visible()
+        page.wait_for_function("document.querySelector('#frame-image').naturalWidth == 32")
+        shown[f] = page.locator("#frame-image").screenshot()
+    page.screenshot(path=str(tmp_path / "frames.png"), full_page=True)
+    assert shown["1"] != shown["3"]  # another frame, another picture
+    assert not watched.errors and not watched.bad
+    plain = _done(api, api.post("/v1/jobs", json={"scene": "forest:tiny", **TINY}).json()["id"])
+    page.goto(f"{server.url}/#/jobs/{plain['id']}")
+    expect(page.locator("#job-state")).to_have_text("succeeded")
+    expect(page.locator("#frame-panel")).to_be_hidden()

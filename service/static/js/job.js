@@ -150,6 +150,45 @@ function explain(job) {
   box.hidden = !text;
 }
 
+// A frames job: pick a frame and see its stored image (the canvas above shows the frame
+// being rendered, tile by tile).
+function showFrames(job) {
+  const panel = $("#frame-panel");
+  panel.hidden = !job.frames;
+  if (!job.frames) return;
+  const select = $("#frame-select");
+  const { first, last } = job.frames;
+  if (select.dataset.job !== job.id) {
+    select.dataset.job = job.id;
+    select.replaceChildren();
+    for (let f = first; f <= last; f++) select.append(new Option(String(f), String(f)));
+    select.value = String(first);
+    loadFrame(job.id, first);
+  } else if (job.state === "succeeded" || $("#frame-image").hidden) {
+    loadFrame(job.id, Number(select.value));
+  }
+}
+
+async function loadFrame(id, frame) {
+  $("#frame-png-link").href = `/v1/jobs/${id}/frames/${frame}.png`;
+  $("#frame-exr-link").href = `/v1/jobs/${id}/frames/${frame}.exr`;
+  const img = $("#frame-image");
+  const status = $("#frame-status");
+  const r = await fetch(`/v1/jobs/${id}/frames/${frame}.png`, { headers: authHeaders(), cache: "no-store" });
+  if (current?.id !== id) return;
+  if (!r.ok) {
+    img.hidden = true;
+    status.textContent = r.status === 404 ? `frame ${frame} is not rendered yet` : `frame ${frame}: ${r.status}`;
+    return;
+  }
+  if (img.src.startsWith("blob:")) URL.revokeObjectURL(img.src);
+  img.src = URL.createObjectURL(await r.blob());
+  img.hidden = false;
+  status.textContent = "";
+}
+
+$("#frame-select").addEventListener("change", (ev) => { if (current) loadFrame(current.id, Number(ev.target.value)); });
+
 function showJob(job) {
   const prev = current?.state;
   current = job;
@@ -165,6 +204,7 @@ function showJob(job) {
   $("#png-link").href = `/v1/jobs/${job.id}/image.png`;
   $("#exr-link").href = `/v1/jobs/${job.id}/image.exr`;
   explain(job);
+  showFrames(job);
   showSettings(job);
   showTimes(job);
   showShards(job);
@@ -192,7 +232,7 @@ $("#cancel-button").addEventListener("click", () => action(async () => {
 
 // Requeue: the same scene and settings as a new job.
 $("#requeue-button").addEventListener("click", () => action(async () => {
-  const body = { scene: current.scene, ...current.settings };
+  const body = { scene: current.scene, ...current.settings, frames: current.frames };
   const job = await api("/v1/jobs", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
   location.hash = `#/jobs/${job.id}`;
 }));
