@@ -1,6 +1,8 @@
 """Animated scenes (issue 10, item 4): every frame of the distributed render equals the
 reference; a moving instance changes the image where it is and nowhere else; across
-frames the shard pool keeps its actors, geometry and proxies (nothing is retrained)."""
+frames the shard pool keeps its actors, geometry and proxies (nothing is retrained).
+The distributed renders run on what `nprt render --shards K` and the service use: the
+scene's metadata from the scene store (`open_scene`), the driver reading no mesh."""
 
 from __future__ import annotations
 
@@ -14,26 +16,38 @@ import trimesh
 from nprt.proxies import cache as proxy_cache
 from nprt.scene.demos import make_demo
 from nprt.scene.io import load_scene
-from nprt.workers import pool as pool_module
+from nprt.scene.meta import SceneMeta
+from nprt.scene.store import open_scene
+from nprt.workers import placement
 from nprt.workers.coordinator import Coordinator
 from nprt.workers.frames import render_frames
 from nprt.workers.pool import PoolRegistry
 from nprt.workers.render import render
-from tests.distributed.helpers import assert_matches, reference, settings
+from tests.distributed.helpers import assert_matches, reference, refuse_mesh_reads, settings
 
 
 @pytest.fixture(scope="module")
-def windy():
-    return make_demo("windy", "small")
+def windy(tmp_path_factory):
+    """windy:small as the distributed path opens it: written once to a scene cache (its
+    animation as keyframes) and read back as metadata, no mesh in this process."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("NPRT_SCENE_CACHE", str(tmp_path_factory.mktemp("scenes")))
+        meta = open_scene("windy:small")
+    assert isinstance(meta, SceneMeta) and meta.frames == 8
+    return meta
 
 
 def _images(scene, s, frames, **kw) -> dict:
     return {d.frame: d.result.film.image() for d in render_frames(scene, s, frames, **kw)}
 
 
-def test_exact_equals_the_reference_on_every_frame(ray_local, windy, tmp_path):
+def test_exact_equals_the_reference_on_every_frame(ray_local, windy, monkeypatch, tmp_path):
+    """The reference renders the demo as built in memory; K = 3 renders its stored
+    metadata, each frame's instance table and lights sent to the shards by the driver,
+    which reads no mesh: equal on all 8 frames."""
     frames = range(windy.frames)
-    ref = _images(windy, settings(0), frames)
+    ref = _images(make_demo("windy", "small"), settings(0), frames)
+    refuse_mesh_reads(monkeypatch)
     got = _images(windy, settings(3), frames)
     for f in frames:
         assert_matches(tmp_path, f"windy_f{f}", got[f], ref[f])
@@ -53,8 +67,8 @@ def test_proxy_frames_train_nothing_after_the_first(ray_local, windy, monkeypatc
 
     counting("get", lookups)
     counting("get_or_train", trained)
-    real_plan = pool_module.make_plan
-    monkeypatch.setattr(pool_module, "make_plan",
+    real_plan = placement.make_plan
+    monkeypatch.setattr(placement, "make_plan",
                         lambda *a, **kw: plans.append(1) or real_plan(*a, **kw))
     pools = PoolRegistry()
     seen, pids = [], []
@@ -98,7 +112,7 @@ def _moving_box_scene(tmp_path):
             {"frame": 2, "translate": [BOX_X[1], 1, 0]}]}},
     }
     (tmp_path / "box.json").write_text(json.dumps(doc))
-    return load_scene(tmp_path / "box.json")
+    return tmp_path / "box.json"
 
 
 def _screen_box(cam, w: int, h: int, lo, hi, pad: int = 2) -> tuple[slice, slice]:
@@ -122,7 +136,10 @@ def _screen_box(cam, w: int, h: int, lo, hi, pad: int = 2) -> tuple[slice, slice
 @pytest.mark.parametrize("k", [0, 2], ids=["reference", "k2"])
 def test_moving_an_instance_changes_the_image_only_where_it_was_and_is(ray_local, tmp_path,
                                                                        k):
-    scene = _moving_box_scene(tmp_path)
+    path = _moving_box_scene(tmp_path)
+    # The reference loads the scene whole; the shards get its metadata (linear keyframes
+    # sampled from the file alone) and load the meshes themselves.
+    scene = load_scene(path) if k == 0 else open_scene(path)
     s = settings(k, width=64, height=48, spp=2, bounces=1)
     img = _images(scene, s, [0, 2])
     changed = np.abs(img[0] - img[2]).max(axis=2) > 0  # (h, w)
@@ -141,7 +158,7 @@ def test_a_shard_killed_on_a_later_frame_is_shown_that_frame_again(ray_local, wi
     it the frame being rendered before re-running the lost passes."""
     s = settings(3, tile_size=16)
     at = windy.at_frame(5)
-    ref = reference(at, s).film.image()
+    ref = reference(at, s).film.image()  # loads the stored scene whole, on frame 5
     coord = Coordinator(windy, s)
     killed, dispatch = [], coord._dispatch
 
