@@ -5,6 +5,7 @@ writes one numbered file per frame."""
 from __future__ import annotations
 
 import grpc
+import httpx
 import numpy as np
 import pytest
 
@@ -19,7 +20,8 @@ from nprt.service.store import TERMINAL, JobStore
 from nprt.workers.passes import count_passes
 from nprt.workers.render import render
 from nprt.workers.settings import RenderSettings
-from tests.service.helpers import TINY, png_pixels, settings_for, wait_for
+from nprt.scene.meta import SceneMeta
+from tests.service.helpers import TINY, LiveServer, png_pixels, settings_for, wait_for
 
 FRAMES = {"first": 2, "last": 4}
 
@@ -165,3 +167,30 @@ def test_nprt_scenes_lists_the_animated_demo_with_its_frames(capsys):
     rows = {line.split("|")[1].strip(): line for line in capsys.readouterr().out.splitlines()
             if line.startswith("| ")}
     assert rows["windy"].rstrip(" |").endswith("8") and rows["forest"].rstrip(" |").endswith("1")
+
+
+@pytest.mark.slow
+def test_a_sharded_frames_job_renders_the_stored_scene_on_one_pool(tmp_path):
+    """The service opens windy:tiny as metadata (the scene store); a K = 2 exact frames
+    job shows each frame to one pool of shards and matches the reference job frame by
+    frame."""
+    pytest.importorskip("ray")
+    with LiveServer(settings_for(tmp_path, max_concurrent_jobs=1)) as server, \
+            httpx.Client(base_url=server.url, timeout=30.0) as client:
+        manager = server.app.state.manager
+        assert isinstance(manager.scenes.load("windy:tiny"), SceneMeta)
+        jobs = {k: client.post("/v1/jobs", json={"scene": "windy:tiny", **TINY, "shards": k,
+                                                 "frames": {"first": 0, "last": 2}}
+                               ).json()["id"] for k in (0, 2)}
+        done = {k: _finished(client, j) for k, j in jobs.items()}
+        assert [d["state"] for d in done.values()] == ["succeeded"] * 2, done
+        assert done[2]["stats"]["renderer"] == "distributed"
+        assert manager.pools.started == 1  # one pool for the three frames
+        got = {}
+        for f in range(3):
+            ref, img = (png_pixels(client.get(f"/v1/jobs/{jobs[k]}/frames/{f}.png").content)
+                        .astype(int) for k in (0, 2))
+            # Float summation order differs between shards: allow one 8-bit step.
+            assert np.abs(img - ref).max() <= 1, f"frame {f}: 2 shards differ"
+            got[f] = img
+        assert not np.array_equal(got[0], got[2])  # the frames differ: the check can fail
