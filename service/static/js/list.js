@@ -118,8 +118,8 @@ $("#upload-form").addEventListener("submit", async (ev) => {
   try {
     const scene = await api("/v1/scenes", { method: "POST", body: form });
     const s = scene.summary || {};
+    await loadScenes(scene.id); // selected before the status says so (the page test reads it)
     status.textContent = `uploaded ${file.name} as scene ${shortId(scene.id)}: ${fmtInt(s.instances ?? 0)} instances of ${fmtInt(s.base_meshes ?? 0)} meshes`;
-    await loadScenes(scene.id);
   } catch (e) {
     status.textContent = e.message;
     status.className = "error";
