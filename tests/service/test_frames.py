@@ -12,6 +12,7 @@ import pytest
 from nprt.protos import nprt_pb2 as pb
 from nprt.protos import nprt_pb2_grpc
 from nprt.scene.demos import make_demo
+from nprt.scene.meta import SceneMeta
 from nprt.service import images
 from nprt.service.cli import main
 from nprt.service.manager import JobManager
@@ -20,7 +21,6 @@ from nprt.service.store import TERMINAL, JobStore
 from nprt.workers.passes import count_passes
 from nprt.workers.render import render
 from nprt.workers.settings import RenderSettings
-from nprt.scene.meta import SceneMeta
 from tests.service.helpers import TINY, LiveServer, png_pixels, settings_for, wait_for
 
 FRAMES = {"first": 2, "last": 4}
