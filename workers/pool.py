@@ -61,7 +61,7 @@ def make_plan(scene: Scene, part, settings: RenderSettings, proxy_dir=None, trai
     knobs = settings.proxy
     return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,
                         cache=ProxyCache(proxy_dir), train=train,
-                        config=ProxyConfig(budget_s=knobs.budget_s),
+                        config=ProxyConfig(steps=knobs.steps),
                         widths=DEFAULT_WIDTHS if knobs.width is None else (knobs.width,))
 
 
@@ -80,7 +80,7 @@ def pool_key(scene: Scene, settings: RenderSettings) -> str:
         if mat.texture is not None:
             h.update(np.ascontiguousarray(mat.texture).tobytes())
     p = settings.proxy
-    placement = (settings.shards, settings.mode, p.accuracy_target, p.width, p.budget_s)
+    placement = (settings.shards, settings.mode, p.accuracy_target, p.width, p.steps)
     h.update(repr(placement).encode())
     return h.hexdigest()
 
