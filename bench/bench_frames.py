@@ -4,9 +4,9 @@ proxy K each render every frame on one renderer made once.
 
 Per configuration: the first frame's seconds (renderer start-up: shard actors, proxy plan,
 kernel warm-up; plus its render) against the mean of the later frames (an instance table
-and lights swap plus the render), the proxy cache lookups and trainings the driver made
-during each frame (the plan is made once, when the pool starts: later frames must make
-none), the shard actors' pids (the same on every frame) and, for exact, the largest
+and lights swap plus the render), the planner's proxy-cache lookups and the meshes sent to
+training tasks during each frame (the plan is made once, when the pool starts: later
+frames must make none), the shard actors' pids (the same on every frame) and, for exact, the largest
 relative error against the reference over the frames (exact mode equals the reference).
 
     python -m bench.bench_frames                  # windy default, 160x120, 4 spp, K = 4
@@ -14,8 +14,8 @@ relative error against the reference over the frames (exact mode equals the refe
     python -m bench.bench_frames --train-proxies 10   # adds proxy K trained from scratch
 
 The shipped proxies cover the demo's meshes, so plain proxy mode trains nothing at all;
---train-proxies B adds a proxy configuration on an empty cache without the shipped ones
-(width 16, B seconds of training each), so its first frame trains every proxy it needs.
+--train-proxies B adds a proxy configuration none is shipped for (width 16, B seconds of
+training each) on an empty cache, so its pool trains every proxy it needs (Ray tasks).
 """
 
 from __future__ import annotations
@@ -38,8 +38,10 @@ from bench.common import (
     replace_section,
     save,
 )
-from nprt.proxies import cache as proxy_cache
+from nprt.proxies.cache import ProxyCache
+from nprt.proxies.tasks import RayTrainer
 from nprt.scene.demos import make_demo
+from nprt.scene.store import open_scene
 from nprt.workers.frames import render_frames
 from nprt.workers.render import make_renderer
 from nprt.workers.settings import ProxySettings
@@ -47,47 +49,39 @@ from nprt.workers.settings import ProxySettings
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-class CacheCalls:
-    """Counts ProxyCache.get (lookups) and get_or_train (trainings on a miss) in this
-    process, where the pool plans its proxies. fresh_dir: every cache made meanwhile uses
-    this folder and not the shipped proxies."""
+class ProxyCalls:
+    """Counts, in this driver, the planner's proxy-cache lookups and the meshes sent to
+    training tasks (`RayTrainer`): a pool plans and trains there, and nowhere else."""
 
-    def __init__(self, fresh_dir: Path | None = None):
+    def __init__(self):
         self.lookups = self.trainings = 0
-        self.fresh_dir = fresh_dir
-        cls = proxy_cache.ProxyCache
-        self._real = cls.get, cls.get_or_train, cls.__init__
+        self._real = ProxyCache.get, RayTrainer.__call__
 
-    def __enter__(self) -> CacheCalls:
-        get, train, init = self._real
-        if self.fresh_dir is not None:
-            proxy_cache.ProxyCache.__init__ = lambda cache, dir=None, shipped_dir=None, \
-                threads=1: init(cache, self.fresh_dir, None, threads)
+    def __enter__(self) -> ProxyCalls:
+        get, call = self._real
 
         def counted_get(cache, *a, **kw):
             self.lookups += 1
             return get(cache, *a, **kw)
 
-        def counted_train(cache, *a, **kw):
-            self.trainings += 1
-            return train(cache, *a, **kw)
+        def counted_call(trainer, meshes, *a, **kw):
+            self.trainings += len(meshes)
+            return call(trainer, meshes, *a, **kw)
 
-        proxy_cache.ProxyCache.get, proxy_cache.ProxyCache.get_or_train = counted_get, \
-            counted_train
+        ProxyCache.get, RayTrainer.__call__ = counted_get, counted_call
         return self
 
     def __exit__(self, *exc) -> None:
-        cls = proxy_cache.ProxyCache
-        cls.get, cls.get_or_train, cls.__init__ = self._real
+        ProxyCache.get, RayTrainer.__call__ = self._real
 
 
 def run_config(scene, s, fresh_dir: Path | None = None) -> tuple[dict, dict]:
     """One configuration over every frame (fresh_dir: train proxies into this empty
-    cache). Returns (row, {frame: image (h, w, 3)})."""
+    cache; their config is not a shipped one). Returns (row, {frame: image (h, w, 3)})."""
     images, frames = {}, []
-    with CacheCalls(fresh_dir) as calls:
+    with ProxyCalls() as calls:
         t0 = time.perf_counter()
-        renderer = make_renderer(scene, s)
+        renderer = make_renderer(scene, s, proxy_dir=fresh_dir)
         setup_s = time.perf_counter() - t0
         try:
             before = (calls.lookups, calls.trainings)
@@ -139,8 +133,10 @@ def markdown(res: dict) -> str:
         f"`{res['scene']['name']}` ({res['scene']['instances']} instances, "
         f"{res['moving']} moving, and the sun), {s['width']}x{s['height']}, {s['spp']} spp, "
         f"{s['bounces']} bounces. Proxy mode uses the shipped proxies"
-        + (f"; *proxy (trained)* an empty cache without them, training each proxy it needs "
-           f"(width 16, {train:g} s each) while its pool starts." if train else "."),
+        + (f"; *proxy (trained)* a configuration none is shipped for (width 16, {train:g} s "
+           f"of training each) on an empty cache, so its pool trains each proxy it needs as "
+           f"Ray tasks while it starts. Shards open the scene as metadata from the scene "
+           f"cache; the reference renders it in memory." if train else "."),
         "",
         "| renderer | K | first frame s (set-up + render) | later frames s (mean) | later / first "
         "| render s: first / later mean | proxy lookups / trainings: set-up, after frame 0 "
@@ -192,7 +188,8 @@ def main(argv=None) -> int:
                     help="also proxy mode with proxies trained from scratch, B s each")
     add_render_flags(ap, RESULTS)
     args = ap.parse_args(argv)
-    scene = make_demo("windy", args.size)
+    scene = make_demo("windy", args.size)  # the reference renders it in memory
+    stored = open_scene(f"windy:{args.size}")  # shards: metadata, as the service does
     ray.init(num_cpus=args.ray_cpus or args.shards, include_dashboard=False,
              log_to_driver=False, logging_level=logging.WARNING)
     try:
@@ -211,7 +208,8 @@ def main(argv=None) -> int:
             with tempfile.TemporaryDirectory(prefix="nprt-bench-proxies-") as fresh:
                 if budget:
                     s = s.model_copy(update={"proxy": ProxySettings(width=16, budget_s=budget)})
-                row, images = run_config(scene, s, Path(fresh) if budget else None)
+                row, images = run_config(stored if k else scene, s,
+                                         Path(fresh) if budget else None)
             if k == 0:
                 ref = images
             elif mode == "exact":
