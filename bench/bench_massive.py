@@ -3,7 +3,7 @@ K = 4 and K = 8 by drivers that hold no geometry, and its proxies trained as par
 tasks against one after another, all in one run on one local Ray.
 
 Each render runs in its own driver process (joining this run's Ray), so its peak
-resident memory (ru_maxrss) is the driver's alone; it is reported whole and above the
+resident memory (VmHWM) is the driver's alone; it is reported whole and above the
 driver's own baseline (after its imports and joining Ray, before opening the scene).
 Training uses a short non-default budget (so the shipped proxies are not found) and one
 width, the same for both schedules.
@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -29,7 +28,13 @@ BEGIN, END = "<!-- bench_massive:begin -->", "<!-- bench_massive:end -->"
 
 
 def _rss_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
+    """Peak resident memory of this process's own address space (VmHWM, MB). Not
+    ru_maxrss: Linux carries a parent's RSS at fork across exec into it, so a driver
+    spawned by a parent that just generated the scene would report the parent's peak."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024  # kB
+    raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
 
 
 def driver(args) -> int:
@@ -166,7 +171,7 @@ def markdown(res: dict) -> str:
         f"{res['settings']['width']}x{res['settings']['height']}, {res['settings']['spp']} spp, "
         f"{res['settings']['bounces']} bounces, exact; {res['cpus']} cores, load average "
         f"{res['load_average_before'][0]:.1f} before and {res['load_average_after'][0]:.1f} "
-        f"after (other agents' work shared the machine).",
+        f"after.",
         "",
         "| K | driver peak RSS MB | share of mesh bytes | above the driver's baseline | "
         "largest shard geometry | share | shard load s (max) | prepare s | render s |",
