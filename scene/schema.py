@@ -61,22 +61,27 @@ class MeshSpec(_Strict):
         return self
 
 
-class InstanceSpec(_Strict):
-    """A placement: a 4x4 row-major `transform`, or translate/rotate/scale composed as
+class _PoseSpec(_Strict):
+    """A pose: a 4x4 row-major `transform`, or translate/rotate/scale composed as
     T @ R @ S with `rotate_deg` Euler angles applied about x, then y, then z."""
 
-    mesh: Ref
     transform: tuple[Row4, Row4, Row4, Row4] | None = None
     translate: Vec3 | None = None
     rotate_deg: Vec3 | None = None
     scale: Finite | Vec3 | None = None
 
     @model_validator(mode="after")
-    def _one_form(self) -> InstanceSpec:
+    def _one_form(self) -> _PoseSpec:
         trs = self.translate is not None or self.rotate_deg is not None or self.scale is not None
         if self.transform is not None and trs:  # no generator: runs once per instance
             raise ValueError("give either 'transform' or translate/rotate_deg/scale, not both")
         return self
+
+
+class InstanceSpec(_PoseSpec):
+    """A placement of mesh `mesh` (the pose fields of `_PoseSpec`)."""
+
+    mesh: Ref
 
 
 class InstanceFileSpec(_Strict):
@@ -160,23 +165,11 @@ class CameraSpec(_Strict):
         return self
 
 
-class InstanceKeySpec(_Strict):
-    """One key of an instance's track: its pose on `frame`, a 4x4 row-major `transform`
-    (without shear) or translate/rotate_deg/scale as in `InstanceSpec` (unset parts are
-    identity)."""
+class InstanceKeySpec(_PoseSpec):
+    """One key of an instance's track: its pose on `frame` (a `transform` without shear,
+    or translate/rotate_deg/scale; unset parts are identity)."""
 
     frame: Index
-    transform: tuple[Row4, Row4, Row4, Row4] | None = None
-    translate: Vec3 | None = None
-    rotate_deg: Vec3 | None = None
-    scale: Finite | Vec3 | None = None
-
-    @model_validator(mode="after")
-    def _one_form(self) -> InstanceKeySpec:
-        trs = self.translate is not None or self.rotate_deg is not None or self.scale is not None
-        if self.transform is not None and trs:
-            raise ValueError("give either 'transform' or translate/rotate_deg/scale, not both")
-        return self
 
 
 class LightKeySpec(_Strict):
