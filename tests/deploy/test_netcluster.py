@@ -55,8 +55,10 @@ def test_up_render_on_two_nodes_down_leaves_nothing(tmp_path):
     assert cluster.leftovers() == []
 
 
+# The driver speaks on its own pipe (fd argv[4]): Ray forwards worker and raylet logs to the
+# driver's stdout, and a raylet's death notice can land in the middle of a line there.
 _FAILURE_DRIVER = """
-import json, sys
+import json, os, sys
 import numpy as np
 from nprt.scene.demos import make_demo
 from nprt.workers.render import render
@@ -64,15 +66,18 @@ from nprt.workers.settings import RenderSettings
 
 scene = make_demo("sculpture", "small")
 s = RenderSettings.model_validate_json(sys.argv[2])
+channel = os.fdopen(int(sys.argv[4]), "w")
+def say(msg):
+    print(json.dumps(msg), file=channel, flush=True)
 def on_pass(done):
-    print(json.dumps({"pass": done.progress.count, "of": done.total}), flush=True)
+    say({"pass": done.progress.count, "of": done.total})
 try:
     res = render(scene, s, on_pass=on_pass, ray_address=sys.argv[1])
 except Exception as e:
-    print(json.dumps({"error": f"{type(e).__name__}: {e}"}), flush=True)
+    say({"error": f"{type(e).__name__}: {e}"})
     sys.exit(3)
 np.save(sys.argv[3], res.film.image())
-print(json.dumps({"done": True}), flush=True)
+say({"done": True})
 """
 
 
@@ -91,17 +96,21 @@ def test_killing_a_node_mid_render_gives_the_same_image_or_a_clear_error(tmp_pat
     try:
         address = cluster.up("1gbit")
         out, err = tmp_path / "image.npy", tmp_path / "driver.err"
-        with err.open("w") as err_file:  # a file: a full stderr pipe would block the driver
+        read_fd, write_fd = os.pipe()
+        with err.open("w") as err_file:  # a file: a full output pipe would block the driver
             driver = subprocess.Popen(
-                [sys.executable, "-c", _FAILURE_DRIVER, address, s.model_dump_json(), str(out)],
-                env=_env(), stdout=subprocess.PIPE, stderr=err_file, text=True, cwd=REPO)
+                [sys.executable, "-c", _FAILURE_DRIVER, address, s.model_dump_json(), str(out),
+                 str(write_fd)],
+                env=_env(), stdout=err_file, stderr=err_file, pass_fds=(write_fd,), cwd=REPO)
+        os.close(write_fd)  # the child holds the only write end: EOF when it exits
         try:
             killed, lines = None, []
-            for line in driver.stdout:  # the timeout marker ends a render that hangs
-                lines.append(line)
-                msg = json.loads(line) if line.startswith("{") else {}
-                if killed is None and msg.get("pass", 0) >= 3:
-                    killed = _kill_a_shard_node(cluster)
+            with os.fdopen(read_fd) as channel:
+                for line in channel:  # the timeout marker ends a render that hangs
+                    lines.append(line)
+                    msg = json.loads(line)
+                    if killed is None and msg.get("pass", 0) >= 3:
+                        killed = _kill_a_shard_node(cluster)
             rc = driver.wait(timeout=HANG_GUARD_S)
         finally:
             if driver.poll() is None:
