@@ -13,11 +13,12 @@ import numpy as np
 
 from nprt.workers.batch import FLAG_EXACT, FLAG_TARGETED, SECONDARY, RayBatch, ShadowRayBatch
 from nprt.workers.local import LocalGeometry
+from nprt.workers.protocol import EVERYWHERE
 from nprt.workers.proxy_query import predict
 from nprt.workers.routing import DONE, route_exact, route_shadow_exact
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats import SplitStats
-from nprt.workers.world import EVERYWHERE, ShardWorld
+from nprt.workers.world import ShardWorld
 
 
 class ExactPolicy:
