@@ -93,10 +93,12 @@ def _bare(args, address: str, tmp: Path) -> float:
     return json.loads(report.read_text())["rss_peak_mb"]
 
 
-def _render(k: int, args, address: str, tmp: Path) -> tuple[dict, np.ndarray]:
-    image, report = tmp / f"k{k}.npy", tmp / f"k{k}.json"
+def _render(k: int, args, address: str, tmp: Path, scene: str | None = None
+            ) -> tuple[dict, np.ndarray]:
+    scene = scene or args.scene
+    image, report = tmp / f"{scene}-k{k}.npy", tmp / f"{scene}-k{k}.json"
     cmd = [sys.executable, "-m", "bench.bench_massive", "--driver", str(k), "--address",
-           address, "--image", str(image), "--report", str(report), "--scene", args.scene,
+           address, "--image", str(image), "--report", str(report), "--scene", scene,
            "--width", str(args.width), "--height", str(args.height), "--spp", str(args.spp),
            "--bounces", str(args.bounces)]
     subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -118,6 +120,9 @@ def _train(meta, parallel: bool, args, tmp: Path) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.bench_massive", description=__doc__)
     ap.add_argument("--scene", default="forest:massive")
+    ap.add_argument("--small-scene", default="forest:default",
+                    help="the same driver on a small scene: its peak RSS against the "
+                         "massive one's shows what grows with mesh bytes")
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--height", type=int, default=48)
     ap.add_argument("--spp", type=int, default=1)
@@ -155,6 +160,7 @@ def main(argv=None) -> int:
             address = ray.get_runtime_context().gcs_address
             bare_mb = _bare(args, address, tmp)
             renders = {k: _render(k, args, address, tmp) for k in (4, 8)}
+            small, _ = _render(4, args, address, tmp, args.small_scene)
         finally:
             ray.shutdown()
         # Training on as many Ray CPUs as real cores: budgets are wall-clock, so more
@@ -175,6 +181,9 @@ def main(argv=None) -> int:
                    "max_shard_share": round(max(rep["shard_geometry_bytes"]) / mesh_bytes, 4)}
     res = {"scene": args.scene, "summary": meta.summary(), "open_s": round(open_s, 2),
            "bare_ray_driver_mb": bare_mb,
+           "small_scene": {"scene": args.small_scene, "k": 4,
+                           "mesh_bytes": small["mesh_bytes"],
+                           "rss_peak_mb": small["rss_peak_mb"]},
            "bare_ray_driver_share": round(bare_mb * 2**20 / mesh_bytes, 4),
            "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "bounces",
                                                       "train_budget_s", "train_width",
@@ -208,7 +217,11 @@ def markdown(res: dict) -> str:
         "",
         f"A bare Ray driver (import Ray, join, nothing else) peaks at "
         f"**{res['bare_ray_driver_mb']:.0f} MB, {100 * res['bare_ray_driver_share']:.1f} %** "
-        f"of the mesh bytes: the floor of any driver on this Ray.",
+        f"of the mesh bytes: the floor of any driver on this Ray. The same K = 4 driver "
+        f"on `{res['small_scene']['scene']}` "
+        f"({res['small_scene']['mesh_bytes'] / 1e6:.1f} MB of meshes, "
+        f"{mb / res['small_scene']['mesh_bytes']:.0f}x fewer) peaks at "
+        f"**{res['small_scene']['rss_peak_mb']:.0f} MB**.",
         "",
         "| K | driver peak RSS MB | share of mesh bytes | above a bare Ray driver | "
         "above the driver's baseline | tracing libraries imported | "
