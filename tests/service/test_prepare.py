@@ -15,7 +15,7 @@ import nprt.workers.coordinator as coordinator  # noqa: E402
 import nprt.workers.pool as pool  # noqa: E402
 from nprt.scene.demos import make_demo  # noqa: E402
 from nprt.workers.settings import RenderSettings  # noqa: E402
-from nprt.workers.shard import Shard  # noqa: E402
+from nprt.workers.remote import ShardActor  # noqa: E402
 
 pytestmark = pytest.mark.slow
 SETTINGS = RenderSettings(width=16, height=16, spp=1, bounces=1, shadow_rays=1, tile_size=16,
@@ -46,13 +46,13 @@ def _assert_nothing_left(class_name: str) -> None:
 
 def test_shard_raising_in_its_constructor_fails_the_start_and_leaves_nothing(
         local_ray, monkeypatch):
-    class RaisingShard(Shard):
+    class RaisingShard(ShardActor):
         def __init__(self, config, *args):
             if config.shard_id == 1:
                 raise MemoryError("simulated: no memory for the mesh BVH")
             super().__init__(config, *args)
 
-    monkeypatch.setattr(pool, "Shard", RaisingShard)
+    monkeypatch.setattr(pool, "ShardActor", RaisingShard)
     with pytest.raises(pool.ShardStartError) as e:
         coordinator.Coordinator(make_demo("forest", "tiny"), SETTINGS)
     assert str(e.value).startswith("shard 1 did not start: ")
@@ -62,13 +62,13 @@ def test_shard_raising_in_its_constructor_fails_the_start_and_leaves_nothing(
 
 def test_shard_dying_in_its_constructor_is_restarted_a_bounded_number_of_times(
         local_ray, monkeypatch):
-    class DyingShard(Shard):
+    class DyingShard(ShardActor):
         def __init__(self, config, *args):
             if config.shard_id == 0:
                 os._exit(1)  # as the kernel's OOM killer would
             super().__init__(config, *args)
 
-    monkeypatch.setattr(pool, "Shard", DyingShard)
+    monkeypatch.setattr(pool, "ShardActor", DyingShard)
     with pytest.raises(pool.ShardStartError, match="shard 0 did not start: "):
         coordinator.Coordinator(make_demo("forest", "tiny"), SETTINGS)
     _assert_nothing_left("DyingShard")
