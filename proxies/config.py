@@ -45,7 +45,7 @@ class ProxyConfig:
     encoding: str = "line"
     n_samples: int = 1 << 19
     grid: int = 128
-    steps: int = 6000
+    steps: int = 12000  # calibrated against the 45 s proxies: bench/README.md
     batch_size: int = 4096
     seed: int = 0
     eval_samples: int = 1 << 16
