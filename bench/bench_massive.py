@@ -3,8 +3,10 @@ K = 4 and K = 8 by drivers that hold no geometry, and its proxies trained as par
 tasks against one after another, all in one run on one local Ray.
 
 Each render runs in its own driver process (joining this run's Ray), so its peak
-resident memory (VmHWM) is the driver's alone; it is reported whole and above the
-driver's own baseline (after its imports and joining Ray, before opening the scene).
+resident memory (VmHWM) is the driver's alone; it is reported whole, above the driver's
+own baseline (after its imports and joining Ray, before opening the scene), and beside a
+bare Ray driver's (a process that imports Ray and joins it, nothing else): the floor no
+Ray driver goes below, whatever the scene.
 Training uses a short non-default budget (so the shipped proxies are not found) and one
 width, the same for both schedules.
 """
@@ -37,6 +39,19 @@ def _rss_mb() -> float:
     raise RuntimeError("no VmHWM in /proc/self/status (Linux only)")
 
 
+TRACING_LIBRARIES = ("numba", "llvmlite", "embreex", "onnxruntime", "trimesh", "torch")
+
+
+def bare_driver(args) -> int:
+    """Import Ray, join it, report the peak RSS: the floor of any Ray driver."""
+    import ray
+
+    ray.init(address=args.address, log_to_driver=False)
+    Path(args.report).write_text(json.dumps({"rss_peak_mb": round(_rss_mb(), 1)}))
+    ray.shutdown()
+    return 0
+
+
 def driver(args) -> int:
     """One render, in this process: open the scene as metadata, render, report."""
     import ray
@@ -63,15 +78,27 @@ def driver(args) -> int:
         "shard_geometry_bytes": info["shard_geometry_bytes"],
         "shard_meshes": [sh["meshes"] for sh in info["shard_stats"]],
         "shard_load_s": [sh["load_s"] for sh in info["shard_stats"]],
-        "mesh_bytes": meta.mesh_bytes, "summary": meta.summary()}))
+        "mesh_bytes": meta.mesh_bytes, "summary": meta.summary(),
+        "tracing_libraries": sorted({m.split(".")[0] for m in sys.modules}
+                                    & set(TRACING_LIBRARIES))}))
     ray.shutdown()
     return 0
 
 
-def _render(k: int, args, address: str, tmp: Path) -> tuple[dict, np.ndarray]:
-    image, report = tmp / f"k{k}.npy", tmp / f"k{k}.json"
+def _bare(args, address: str, tmp: Path) -> float:
+    report = tmp / "bare.json"
+    cmd = [sys.executable, "-m", "bench.bench_massive", "--bare", "--address", address,
+           "--report", str(report)]
+    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    return json.loads(report.read_text())["rss_peak_mb"]
+
+
+def _render(k: int, args, address: str, tmp: Path, scene: str | None = None
+            ) -> tuple[dict, np.ndarray]:
+    scene = scene or args.scene
+    image, report = tmp / f"{scene}-k{k}.npy", tmp / f"{scene}-k{k}.json"
     cmd = [sys.executable, "-m", "bench.bench_massive", "--driver", str(k), "--address",
-           address, "--image", str(image), "--report", str(report), "--scene", args.scene,
+           address, "--image", str(image), "--report", str(report), "--scene", scene,
            "--width", str(args.width), "--height", str(args.height), "--spp", str(args.spp),
            "--bounces", str(args.bounces)]
     subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
@@ -93,6 +120,9 @@ def _train(meta, parallel: bool, args, tmp: Path) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.bench_massive", description=__doc__)
     ap.add_argument("--scene", default="forest:massive")
+    ap.add_argument("--small-scene", default="forest:default",
+                    help="the same driver on a small scene: its peak RSS against the "
+                         "massive one's shows what grows with mesh bytes")
     ap.add_argument("--width", type=int, default=64)
     ap.add_argument("--height", type=int, default=48)
     ap.add_argument("--spp", type=int, default=1)
@@ -104,10 +134,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_massive.json")
     ap.add_argument("--no-readme", action="store_true")
     ap.add_argument("--driver", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--bare", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--address", help=argparse.SUPPRESS)
     ap.add_argument("--image", help=argparse.SUPPRESS)
     ap.add_argument("--report", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    if args.bare:
+        return bare_driver(args)
     if args.driver:
         return driver(args)
 
@@ -125,7 +158,9 @@ def main(argv=None) -> int:
         ray.init(num_cpus=args.ray_cpus, include_dashboard=False, log_to_driver=False)
         try:
             address = ray.get_runtime_context().gcs_address
+            bare_mb = _bare(args, address, tmp)
             renders = {k: _render(k, args, address, tmp) for k in (4, 8)}
+            small, _ = _render(4, args, address, tmp, args.small_scene)
         finally:
             ray.shutdown()
         # Training on as many Ray CPUs as real cores: budgets are wall-clock, so more
@@ -141,8 +176,15 @@ def main(argv=None) -> int:
         rows[k] = {**rep, "rss_peak_share": round(rep["rss_peak_mb"] * 2**20 / mesh_bytes, 4),
                    "rss_scene_share": round((rep["rss_peak_mb"] - rep["rss_baseline_mb"])
                                             * 2**20 / mesh_bytes, 4),
+                   "rss_above_bare_share": round((rep["rss_peak_mb"] - bare_mb)
+                                                 * 2**20 / mesh_bytes, 4),
                    "max_shard_share": round(max(rep["shard_geometry_bytes"]) / mesh_bytes, 4)}
     res = {"scene": args.scene, "summary": meta.summary(), "open_s": round(open_s, 2),
+           "bare_ray_driver_mb": bare_mb,
+           "small_scene": {"scene": args.small_scene, "k": 4,
+                           "mesh_bytes": small["mesh_bytes"],
+                           "rss_peak_mb": small["rss_peak_mb"]},
+           "bare_ray_driver_share": round(bare_mb * 2**20 / mesh_bytes, 4),
            "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "bounces",
                                                       "train_steps", "train_width",
                                                       "ray_cpus")},
@@ -173,14 +215,25 @@ def markdown(res: dict) -> str:
         f"{res['load_average_before'][0]:.1f} before and {res['load_average_after'][0]:.1f} "
         f"after.",
         "",
-        "| K | driver peak RSS MB | share of mesh bytes | above the driver's baseline | "
+        f"A bare Ray driver (import Ray, join, nothing else) peaks at "
+        f"**{res['bare_ray_driver_mb']:.0f} MB, {100 * res['bare_ray_driver_share']:.1f} %** "
+        f"of the mesh bytes: the floor of any driver on this Ray. The same K = 4 driver "
+        f"on `{res['small_scene']['scene']}` "
+        f"({res['small_scene']['mesh_bytes'] / 1e6:.1f} MB of meshes, "
+        f"{mb / res['small_scene']['mesh_bytes']:.0f}x fewer) peaks at "
+        f"**{res['small_scene']['rss_peak_mb']:.0f} MB**.",
+        "",
+        "| K | driver peak RSS MB | share of mesh bytes | above a bare Ray driver | "
+        "above the driver's baseline | tracing libraries imported | "
         "largest shard geometry | share | shard load s (max) | prepare s | render s |",
-        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |",
     ]
     for k, r in res["renders"].items():
         lines.append(
             f"| {k} | {r['rss_peak_mb']:.0f} | {100 * r['rss_peak_share']:.1f} % | "
-            f"{100 * r['rss_scene_share']:.1f} % | {max(r['shard_geometry_bytes']) / 1e6:.0f} MB"
+            f"{100 * r['rss_above_bare_share']:.1f} % | {100 * r['rss_scene_share']:.1f} % | "
+            f"{', '.join(r['tracing_libraries']) or 'none'} | "
+            f"{max(r['shard_geometry_bytes']) / 1e6:.0f} MB"
             f" | {100 * r['max_shard_share']:.1f} % | {max(r['shard_load_s']):.1f} | "
             f"{r['prepare_s']:.1f} | {r['wall_s']:.1f} |")
     par, seq = res["training"]

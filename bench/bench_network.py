@@ -39,7 +39,7 @@ from bench.common import add_render_flags, machine, render_settings  # noqa: E40
 from nprt.scene.demos import make_demo  # noqa: E402
 from nprt.workers.coordinator import Coordinator  # noqa: E402
 from nprt.workers.passes import iter_passes  # noqa: E402
-from nprt.workers.pool import ShardPool  # noqa: E402
+from nprt.workers.pool import PoolRegistry  # noqa: E402
 from nprt.workers.render import render  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -78,10 +78,18 @@ def film_bytes(s) -> dict[int, int]:
     return {p.index: p.n_pixels * 3 * 8 for p in iter_passes(s)}
 
 
-def traced_render(scene, s, pool: ShardPool) -> dict:
-    """One render on a warm pool: wall time, statistics, shard info, trace, and each shard
-    process's CPU seconds over its busy seconds (how much of a call's time it had a core)."""
-    coord = Coordinator(scene, s, pool=pool, trace=True)
+def traced_render(scene, s, pools: PoolRegistry) -> dict:
+    """One render on the registry's warm pool for (scene, s): wall time, statistics, shard
+    info, trace, and each shard process's CPU seconds over its busy seconds (how much of a
+    call's time it had a core)."""
+    coord = Coordinator(scene, s, pools=pools, trace=True)
+    try:
+        return _traced(coord, scene, s)
+    finally:
+        coord.close()  # the pool goes back to the registry, warm
+
+
+def _traced(coord: Coordinator, scene, s) -> dict:
     pids = [i["pid"] for i in coord.shard_info]
     cpu0 = [cpu_seconds(p) for p in pids]
     load = os.getloadavg()[0]
@@ -152,12 +160,12 @@ def run_bandwidth(args) -> dict:
             scene = make_demo(name, args.size)
             for mode in MODES:
                 sm = s.model_copy(update={"mode": mode})
-                pool = ShardPool(scene, sm)
+                pools = PoolRegistry()
                 try:
-                    traced_render(scene, sm, pool)  # warm-up: the first render is slower
+                    traced_render(scene, sm, pools)  # warm-up: the first render is slower
                     for bw in args.bandwidths:
                         netcluster("shape", "--bandwidth", bw)
-                        runs = [traced_render(scene, sm, pool) for _ in range(args.repeat)]
+                        runs = [traced_render(scene, sm, pools) for _ in range(args.repeat)]
                         best = min(runs, key=lambda r: r["wall_s"])
                         best.update(scene=name, mode=mode, bandwidth=bw,
                                     walls_s=[r["wall_s"] for r in runs])
@@ -165,7 +173,7 @@ def run_bandwidth(args) -> dict:
                         log.warning("%s %s %s: %.2f s (%s)", name, mode, bw, best["wall_s"],
                                     best["walls_s"])
                 finally:
-                    pool.close()
+                    pools.close()
         out["machine"]["load_average_after"] = os.getloadavg()
     finally:
         if ray.is_initialized():
@@ -190,11 +198,11 @@ def run_scaling(args) -> dict:
             for mode in MODES:
                 for k in args.ks:
                     sk = s.model_copy(update={"mode": mode, "shards": k})
-                    pool = ShardPool(scene, sk)
+                    pools = PoolRegistry()
                     try:
-                        run = traced_render(scene, sk, pool)
+                        run = traced_render(scene, sk, pools)
                     finally:
-                        pool.close()
+                        pools.close()
                     run.update(scene=name, mode=mode, k=k)
                     out["runs"].append(run)
                     log.warning("%s %s K=%d: %.2f s, %.1f MB", name, mode, k, run["wall_s"],

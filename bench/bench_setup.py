@@ -92,8 +92,9 @@ def measure(path: Path, k: int = 2) -> dict:
 
     from nprt.scene.io import load_scene
     from nprt.scene.partition import partition
+    from nprt.workers.protocol import ShardConfig
     from nprt.workers.settings import RenderSettings
-    from nprt.workers.shard import Shard, ShardConfig
+    from nprt.workers.shard import Shard
     from nprt.workers.surface import SurfaceTables
     from nprt.workers.world import ShardWorld
 

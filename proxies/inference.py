@@ -1,5 +1,6 @@
 """A trained proxy at render time: the two ONNX nets in one self-checking blob, run by
-onnxruntime (this module never imports torch)."""
+onnxruntime (this module never imports torch). onnxruntime is imported when a net first
+runs: the driver reads and ships proxy blobs without running them."""
 
 from __future__ import annotations
 
@@ -7,9 +8,12 @@ import hashlib
 import json
 import logging
 import struct
+from typing import TYPE_CHECKING
 
 import numpy as np
-import onnxruntime as ort
+
+if TYPE_CHECKING:
+    import onnxruntime as ort
 
 from nprt.proxies.encoding import depth_decode, encode, to_proxy_box
 
@@ -117,6 +121,8 @@ class Proxy:
     # ------------------------------------------------------------ inference
     def session(self, net: str) -> ort.InferenceSession:
         if net not in self._sessions:
+            import onnxruntime as ort
+
             opts = ort.SessionOptions()
             opts.intra_op_num_threads = self.threads
             opts.inter_op_num_threads = 1

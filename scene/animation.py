@@ -13,7 +13,6 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from trimesh import transformations as tf
 
 from nprt.scene.errors import SceneError
 from nprt.scene.model import TRANSFORM_DTYPE, Instances, Scene, validate_transforms
@@ -194,6 +193,10 @@ def split_trs(m: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray, np.nda
     if not np.allclose(rot.T @ rot, np.eye(3), atol=1e-6):
         raise SceneError(f"{where}: transform has shear, so it cannot be interpolated; "
                          f"give translate/rotate_deg/scale keys")
+    # Imported here: trimesh imports Embree, which a render driver reading an animated
+    # scene's metadata must not load.
+    from trimesh import transformations as tf
+
     r4 = np.eye(4)
     r4[:3, :3] = rot
     return m[:3, 3].copy(), tf.quaternion_from_matrix(r4), scale

@@ -16,6 +16,7 @@ import abc
 import hashlib
 import logging
 import os
+import re
 import shutil
 import tempfile
 from collections.abc import Iterable
@@ -141,6 +142,9 @@ def _demo_version() -> str:
     return h.hexdigest()[:12]
 
 
+_DEMO_DIR = re.compile(r"(?P<name>[a-z]+)-(?P<size>[a-z]+)-s\d+-(?P<version>[0-9a-f]{12})")
+
+
 def demo_dir(name: str, size: str, seed: int = 0) -> Path:
     return scene_cache_dir() / f"{name}-{size}-s{int(seed)}-{_demo_version()}"
 
@@ -168,7 +172,39 @@ def materialize_demo(name: str, size: str = "default", seed: int = 0) -> Path:
     finally:
         shutil.rmtree(work, ignore_errors=True)
     log.info("demo %s:%s (seed %d) written to %s", name, size, seed, final)
+    stale = stale_demos()
+    if stale:
+        log.warning("the scene cache %s holds %d demos of older nprt versions (%.1f GB); "
+                    "`nprt scenes --prune` deletes them", final.parent, len(stale),
+                    sum(b for _, b in stale) / 1e9)
     return entry
+
+
+def stale_demos() -> list[tuple[Path, int]]:
+    """(directory, bytes) of every demo in the scene cache written by other versions of
+    the demo generators: this version never reads them again. Directories being written
+    (dot-prefixed) do not match."""
+    from nprt.scene.demos import DEMOS
+
+    root, current = scene_cache_dir(), _demo_version()
+    if not root.is_dir():
+        return []
+    out = []
+    for d in sorted(root.iterdir()):
+        m = _DEMO_DIR.fullmatch(d.name)  # demo_dir's names only: nothing else is touched
+        if m and m["name"] in DEMOS and m["version"] != current and d.is_dir():
+            out.append((d, sum(f.stat().st_size for f in d.rglob("*") if f.is_file())))
+    return out
+
+
+def prune_demos() -> list[tuple[Path, int]]:
+    """Delete `stale_demos()`; returns what was deleted. Never automatic: on a cluster a
+    node still running an older nprt may be reading them from the shared cache."""
+    gone = stale_demos()
+    for d, _ in gone:
+        shutil.rmtree(d)
+        log.info("pruned stale demo %s", d)
+    return gone
 
 
 def open_scene(source, size: str = "default", seed: int = 0, root: Path | None = None):

@@ -192,7 +192,15 @@ def _render_frames(a: argparse.Namespace, scene, settings) -> int:
 
 def cmd_scenes(a: argparse.Namespace) -> int:
     from nprt.scene.demos import DEMO_SIZES, DEMOS, make_demo
-    from nprt.scene.store import open_scene
+    from nprt.scene.store import open_scene, prune_demos, scene_cache_dir
+
+    if a.prune:
+        gone = prune_demos()
+        for d, nbytes in gone:
+            print(f"deleted {d} ({nbytes / 1e6:,.1f} MB)")
+        print(f"{len(gone)} stale demos deleted from {scene_cache_dir()}, "
+              f"{sum(b for _, b in gone) / 1e9:.2f} GB freed")
+        return 0
 
     cols = ("base_meshes", "instances", "instanced_triangles", "mesh_bytes", "frames")
     print(f"| demo | size | {' | '.join(cols)} |")
@@ -240,6 +248,9 @@ def build_parser() -> argparse.ArgumentParser:
                    choices=["default", "small", "tiny", "massive"],
                    help="demo sizes to list (massive is generated once into "
                         "$NPRT_SCENE_CACHE, over 1 GiB)")
+    p.add_argument("--prune", action="store_true",
+                   help="delete the demos that older versions of nprt wrote to "
+                        "$NPRT_SCENE_CACHE (this version never reads them), then exit")
     p.set_defaults(func=cmd_scenes)
 
     from nprt.proxies.cli import add_proxy_parsers

@@ -42,8 +42,8 @@ from nprt.workers.pool import (  # noqa: F401 (ShardStartError re-exported)
     ShardsLost,
     ShardStartError,
 )
+from nprt.workers.protocol import Manifest, WorkItem
 from nprt.workers.settings import RenderSettings
-from nprt.workers.shard import Manifest, WorkItem
 from nprt.workers.stats import RenderStats
 from nprt.workers.trace import TraceRecorder
 

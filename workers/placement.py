@@ -10,8 +10,8 @@ import numpy as np
 
 from nprt.scene.meta import SceneMeta
 from nprt.scene.partition import Partition, partition
+from nprt.workers.protocol import EVERYWHERE
 from nprt.workers.settings import RenderSettings
-from nprt.workers.world import EVERYWHERE, ShardWorld
 
 
 def make_plan(scene, part, settings: RenderSettings, proxy_dir=None, train=True,
@@ -43,7 +43,6 @@ class Placement:
     shard_meshes: list[tuple[int, ...]]
     plan: object = None
     proxies: dict = field(default_factory=dict)
-    world: ShardWorld | None = None
 
 
 def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
@@ -65,5 +64,4 @@ def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
             owner[meta.instances_of_mesh(m)] = EVERYWHERE
             for h in held:
                 h.add(m)
-    return Placement(meta, part, owner, [tuple(sorted(h)) for h in held], plan, proxies,
-                     ShardWorld.build(meta, owner))
+    return Placement(meta, part, owner, [tuple(sorted(h)) for h in held], plan, proxies)

@@ -20,11 +20,12 @@ from nprt.workers.batch import (
     ShadowRayBatch,
 )
 from nprt.workers.local import LocalGeometry
+from nprt.workers.protocol import EVERYWHERE
 from nprt.workers.proxy_query import predict
 from nprt.workers.routing import DONE, route_exact, route_shadow_exact
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats import SplitStats
-from nprt.workers.world import EVERYWHERE, ShardWorld
+from nprt.workers.world import ShardWorld
 
 
 class ExactPolicy:

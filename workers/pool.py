@@ -1,9 +1,10 @@
 """Shard pools: K Shard actors holding one scene's geometry placement, started once and
 reused by every job on that scene (the service keeps them, least recently used first out,
 within a memory bound). Starting a pool plans the placement from the scene's metadata
-(training missing proxies as parallel Ray tasks), ships the world, and has each shard load
-its own meshes from the scene store and warm every kernel, so a job on a warm pool starts
-tracing at once. The driver holds no geometry of a stored scene (`nprt.scene.store`)."""
+(training missing proxies as parallel Ray tasks), builds the world on a worker, and has each
+shard load its own meshes from the scene store and warm every kernel, so a job on a warm
+pool starts tracing at once. The driver holds no geometry of a stored scene
+(`nprt.scene.store`), and imports none of the shard's libraries (`nprt.workers.remote`)."""
 
 from __future__ import annotations
 
@@ -23,10 +24,10 @@ from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
 from nprt.scene.store import ObjectStoreSource
 from nprt.workers.placement import make_plan, plan_placement  # noqa: F401 (make_plan re-exported)
+from nprt.workers.protocol import MeshRequest, ShardConfig
 from nprt.workers.raysession import acquire_ray, release_ray
+from nprt.workers.remote import ShardActor, build_world
 from nprt.workers.settings import RenderSettings
-from nprt.workers.shard import MeshRequest, Shard, ShardConfig
-from nprt.workers.world import ShardWorld
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +122,8 @@ class ShardPool:
                                      names={i: m.name for i, m in enumerate(meta.meshes)})
             placed = plan_placement(meta, settings, proxy_dir, trainer)
             self.training = trainer.progress if trainer is not None else []
-            self.partition, self.plan, self.world = placed.partition, placed.plan, placed.world
+            self.partition, self.plan, self.owner = placed.partition, placed.plan, placed.owner
+            self.instance_mesh = np.array(meta.instance_mesh, np.int32)
             self.shard_meshes = placed.shard_meshes
             self._start(meta, settings, placed.shard_meshes, placed.proxies, shard_options)
         except BaseException:
@@ -133,7 +135,9 @@ class ShardPool:
                  self.k, meta.name, self.prepare_s, max(self.warm_s))
 
     def _start(self, meta, settings, shard_meshes, proxies, shard_options) -> None:
-        world_ref = ray.put(self.world)
+        # The instance table (with its BVH) is built on a worker; the driver holds only
+        # the reference.
+        world_ref = build_world.remote(meta, self.owner)
         every = MeshRequest(self.source, tuple(range(len(meta.meshes))))
         all_req = every if settings.mode == "oracle" else None
         cpus = ray.cluster_resources().get("CPU", 1.0)
@@ -157,7 +161,7 @@ class ShardPool:
                 opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
                     self.pg, placement_group_bundle_index=sid)
             opts.update((shard_options or [{}] * self.k)[sid])
-            actor = ray.remote(Shard).options(**opts).remote(
+            actor = ray.remote(ShardActor).options(**opts).remote(
                 ShardConfig(sid, self.k, settings), world_ref,
                 MeshRequest(self.source, tuple(shard_meshes[sid])), proxies_ref, all_req)
             self.actors.append(actor)
@@ -176,11 +180,10 @@ class ShardPool:
         key = frame_key(scene)
         if key == self.shown:
             return
-        if not np.array_equal(scene.instance_mesh, self.world.table.mesh):
+        if not np.array_equal(scene.instance_mesh, self.instance_mesh):
             raise ValueError(f"{self!r} cannot show scene {scene.name!r}: it is not a frame "
                              f"of the pool's scene (its instances place other meshes)")
-        self.world = ShardWorld.build(SceneMeta.of(scene), self.world.owner)
-        self._world_ref = ray.put(self.world)
+        self._world_ref = build_world.remote(SceneMeta.of(scene), self.owner)
         self.resync()
         self.shown = key
 

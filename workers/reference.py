@@ -14,8 +14,9 @@ import numpy as np
 from nprt.scene.model import Scene
 from nprt.workers.batch import KIND_NAMES
 from nprt.workers.passes import Pass
+from nprt.workers.protocol import ShardConfig, WorkItem
 from nprt.workers.settings import RenderSettings
-from nprt.workers.shard import Shard, ShardConfig, WorkItem
+from nprt.workers.shard import Shard
 from nprt.workers.stats import RenderStats
 from nprt.workers.world import ShardWorld
 

@@ -8,7 +8,8 @@ import numpy as np
 
 from nprt.workers.batch import RayBatch, ShadowRayBatch
 from nprt.workers.local import BOX_TMAX_SLACK_REL
-from nprt.workers.world import EVERYWHERE, ShardWorld
+from nprt.workers.protocol import EVERYWHERE
+from nprt.workers.world import ShardWorld
 
 DONE = -1
 

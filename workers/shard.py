@@ -1,6 +1,6 @@
 """The Shard actor: one slice of the scene's geometry in Embree, the replicated
-instance table and lights, and the traversal policy. A plain class; the coordinator
-applies ray.remote where it starts it.
+instance table and lights, and the traversal policy. A plain class: the pool starts
+it through `nprt.workers.remote.ShardActor`, so the driver never imports this module.
 
 Every call carries work of several passes (camera rays to generate, parcels that other
 shards sent here) and returns one object per target shard, so batches move shard to
@@ -26,46 +26,14 @@ from nprt.workers.integrator import PathIntegrator
 from nprt.workers.local import LocalGeometry
 from nprt.workers.passes import Pass
 from nprt.workers.policies import ExactPolicy, OraclePolicy, ProxyPolicy
+from nprt.workers.protocol import EVERYWHERE, Manifest, MeshRequest, ShardConfig, WorkItem
 from nprt.workers.routing import DONE, nearest_unvisited, visited_bit
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats import RenderStats, SplitStats
 from nprt.workers.tracer import resolve_closest
-from nprt.workers.world import EVERYWHERE, ShardWorld
+from nprt.workers.world import ShardWorld
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class ShardConfig:
-    """settings: those the pool was started with (placement, warm-up); each call brings
-    the settings of the job it belongs to."""
-
-    shard_id: int
-    k: int
-    settings: RenderSettings
-
-
-@dataclass(frozen=True)
-class MeshRequest:
-    """Meshes a shard loads itself, on its own node, from the scene store: the driver
-    sends this (a few hundred bytes), never the geometry. indices: mesh indices."""
-
-    source: object  # nprt.scene.store.MeshSource
-    indices: tuple[int, ...]
-
-    def load(self) -> dict[int, Mesh]:
-        return self.source.load_meshes(self.indices)
-
-
-@dataclass(frozen=True)
-class WorkItem:
-    """One pass's share of a call: its camera rays (generate) and/or `n_parcels` of the
-    call's parcel arguments, in order. token: the pass attempt (a re-run gets a new one)."""
-
-    token: int
-    pass_: Pass
-    generate: bool
-    n_parcels: int
 
 
 @dataclass
@@ -82,17 +50,6 @@ class Parcel:
 
     def __len__(self) -> int:
         return len(self.rays) + len(self.shadow)
-
-
-@dataclass
-class Manifest:
-    """The small part of a call's result that the coordinator reads."""
-
-    shard: int
-    counts: dict[int, list[int]]  # token -> (k,) rays + shadow rays sent to each shard
-    busy_s: float = 0.0  # wall time of the call inside the shard
-    bytes_in: int = 0  # ray bytes the call received
-    bytes_out: int = 0  # ray bytes it sent
 
 
 @dataclass

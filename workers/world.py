@@ -1,6 +1,7 @@
 """What every shard holds besides its own geometry: the instance table with each
-instance's owner, the lights, camera and materials. Built once by the coordinator and
-put in the object store; geometry travels separately, per shard."""
+instance's owner, the lights, camera and materials. Built once per frame by a Ray task
+(`nprt.workers.remote.build_world`), so its BVH is built off the driver; geometry travels
+separately, per shard."""
 
 from __future__ import annotations
 
@@ -10,9 +11,8 @@ import numpy as np
 
 from nprt.scene.model import Camera, Material, Scene
 from nprt.workers.lights import LightSet
+from nprt.workers.protocol import EVERYWHERE
 from nprt.workers.toplevel import InstanceTable
-
-EVERYWHERE = -1  # owner of an instance whose mesh is replicated on every shard
 
 
 @dataclass(frozen=True, eq=False)

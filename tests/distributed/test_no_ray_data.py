@@ -10,8 +10,9 @@ import ray
 import nprt.workers.coordinator as coordinator_module
 from nprt.workers.batch import RayBatch, ShadowRayBatch
 from nprt.workers.coordinator import Coordinator
+from nprt.workers.protocol import Manifest
 from nprt.workers.render import render
-from nprt.workers.shard import Manifest, Parcel
+from nprt.workers.shard import Parcel
 from tests.distributed.helpers import assert_matches, settings
 
 RAY_DATA = (RayBatch, ShadowRayBatch, Parcel)

@@ -33,7 +33,7 @@ def test_planning_reads_no_vertex_array(scene_cache, monkeypatch):
     for mode in ("exact", "oracle"):  # oracle: the proxy policy's replication, no training
         s = settings(3, mode=mode)
         placed = plan_placement(meta, s)
-        assert placed.partition.k == 3 and len(placed.world.table.mesh) == len(meta.instances)
+        assert placed.partition.k == 3 and len(placed.owner) == len(meta.instances)
         assert len(pool_key(meta, s)) == 64
         assert bool(placed.plan and placed.plan.replicated) == (mode == "oracle")
     monkeypatch.undo()

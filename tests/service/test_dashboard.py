@@ -307,11 +307,19 @@ def test_frames_job_page_has_a_frame_selector_showing_each_frame(server, watched
                                                                  tmp_path):
     from playwright.sync_api import expect
 
-    r = api.post("/v1/jobs", json={"scene": "windy:tiny", **TINY,
-                                   "frames": {"first": 1, "last": 3}})
-    job = _done(api, r.json()["id"])
+    page = watched.page  # submitted from the form, with its frame range
+    page.goto(server.url + "/")
+    expect(page.locator("#scene-select option[value=windy]")).to_have_count(1)
+    page.select_option("#scene-select", "windy")
+    page.select_option("select[name=size]", "tiny")
+    for name, value in {**TINY, "frame_first": 1, "frame_last": 3}.items():
+        page.fill(f"input[name={name}]", str(value))
+    page.click("#submit-button")
+    expect(page.locator("#job-view")).to_be_visible()
+    job_id = page.evaluate("location.hash").rsplit("/", 1)[-1]
+    job = _done(api, job_id)
     assert job["state"] == "succeeded", job["error"]
-    page = watched.page
+    assert job["frames"] == {"first": 1, "last": 3}
     page.goto(f"{server.url}/#/jobs/{job['id']}")
     expect(page.locator("#frame-panel")).to_be_visible()
     expect(page.locator("#frame-select option")).to_have_text(["1", "2", "3"])
@@ -325,7 +333,7 @@ def test_frames_job_page_has_a_frame_selector_showing_each_frame(server, watched
         shown[f] = page.locator("#frame-image").screenshot()
     page.screenshot(path=str(tmp_path / "frames.png"), full_page=True)
     assert shown["1"] != shown["3"]  # another frame, another picture
-    assert not watched.errors and not watched.bad
+    assert not watched.errors and not watched.bad, (watched.errors, watched.bad)
     plain = _done(api, api.post("/v1/jobs", json={"scene": "forest:tiny", **TINY}).json()["id"])
     page.goto(f"{server.url}/#/jobs/{plain['id']}")
     expect(page.locator("#job-state")).to_have_text("succeeded")

@@ -151,20 +151,36 @@ function explain(job) {
 }
 
 // A frames job: pick a frame and see its stored image (the canvas above shows the frame
-// being rendered, tile by tile).
+// being rendered, tile by tile). Frames render in order, each `per` passes, and a frame's
+// images are written before the next frame's first pass: so a frame is ready once the job
+// succeeded or passes_done is past it. Frames not ready are listed but not fetched.
+function frameReady(job, frame) {
+  if (!job?.frames) return false;
+  if (job.state === "succeeded") return true;
+  const { first, last } = job.frames;
+  const per = job.passes_total / (last - first + 1);
+  return job.passes_done > (frame - first + 1) * per;
+}
+
 function showFrames(job) {
   const panel = $("#frame-panel");
   panel.hidden = !job.frames;
   if (!job.frames) return;
   const select = $("#frame-select");
   const { first, last } = job.frames;
-  if (select.dataset.job !== job.id) {
+  const fresh = select.dataset.job !== job.id;
+  if (fresh) {
     select.dataset.job = job.id;
     select.replaceChildren();
     for (let f = first; f <= last; f++) select.append(new Option(String(f), String(f)));
     select.value = String(first);
-    loadFrame(job.id, first);
-  } else if (job.state === "succeeded" || $("#frame-image").hidden) {
+  }
+  for (const opt of select.options) {
+    const ready = frameReady(job, Number(opt.value));
+    opt.textContent = ready ? opt.value : `${opt.value} (not rendered yet)`;
+    opt.dataset.ready = ready ? "1" : "";
+  }
+  if (fresh || job.state === "succeeded" || $("#frame-image").hidden) {
     loadFrame(job.id, Number(select.value));
   }
 }
@@ -174,6 +190,11 @@ async function loadFrame(id, frame) {
   $("#frame-exr-link").href = `/v1/jobs/${id}/frames/${frame}.exr`;
   const img = $("#frame-image");
   const status = $("#frame-status");
+  if (!frameReady(current, frame)) {
+    img.hidden = true;
+    status.textContent = `frame ${frame} is not rendered yet`;
+    return;
+  }
   const r = await fetch(`/v1/jobs/${id}/frames/${frame}.png`, { headers: authHeaders(), cache: "no-store" });
   if (current?.id !== id) return;
   if (!r.ok) {

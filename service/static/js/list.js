@@ -97,6 +97,12 @@ $("#submit-form").addEventListener("submit", async (ev) => {
     body[k] = Number(f.get(k));
   }
   if (body.mode === "proxy") body.proxy = { band: Number(f.get("band")), shadow_band: Number(f.get("shadow_band")) };
+  // A frame range when either end is given (one end alone: that frame); the server
+  // checks it against the scene's frame count.
+  const first = f.get("frame_first"), last = f.get("frame_last");
+  if (first !== "" || last !== "") {
+    body.frames = { first: Number(first !== "" ? first : last), last: Number(last !== "" ? last : first) };
+  }
   $("#submit-error").textContent = "";
   try {
     const job = await api("/v1/jobs", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify(body) });
