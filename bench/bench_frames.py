@@ -11,11 +11,11 @@ relative error against the reference over the frames (exact mode equals the refe
 
     python -m bench.bench_frames                  # windy default, 160x120, 4 spp, K = 4
     python -m bench.bench_frames --size small --width 96
-    python -m bench.bench_frames --train-proxies 10   # adds proxy K trained from scratch
+    python -m bench.bench_frames --train-proxies 1000   # adds proxy K trained from scratch
 
 The shipped proxies cover the demo's meshes, so plain proxy mode trains nothing at all;
---train-proxies B adds a proxy configuration none is shipped for (width 16, B seconds of
-training each) on an empty cache, so its pool trains every proxy it needs (Ray tasks).
+--train-proxies S adds a proxy configuration none is shipped for (width 16, S optimiser
+steps of training each) on an empty cache, so its pool trains every proxy it needs (Ray tasks).
 """
 
 from __future__ import annotations
@@ -124,7 +124,7 @@ def markdown(res: dict) -> str:
     train = res.get("train_proxies")
     cmd = (f"python -m bench.bench_frames --size {res['size']} --width {s['width']} --spp "
            f"{s['spp']} --shards {res['shards']}")
-    cmd += f" --train-proxies {train:g}" if train else ""
+    cmd += f" --train-proxies {train}" if train else ""
     lines = [
         f"`{cmd}` (`bench/results/{res['file']}`), load average before "
         f"{', '.join(f'{x:.2f}' for x in res['machine']['load_average_before'])} and after "
@@ -184,8 +184,8 @@ def main(argv=None) -> int:
     ap.add_argument("--size", choices=["tiny", "small", "default"], default="default")
     ap.add_argument("--shards", type=int, default=4)
     ap.add_argument("--ray-cpus", type=int, default=None, help="default: --shards")
-    ap.add_argument("--train-proxies", type=float, default=None, metavar="B",
-                    help="also proxy mode with proxies trained from scratch, B s each")
+    ap.add_argument("--train-proxies", type=int, default=None, metavar="S",
+                    help="also proxy mode with proxies trained from scratch, S steps each")
     add_render_flags(ap, RESULTS)
     args = ap.parse_args(argv)
     scene = make_demo("windy", args.size)  # the reference renders it in memory
@@ -207,7 +207,7 @@ def main(argv=None) -> int:
                 res["settings"] = s.model_dump()
             with tempfile.TemporaryDirectory(prefix="nprt-bench-proxies-") as fresh:
                 if budget:
-                    s = s.model_copy(update={"proxy": ProxySettings(width=16, budget_s=budget)})
+                    s = s.model_copy(update={"proxy": ProxySettings(width=16, steps=budget)})
                 row, images = run_config(stored if k else scene, s,
                                          Path(fresh) if budget else None)
             if k == 0:

@@ -112,7 +112,7 @@ def _train(meta, parallel: bool, args, tmp: Path) -> dict:
     trees = [i for i, m in enumerate(meta.meshes) if m.n_faces > 1000]
     trainer = RayTrainer(meta.source, tmp / ("par" if parallel else "seq"), parallel=parallel,
                          names={i: m.name for i, m in enumerate(meta.meshes)})
-    failed = trainer(trees, ProxyConfig(budget_s=args.train_budget_s), (args.train_width,), 0.0)
+    failed = trainer(trees, ProxyConfig(steps=args.train_steps), (args.train_width,), 0.0)
     return {"parallel": parallel, "wall_s": round(trainer.wall_s, 2), "meshes": len(trees),
             "failed": len(failed), "per_mesh_s": [r["seconds"] for r in trainer.progress]}
 
@@ -127,7 +127,7 @@ def main(argv=None) -> int:
     ap.add_argument("--height", type=int, default=48)
     ap.add_argument("--spp", type=int, default=1)
     ap.add_argument("--bounces", type=int, default=2)
-    ap.add_argument("--train-budget-s", type=float, default=8.0)
+    ap.add_argument("--train-steps", type=int, default=1000)
     ap.add_argument("--train-width", type=int, default=16)
     ap.add_argument("--ray-cpus", type=int, default=8,
                     help="Ray's CPUs for the renders (K = 8 wants 8)")
@@ -186,7 +186,7 @@ def main(argv=None) -> int:
                            "rss_peak_mb": small["rss_peak_mb"]},
            "bare_ray_driver_share": round(bare_mb * 2**20 / mesh_bytes, 4),
            "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "bounces",
-                                                      "train_budget_s", "train_width",
+                                                      "train_steps", "train_width",
                                                       "ray_cpus")},
            "renders": rows, "k4_equals_k8": bool(np.array_equal(renders[4][1], renders[8][1])),
            "training": training,
@@ -242,7 +242,7 @@ def markdown(res: dict) -> str:
         f"K = 4 and K = 8 exact images identical: **{res['k4_equals_k8']}**.",
         "",
         f"Proxy training of the {par['meshes']} tree meshes (width "
-        f"{res['settings']['train_width']}, {res['settings']['train_budget_s']:g} s budget "
+        f"{res['settings']['train_width']}, {res['settings']['train_steps']} steps "
         f"each, one Ray task per mesh): "
         f"**{par['wall_s']:.1f} s** in parallel against **{seq['wall_s']:.1f} s** one after "
         f"another, {res['train_speedup']:.2f}x ({par['failed'] + seq['failed']} failed), "

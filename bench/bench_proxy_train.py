@@ -63,7 +63,7 @@ def measure(size: str, target: float, train: bool) -> list[dict]:
     return rows
 
 
-ANALYTIC_BUDGET = dict(budget_s=0, max_steps=2000, n_samples=1 << 19, grid=64,
+ANALYTIC_BUDGET = dict(steps=3334, n_samples=1 << 19, grid=64,
                        eval_samples=1 << 15)
 ENCODINGS = {"line+fourier3 (default)": dict(encoding="line", fourier=3),
              "paper (theta/pi, phi/2pi)": dict(encoding="paper", fourier=0),

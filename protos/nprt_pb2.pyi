@@ -44,20 +44,20 @@ IMAGE_FORMAT_PNG: ImageFormat
 IMAGE_FORMAT_EXR: ImageFormat
 
 class ProxySettings(_message.Message):
-    __slots__ = ("threshold", "band", "accuracy_target", "shadow_band", "width", "budget_s")
+    __slots__ = ("threshold", "band", "accuracy_target", "shadow_band", "width", "steps")
     THRESHOLD_FIELD_NUMBER: _ClassVar[int]
     BAND_FIELD_NUMBER: _ClassVar[int]
     ACCURACY_TARGET_FIELD_NUMBER: _ClassVar[int]
     SHADOW_BAND_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
-    BUDGET_S_FIELD_NUMBER: _ClassVar[int]
+    STEPS_FIELD_NUMBER: _ClassVar[int]
     threshold: float
     band: float
     accuracy_target: float
     shadow_band: float
     width: int
-    budget_s: float
-    def __init__(self, threshold: _Optional[float] = ..., band: _Optional[float] = ..., accuracy_target: _Optional[float] = ..., shadow_band: _Optional[float] = ..., width: _Optional[int] = ..., budget_s: _Optional[float] = ...) -> None: ...
+    steps: int
+    def __init__(self, threshold: _Optional[float] = ..., band: _Optional[float] = ..., accuracy_target: _Optional[float] = ..., shadow_band: _Optional[float] = ..., width: _Optional[int] = ..., steps: _Optional[int] = ...) -> None: ...
 
 class RenderSettings(_message.Message):
     __slots__ = ("width", "height", "spp", "bounces", "shadow_rays", "seed", "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass", "proxy")

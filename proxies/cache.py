@@ -3,6 +3,7 @@ proxies shipped with nprt. Bad files are skipped (and retrained); training needs
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import tempfile
@@ -17,6 +18,9 @@ log = logging.getLogger(__name__)
 DEFAULT_DIR = Path(os.environ.get("NPRT_PROXY_CACHE", "~/.cache/nprt/proxies")).expanduser()
 SHIPPED_DIR = Path(__file__).resolve().parent / "shipped"
 SUFFIX = ".nprx"
+# Beside each proxy file: its training's wall-clock figures (Proxy.timing), which vary run
+# to run and so are not part of the (reproducible) proxy bytes.
+TIMING_SUFFIX = ".timing.json"
 
 
 class ProxyUnavailable(RuntimeError):
@@ -60,6 +64,10 @@ class ProxyCache:
                                       f"{mesh.content_hash[:12]}")
         if meta.get("config_key") != config.key:
             return self._reject(path, f"config key {meta.get('config_key')} is not {config.key}")
+        try:
+            proxy.timing = json.loads(path.with_suffix(TIMING_SUFFIX).read_text())
+        except (OSError, ValueError):
+            pass  # timing is informative only; a proxy without it is as good
         return proxy
 
     def _reject(self, path: Path, why: str) -> None:
@@ -89,6 +97,8 @@ class ProxyCache:
             with os.fdopen(fd, "wb") as f:
                 f.write(proxy.to_bytes())
             os.replace(tmp, path)
+            if proxy.timing:
+                path.with_suffix(TIMING_SUFFIX).write_text(json.dumps(proxy.timing, indent=1))
         except OSError as e:
             log.warning("could not write proxy cache file %s: %s", path, e)
             return None
@@ -109,7 +119,8 @@ class ProxyCache:
                 f"{config.width}) and training needs PyTorch, which is not importable ({e}); "
                 f"install the 'train' extra (pip install 'nprt[train]') or fill the cache"
             ) from e
-        proxy = train(mesh, config, progress=progress, geometry=geometry)
-        proxy = Proxy.from_bytes(proxy.to_bytes(), threads=self.threads)
+        trained = train(mesh, config, progress=progress, geometry=geometry)
+        proxy = Proxy.from_bytes(trained.to_bytes(), threads=self.threads)
+        proxy.timing = dict(trained.timing)
         self.put(mesh, config, proxy)
         return proxy

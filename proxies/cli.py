@@ -23,8 +23,9 @@ def add_proxy_parsers(subparsers) -> None:
                    help=f"hidden width N, or 'auto': narrowest of {DEFAULT_WIDTHS} "
                         "meeting --target")
     t.add_argument("--target", type=float, default=0.97, help="held-out accuracy for 'auto'")
-    t.add_argument("--budget-s", type=float, default=ProxyConfig.budget_s,
-                   help="training seconds per proxy (both nets)")
+    t.add_argument("--steps", type=int, default=ProxyConfig.steps,
+                   help="optimiser steps per proxy (both nets); with --samples and --seed it "
+                        "fixes the proxy bit for bit")
     t.add_argument("--samples", type=int, default=ProxyConfig.n_samples,
                    help="training rays traced per mesh")
     t.add_argument("--out", default=None, help="cache directory (default ~/.cache/nprt/proxies)")
@@ -35,11 +36,15 @@ def add_proxy_parsers(subparsers) -> None:
 
 
 def _row(mesh, proxy) -> list[str]:
-    r = proxy.meta["report"]
+    from nprt.proxies.evaluate import throughput
+
+    r, t = proxy.meta["report"], proxy.timing
+    train = f"{t['train_s']:.1f}" if "train_s" in t else "?"
     return [mesh.name, str(len(mesh.faces)), str(proxy.meta["width"]), f"{r['accuracy']:.4f}",
             f"{r['fp_rate']:.4f}", f"{r['fn_rate']:.4f}", f"{100 * r['depth_err_rel']:.2f}%",
             f"{r['internal_occlusion_accuracy']:.4f}", str(proxy.nbytes),
-            f"{r.get('train_s', 0):.1f}", f"{r.get('queries_per_s', 0) / 1e6:.2f}M"]
+            train + (" (capped)" if r.get("capped") else ""),
+            f"{throughput(proxy) / 1e6:.2f}M"]
 
 
 def markdown_table(rows: list[list[str]], columns=COLUMNS) -> str:
@@ -71,8 +76,7 @@ def run(args: argparse.Namespace) -> int:
     from nprt.scene.io import load_any
 
     width = ProxyConfig.width if args.width == "auto" else int(args.width)
-    config = ProxyConfig(width=width, budget_s=args.budget_s, n_samples=args.samples,
-                         seed=args.seed)
+    config = ProxyConfig(width=width, steps=args.steps, n_samples=args.samples, seed=args.seed)
     scene = load_any(args.source, size=args.size, seed=args.seed)
     cache = ProxyCache(args.out)
     rows, seen = [], set()

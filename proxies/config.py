@@ -8,7 +8,7 @@ from dataclasses import asdict, dataclass, replace
 
 # Bump when sampling, encoding, architecture or container semantics change, so old
 # cache files stop matching instead of being misread.
-ENCODING_VERSION = 1
+ENCODING_VERSION = 2  # 2: step-bounded deterministic training
 ENCODINGS = ("paper", "xyz", "line")
 WIDTHS = (16, 32, 64, 128, 256)
 # What the policy tries by default on a CPU budget: wider nets train too few steps in
@@ -25,8 +25,9 @@ class ProxyConfig:
     encoding   : input encoding, see nprt.proxies.encoding ("paper" is the paper's)
     n_samples  : training rays traced with Embree (the sample budget)
     grid       : cells per box-face side (DESIGN: 128)
-    budget_s   : wall-clock training budget for both nets together, seconds
-    max_steps  : optional cap on optimiser steps per net (deterministic runs, tests)
+    steps      : optimiser steps of both nets together (the step budget; VIS_SHARE of them
+                 train visibility). Samples and steps, never wall time, bound training, so
+                 the same mesh and config give the same proxy bytes on a loaded machine
     batch_size : rays per optimiser step
     seed       : seeds sampling and initialisation; held-out rays use seed + EVAL_SEED_OFFSET
     eval_samples : held-out rays for the accuracy report
@@ -44,8 +45,7 @@ class ProxyConfig:
     encoding: str = "line"
     n_samples: int = 1 << 19
     grid: int = 128
-    budget_s: float = 45.0
-    max_steps: int | None = None
+    steps: int = 12000  # calibrated against the 45 s proxies: bench/README.md
     batch_size: int = 4096
     seed: int = 0
     eval_samples: int = 1 << 16
@@ -63,6 +63,8 @@ class ProxyConfig:
         if self.n_samples < 16 or self.grid < 1:
             raise ValueError(f"n_samples must be >= 16 and grid >= 1, got {self.n_samples}, "
                              f"{self.grid}")
+        if self.steps < 2:
+            raise ValueError(f"steps must be >= 2 (one per net at least), got {self.steps}")
 
     def with_width(self, width: int) -> ProxyConfig:
         return replace(self, width=int(width))

@@ -37,6 +37,8 @@ class Proxy:
     meta : dict with content_hash, width, blocks, encoding, bounds (2, 3) mesh AABB,
     box (2, 3) proxy box, diag (of the proxy box), threshold, config, report
     threads : onnxruntime intra-op threads per session (1: shards run side by side)
+    timing : wall-clock figures of its training (train_s, sample_s, queries_per_s); they
+    vary with the load, so they live beside the blob, never in it
     """
 
     def __init__(self, meta: dict, models: dict[str, bytes], threads: int = 1):
@@ -50,6 +52,7 @@ class Proxy:
         self.diag = np.float32(self.meta["diag"])
         self._sessions: dict[str, ort.InferenceSession] = {}
         self._blob: bytes | None = None
+        self.timing: dict[str, float] = {}
 
     def __repr__(self) -> str:
         m = self.meta

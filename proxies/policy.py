@@ -30,7 +30,7 @@ class ProxyDecision:
     width: int | None = None
     accuracy: float | None = None
     proxy_bytes: int | None = None
-    train_s: float | None = None
+    train_s: float | None = None  # wall seconds of its training, where known (informative)
     tried: dict[int, float] = field(default_factory=dict)
 
 
@@ -65,8 +65,9 @@ def _accuracy(proxy: Proxy) -> float:
 
 
 def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: ProxyCache,
-                    train: bool, progress: bool):
-    """Narrowest width whose proxy meets `target`, else the most accurate one found.
+                    train: bool, progress: bool, max_bytes: int | None = None):
+    """Narrowest width whose proxy meets `target`, else the most accurate one found (of
+    those lighter than max_bytes where any is: a heavier one would be replicated instead).
 
     returns (proxy or None, tried {width: accuracy}, why-unavailable or None)
     """
@@ -91,7 +92,8 @@ def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: Pro
             return proxy, tried, None
     if not found:
         return None, tried, unavailable or "no cached proxy and training is disabled"
-    best = max(found, key=lambda w: (tried[w], -w))
+    light = [w for w in found if max_bytes is None or found[w].nbytes < max_bytes]
+    best = max(light or found, key=lambda w: (tried[w], -w))
     return found[best], tried, None
 
 
@@ -149,7 +151,7 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
                         f"{min(widths)}: replicated exactly on every shard")
         else:
             proxy, d.tried, why = narrowest_proxy(mesh, config, widths, target_accuracy,
-                                                  cache, train, progress)
+                                                  cache, train, progress, int(mesh.nbytes))
             why = failed.get(i, why)
             if proxy is None:
                 d.decision, d.reason = "fallback", f"traced exactly: {why}"
@@ -165,9 +167,8 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
 
 def _choose(d: ProxyDecision, proxy: Proxy, target: float) -> None:
     """Fill a `proxy` decision, or `replicate` when even the chosen proxy outweighs the mesh."""
-    rep = proxy.meta.get("report", {})
     d.width, d.accuracy = int(proxy.meta["width"]), _accuracy(proxy)
-    d.proxy_bytes, d.train_s = proxy.nbytes, rep.get("train_s")
+    d.proxy_bytes, d.train_s = proxy.nbytes, proxy.timing.get("train_s")
     if proxy.nbytes >= d.mesh_bytes:
         d.decision = "replicate"
         d.reason = (f"proxy at width {d.width} is {proxy.nbytes} B >= mesh {d.mesh_bytes} B: "
@@ -179,3 +180,6 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float) -> None:
         d.decision = "proxy"
         d.reason = (f"no width met accuracy {target:.3f}; best held-out accuracy "
                     f"{d.accuracy:.4f} at width {d.width}")
+    if proxy.meta.get("report", {}).get("capped"):
+        d.reason += ("; its training hit the wall-clock safety cap before its step budget, "
+                     "so it is not reproducible")

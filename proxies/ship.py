@@ -10,7 +10,7 @@ import logging
 import sys
 import time
 
-from nprt.proxies.cache import SHIPPED_DIR, SUFFIX, ProxyCache, file_name
+from nprt.proxies.cache import SHIPPED_DIR, SUFFIX, TIMING_SUFFIX, ProxyCache, file_name
 from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig
 from nprt.proxies.policy import plan_proxies
 
@@ -19,6 +19,9 @@ log = logging.getLogger(__name__)
 SIZES = ("default", "small", "tiny")
 SHARDS = 2  # with 2 or more shards every demo mesh is non-local somewhere
 TARGET_ACCURACY = 0.97  # the render path's default in plan_proxies
+# The test family's scene (scene/demos/family.py) at the size and single width its slow
+# proxy-mode test renders, so that test needs no training.
+FAMILY_SIZE, FAMILY_WIDTHS = "small", (16,)
 
 
 def _open(name: str, size: str):
@@ -40,7 +43,7 @@ def _open(name: str, size: str):
 
 
 def main(argv=None) -> int:
-    from nprt.scene.demos import DEMO_SIZES, DEMOS
+    from nprt.scene.demos import DEMO_SIZES, DEMOS, family
     from nprt.scene.partition import partition
 
     ap = argparse.ArgumentParser(prog="python -m nprt.proxies.ship", description=__doc__)
@@ -48,35 +51,39 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", nargs="*", default=list(SIZES),
                     choices=[*SIZES, "massive"])
     ap.add_argument("--out", default=str(SHIPPED_DIR))
-    ap.add_argument("--budget-s", type=float, default=ProxyConfig.budget_s,
-                    help="smoke runs only: a non-default budget gives files the render "
+    ap.add_argument("--steps", type=int, default=ProxyConfig.steps,
+                    help="smoke runs only: a non-default step budget gives files the render "
                          "path's default config does not look up")
+    ap.add_argument("--family", action=argparse.BooleanOptionalAction, default=True,
+                    help=f"also the test family scene ({FAMILY_SIZE}, width {FAMILY_WIDTHS})")
     ap.add_argument("--prune", action="store_true",
                     help="delete files in --out that no demo mesh uses any more")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cache = ProxyCache(args.out, shipped_dir=None)
-    config = ProxyConfig(budget_s=args.budget_s)
+    config = ProxyConfig(steps=args.steps)
     keep, t0 = set(), time.perf_counter()
-    for name in args.demos:
-        for size in args.sizes:
-            if size not in DEMO_SIZES[name]:
-                continue
-            scene, trainer = _open(name, size)
-            plan = plan_proxies(scene, partition(scene, SHARDS), TARGET_ACCURACY, cache,
-                                train=True, config=config, widths=DEFAULT_WIDTHS,
-                                progress=sys.stderr.isatty(),
-                                trainer=trainer and trainer(cache.dir))
-            for d in plan.decisions:
-                mesh = scene.meshes[d.mesh]
-                keep.update(file_name(mesh, config.with_width(w)) for w in d.tried)
-                print(f"{name:9s} {size:7s} {d.name:10s} {d.decision:9s} w={d.width} "
-                      f"acc={d.accuracy} bytes={d.proxy_bytes} {d.reason}", flush=True)
+    jobs = [(name, size, DEFAULT_WIDTHS) for name in args.demos for size in args.sizes
+            if size in DEMO_SIZES[name]]
+    if args.family:
+        jobs.append(("family", FAMILY_SIZE, FAMILY_WIDTHS))
+    for name, size, widths in jobs:
+        scene, trainer = (family.build(size), None) if name == "family" else _open(name, size)
+        plan = plan_proxies(scene, partition(scene, SHARDS), TARGET_ACCURACY, cache,
+                            train=True, config=config, widths=widths,
+                            progress=sys.stderr.isatty(),
+                            trainer=trainer and trainer(cache.dir))
+        for d in plan.decisions:
+            mesh = scene.meshes[d.mesh]
+            keep.update(file_name(mesh, config.with_width(w)) for w in d.tried)
+            print(f"{name:9s} {size:7s} {d.name:10s} {d.decision:9s} w={d.width} "
+                  f"acc={d.accuracy} bytes={d.proxy_bytes} {d.reason}", flush=True)
     files = sorted(cache.dir.glob(f"*{SUFFIX}"))
     if args.prune:
         for f in files:
             if f.name not in keep:
                 f.unlink()
+                f.with_suffix(TIMING_SUFFIX).unlink(missing_ok=True)
                 print(f"pruned {f.name}")
         files = [f for f in files if f.name in keep]
     total = sum(f.stat().st_size for f in files)

@@ -11,13 +11,14 @@ from pathlib import Path
 
 from pydantic import ValidationError
 
+from nprt.proxies.config import ProxyConfig
 from nprt.scene.errors import SceneError
 from nprt.service.logconfig import add_log_flags
 from nprt.service.preflight import CliError
 
 log = logging.getLogger(__name__)
 # RenderSettings fields whose flag is not "--" + the field name with dashes.
-_FLAG_OF = {("proxy", "width"): "--proxy-width", ("proxy", "budget_s"): "--proxy-budget-s"}
+_FLAG_OF = {("proxy", "width"): "--proxy-width", ("proxy", "steps"): "--proxy-steps"}
 
 
 class DefaultsFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -71,8 +72,9 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
                    help="proxy confidence band for shadow rays (0: shadow rays never move)")
     p.add_argument("--proxy-width", type=int, default=None, choices=(16, 32, 64, 128, 256),
                    help="one proxy width for every mesh (default: narrowest meeting 97%%)")
-    p.add_argument("--proxy-budget-s", type=float, default=45.0,
-                   help="training budget per proxy, seconds (shipped proxies: 45)")
+    p.add_argument("--proxy-steps", type=int, default=ProxyConfig.steps,
+                   help="training budget per proxy, optimiser steps (shipped proxies: the "
+                        "default)")
     p.add_argument("--ray-address", default=None,
                    help="join this Ray cluster (default: start a local Ray)")
     p.add_argument("--size", default="default", choices=["default", "small", "tiny", "massive"],
@@ -88,7 +90,7 @@ def settings_from_args(a: argparse.Namespace):
         shards=a.shards, mode=a.mode, tile_size=a.tile_size,
         spp_per_pass=min(a.spp_per_pass, max(a.spp, 1)),  # a bad --spp: one error
         proxy=ProxySettings(threshold=a.threshold, band=a.band, shadow_band=a.shadow_band,
-                            width=a.proxy_width, budget_s=a.proxy_budget_s))
+                            width=a.proxy_width, steps=a.proxy_steps))
 
 
 def render_with_progress(scene, settings, ray_address=None, label="render"):

@@ -55,7 +55,7 @@ def add_serve_parsers(subparsers) -> None:
     s.add_argument("--shadow-band", type=float, help="proxy confidence band, shadow rays")
     s.add_argument("--proxy-width", type=int, choices=(16, 32, 64, 128, 256),
                    help="one proxy width for every mesh")
-    s.add_argument("--proxy-budget-s", type=float, help="training budget per proxy, seconds")
+    s.add_argument("--proxy-steps", type=int, help="training budget per proxy, optimiser steps")
     s.add_argument("--frames", type=_frame_pair, metavar="A:B",
                    help="render frames A to B (inclusive) of an animated scene; with -o, "
                         "write each to it (out_####.png: #### = the zero-padded frame)")
@@ -145,7 +145,7 @@ def _submit(args: argparse.Namespace) -> int:
     body = {k: v for k, v in body.items() if v is not None}
     knobs = (("threshold", args.threshold), ("band", args.band),
              ("shadow_band", args.shadow_band), ("width", args.proxy_width),
-             ("budget_s", args.proxy_budget_s))
+             ("steps", args.proxy_steps))
     proxy = {k: v for k, v in knobs if v is not None}
     if proxy:
         body["proxy"] = proxy

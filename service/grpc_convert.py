@@ -17,7 +17,7 @@ STATE_TO_PB = {
 }
 _SETTINGS_FIELDS = ("width", "height", "spp", "bounces", "shadow_rays", "seed",
                     "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass")
-_PROXY_FIELDS = ("threshold", "band", "accuracy_target", "shadow_band", "width", "budget_s")
+_PROXY_FIELDS = ("threshold", "band", "accuracy_target", "shadow_band", "width", "steps")
 
 
 def settings_from_pb(msg: pb.RenderSettings) -> RenderSettings:

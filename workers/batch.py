@@ -123,6 +123,7 @@ _RAY_SPEC = {
 FLAG_EXACT = 1  # fell back to exact forwarding (uncertain prediction or a miss at the target)
 FLAG_TARGETED = 2  # sent to the shard a proxy predicted; the hit there is final
 FLAG_SHADE = 4  # closest hit is final; sent to the hit's owner only to be shaded
+FLAG_INTERNAL = 8  # with FLAG_TARGETED: the prediction came from inside the hit's box
 
 
 @dataclass(frozen=True, eq=False)

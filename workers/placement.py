@@ -26,7 +26,7 @@ def make_plan(scene, part, settings: RenderSettings, proxy_dir=None, train=True,
     knobs = settings.proxy
     return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,
                         cache=ProxyCache(proxy_dir), train=train,
-                        config=ProxyConfig(budget_s=knobs.budget_s),
+                        config=ProxyConfig(steps=knobs.steps),
                         widths=DEFAULT_WIDTHS if knobs.width is None else (knobs.width,),
                         trainer=trainer)
 

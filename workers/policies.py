@@ -11,7 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from nprt.workers.batch import FLAG_EXACT, FLAG_TARGETED, SECONDARY, RayBatch, ShadowRayBatch
+from nprt.workers.batch import (
+    FLAG_EXACT,
+    FLAG_INTERNAL,
+    FLAG_TARGETED,
+    SECONDARY,
+    RayBatch,
+    ShadowRayBatch,
+)
 from nprt.workers.local import LocalGeometry
 from nprt.workers.protocol import EVERYWHERE
 from nprt.workers.proxy_query import predict
@@ -59,8 +66,10 @@ class ProxyPolicy(ExactPolicy):
         arrived = (flags & FLAG_TARGETED) != 0
         missed = arrived & ((rays.hit_inst < 0) | (self._owner_of(rays.hit_inst) != DONE))
         stats.count("proxy_mispredictions", missed)
+        # The paper's internal case (origin inside the predicted box) counted on its own.
+        stats.count("proxy_internal_mispredictions", missed & ((flags & FLAG_INTERNAL) != 0))
         flags[missed] |= FLAG_EXACT
-        flags &= np.uint8(~FLAG_TARGETED & 0xFF)
+        flags &= np.uint8(~(FLAG_TARGETED | FLAG_INTERNAL) & 0xFF)
         fresh = secondary & ~arrived & ((flags & FLAG_EXACT) == 0)
         if fresh.any():
             f = np.flatnonzero(fresh)
@@ -70,10 +79,15 @@ class ProxyPolicy(ExactPolicy):
                                self.known)
             stats.count("proxy_queries", f)
             stats.count("proxy_uncertain", f[pred.uncertain])
+            stats.count("proxy_internal_ambiguous", f[pred.ambiguous])
             flags[f[pred.uncertain]] |= FLAG_EXACT
             go = ~pred.uncertain & (pred.inst >= 0)
             target[f[go]] = self.world.owner[pred.inst[go]]
             flags[f[go]] |= FLAG_TARGETED
+            inner = go & pred.internal
+            flags[f[inner]] |= FLAG_INTERNAL
+            stats.count("proxy_targeted", f[go])
+            stats.count("proxy_internal_targeted", f[inner])
         rays = rays.replace(flags=flags)
         exact = ~secondary | ((flags & FLAG_EXACT) != 0)  # primary rays are always exact
         if exact.any():

@@ -4,6 +4,7 @@ the external / internal cases of section 5.2."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,11 +17,22 @@ from nprt.workers.world import ShardWorld
 class Prediction:
     """Per ray: t (n,) float32 closest confident predicted hit (inf if none), inst (n,)
     int32 (-1), uncertain (n,) bool (some visibility within the band, or a box with no
-    proxy). A prediction inside the band is never a hit: only exact forwarding decides it."""
+    proxy), internal (n,) bool (the predicted hit is a proxy's answer for a box the ray
+    starts inside: the paper's internal case, whose t is the surface nearest the box exit,
+    not the first one from the origin), ambiguous (n,) bool (a ray also confidently hits a
+    box it starts inside, other than the chosen one: its first surface there may come before
+    the chosen hit). A prediction inside the band is never a hit."""
 
     t: np.ndarray
     inst: np.ndarray
     uncertain: np.ndarray
+    internal: np.ndarray
+    ambiguous: np.ndarray
+
+
+# The internal case's ambiguity (Prediction.ambiguous) goes to exact forwarding unless
+# NPRT_PROXY_INTERNAL_AMBIGUOUS=trust (read at import: for benchmarking the rule only).
+EXACT_IF_AMBIGUOUS = os.environ.get("NPRT_PROXY_INTERNAL_AMBIGUOUS", "exact") != "trust"
 
 
 def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.ndarray,
@@ -33,6 +45,8 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     best_t = np.full(n, np.inf, np.float32)
     best_i = np.full(n, -1, np.int32)
     uncertain = np.zeros(n, bool)
+    internal = np.zeros(n, bool)
+    ambiguous = np.zeros(n, bool)
     if known is not None and len(known.instances) and n:
         t, inst, _, _, _ = known.intersect_closest(origin, direction, tmax)
         hit = inst >= 0
@@ -40,7 +54,7 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     table = world.table
     ray, inst, _, _ = table.box_entries(origin, direction, tmax, remote)
     if len(ray) == 0:
-        return Prediction(best_t, best_i, uncertain)
+        return Prediction(best_t, best_i, uncertain, internal, ambiguous)
     # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
     q = _box_queries(table, inst, origin[ray], direction[ray], tmax[ray])
     mesh = table.mesh[inst]
@@ -63,16 +77,23 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     hit &= ~q.internal | (t_proxy <= q.t_box)  # internal: the surface lies behind the origin
     t = np.where(q.internal, q.t_box - t_proxy, q.t_box + t_proxy).astype(np.float32)
     hit &= t < tmax[ray]
-    r, t, i = ray[hit], t[hit], inst[hit]
+    r, t, i, inner = ray[hit], t[hit], inst[hit], q.internal[hit]
+    inner_hits = np.bincount(r[inner], minlength=n)  # confident internal hits per ray
     # Closest per ray; ties go to the lowest instance.
     order = np.lexsort((i, t, r))
-    r, t, i = r[order], t[order], i[order]
+    r, t, i, inner = r[order], t[order], i[order], inner[order]
     first = np.ones(len(r), bool)
     first[1:] = r[1:] != r[:-1]
-    r, t, i = r[first], t[first], i[first]
+    r, t, i, inner = r[first], t[first], i[first], inner[first]
     better = t < best_t[r]
     best_t[r[better]], best_i[r[better]] = t[better], i[better]
-    return Prediction(best_t, best_i, uncertain)
+    internal[r[better]] = inner[better]
+    # An internal t is the surface nearest the box exit; the ray's first surface in that box
+    # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
+    ambiguous = inner_hits - internal > 0
+    if EXACT_IF_AMBIGUOUS:
+        uncertain |= ambiguous
+    return Prediction(best_t, best_i, uncertain, internal, ambiguous)
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from nprt.proxies.config import ProxyConfig
+
 Mode = Literal["exact", "proxy", "oracle"]
 
 
@@ -29,9 +31,10 @@ class ProxySettings(BaseModel):
     width: Literal[16, 32, 64, 128, 256] | None = Field(
         None, description="proxy width N for every mesh; unset: the narrowest of 16/32/64 "
                           "that reaches accuracy_target")
-    budget_s: float = Field(45.0, gt=0.0, le=3600.0,
-                            description="training budget per proxy (both nets), seconds; the "
-                                        "shipped proxies are trained at the default")
+    steps: int = Field(ProxyConfig.steps, ge=2, le=10_000_000,
+                       description="training budget per proxy (both nets), optimiser steps; "
+                                   "the same steps give the same proxy bytes, and the shipped "
+                                   "proxies are trained at the default")
 
 
 class RenderSettings(BaseModel):

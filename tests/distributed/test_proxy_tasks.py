@@ -20,7 +20,7 @@ from nprt.scene.partition import partition
 pytest.importorskip("torch", reason="training needs PyTorch")
 
 # A few hundred steps on few rays: seconds per proxy, accuracy does not matter here.
-QUICK = ProxyConfig(budget_s=0, max_steps=60, n_samples=1 << 13, grid=16,
+QUICK = ProxyConfig(steps=60, n_samples=1 << 13, grid=16,
                     eval_samples=1 << 11, calibrate=False)
 WIDTHS = (8,)
 

@@ -13,7 +13,7 @@ from nprt.proxies.policy import plan_proxies
 from nprt.scene.partition import partition
 from tests.proxies.helpers import scene_of, sphere, stand_in_proxy, torus
 
-TINY = ProxyConfig(width=16, budget_s=0, max_steps=20, n_samples=4096, grid=8,
+TINY = ProxyConfig(width=16, steps=40, n_samples=4096, grid=8,
                    eval_samples=2048)
 
 

@@ -13,7 +13,7 @@ def test_proxy_train_on_a_mesh_file_prints_the_report_and_caches(tmp_path, capsy
     path = tmp_path / "ball.ply"
     # subdivisions=3: 38 kB of triangles, more than a width-16 proxy (~14 kB), so not skipped
     trimesh.creation.icosphere(subdivisions=3).export(path)
-    args = ["proxy", "train", str(path), "--width", "16", "--budget-s", "2",
+    args = ["proxy", "train", str(path), "--width", "16", "--steps", "200",
             "--samples", "8192", "--out", str(tmp_path / "cache")]
     assert main(args) == 0
     out = capsys.readouterr().out

@@ -13,7 +13,7 @@ from nprt.proxies.policy import plan_proxies
 from nprt.scene.partition import partition
 from tests.proxies.helpers import scene_of, sphere, torus, triangle
 
-QUICK = ProxyConfig(budget_s=0, max_steps=600, n_samples=1 << 17, grid=32,
+QUICK = ProxyConfig(steps=1000, n_samples=1 << 17, grid=32,
                     eval_samples=1 << 14)
 
 

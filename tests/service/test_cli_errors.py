@@ -74,7 +74,7 @@ def test_face_index_out_of_range_is_named_exactly(tmp_path, capsys, index, expec
     (["--height", "20000"], "nprt: invalid option: --height 20000: Input should be less than"),
     (["--band", "2"], "nprt: invalid option: --band 2.0: Input should be less than or equal"),
     (["--tile-size", "4"], "nprt: invalid option: --tile-size 4: Input should be greater"),
-    (["--proxy-budget-s", "0"], "nprt: invalid option: --proxy-budget-s 0.0: Input should"),
+    (["--proxy-steps", "0"], "nprt: invalid option: --proxy-steps 0: Input should"),
     (["--mode", "proxy"], "nprt: invalid option: settings: mode 'proxy' needs shards >= 1"),
     (["--width", "x"], "nprt: invalid option: nprt render: argument --width: invalid int"),
     (["--mode", "fast"], "nprt: invalid option: nprt render: argument --mode: invalid choice"),

@@ -162,7 +162,7 @@ def test_dashboard_and_openapi_are_served(client):
 
 @pytest.mark.parametrize("field,value", [
     ("spp", "NaN"), ("width", "Infinity"), ("seed", "-Infinity"),
-    ("proxy.threshold", "NaN"), ("proxy.budget_s", "Infinity")])
+    ("proxy.threshold", "NaN"), ("proxy.steps", "Infinity")])
 def test_non_finite_numbers_are_422_naming_the_field(client, field, value):
     """Python's JSON reader takes NaN and Infinity; the 422 must still encode them."""
     head, _, sub = field.partition(".")

@@ -137,7 +137,7 @@ function explain(job) {
   } else if (job.state === "preparing") {
     text = s.shards
       ? `Preparing: loading scene ${job.scene}, partitioning its instances over ${s.shards} shards` +
-        (s.mode === "proxy" ? `, fetching or training a proxy for each base mesh that crosses shards (up to ${s.proxy.budget_s} s of training each)` : "") +
+        (s.mode === "proxy" ? `, fetching or training a proxy for each base mesh that crosses shards (${s.proxy.steps} optimiser steps of training each, unless cached)` : "") +
         (s.mode === "oracle" ? ", deciding which meshes to replicate" : "") +
         `, and starting ${s.shards} shard actors. A warm pool of the same scene and placement skips this.`
       : `Preparing: loading scene ${job.scene} for the single-process reference renderer.`;

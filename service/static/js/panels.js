@@ -29,7 +29,7 @@ export function showSettings(job) {
     rows.push(["proxy threshold", p.threshold ?? "each proxy's calibrated one"],
       ["proxy band", `${p.band} (shadow rays: ${p.shadow_band})`],
       ["proxy width", p.width ?? `narrowest meeting ${p.accuracy_target}`],
-      ["proxy budget", `${p.budget_s} s per proxy`]);
+      ["proxy budget", `${p.steps} optimiser steps per proxy`]);
   }
   kvRows($("#settings-table"), rows);
 }
