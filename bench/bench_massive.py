@@ -163,8 +163,8 @@ def main(argv=None) -> int:
             small, _ = _render(4, args, address, tmp, args.small_scene)
         finally:
             ray.shutdown()
-        # Training on as many Ray CPUs as real cores: budgets are wall-clock, so more
-        # tasks than cores would each train less, not faster.
+        # Training on as many Ray CPUs as real cores: each task trains one thread, so
+        # more tasks than cores would only share them.
         ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
         try:
             training = [_train(meta, True, args, tmp), _train(meta, False, args, tmp)]

@@ -14,8 +14,8 @@ ray = pytest.importorskip("ray")
 import nprt.workers.coordinator as coordinator  # noqa: E402
 import nprt.workers.pool as pool  # noqa: E402
 from nprt.scene.demos import make_demo  # noqa: E402
-from nprt.workers.settings import RenderSettings  # noqa: E402
 from nprt.workers.remote import ShardActor  # noqa: E402
+from nprt.workers.settings import RenderSettings  # noqa: E402
 
 pytestmark = pytest.mark.slow
 SETTINGS = RenderSettings(width=16, height=16, spp=1, bounces=1, shadow_rays=1, tile_size=16,
