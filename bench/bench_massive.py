@@ -85,24 +85,26 @@ def driver(args) -> int:
     return 0
 
 
-def _bare(args, address: str, tmp: Path) -> float:
-    report = tmp / "bare.json"
-    cmd = [sys.executable, "-m", "bench.bench_massive", "--bare", "--address", address,
-           "--report", str(report)]
+def _child(report: Path, *flags: str) -> dict:
+    """Run this module as a driver process with `flags`; returns the report it wrote."""
+    cmd = [sys.executable, "-m", "bench.bench_massive", *flags, "--report", str(report)]
     subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    return json.loads(report.read_text())["rss_peak_mb"]
+    return json.loads(report.read_text())
+
+
+def _bare(address: str, tmp: Path) -> float:
+    return _child(tmp / "bare.json", "--bare", "--address", address)["rss_peak_mb"]
 
 
 def _render(k: int, args, address: str, tmp: Path, scene: str | None = None
             ) -> tuple[dict, np.ndarray]:
     scene = scene or args.scene
-    image, report = tmp / f"{scene}-k{k}.npy", tmp / f"{scene}-k{k}.json"
-    cmd = [sys.executable, "-m", "bench.bench_massive", "--driver", str(k), "--address",
-           address, "--image", str(image), "--report", str(report), "--scene", scene,
-           "--width", str(args.width), "--height", str(args.height), "--spp", str(args.spp),
-           "--bounces", str(args.bounces)]
-    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
-    return json.loads(report.read_text()), np.load(image)
+    image = tmp / f"{scene}-k{k}.npy"
+    report = _child(tmp / f"{scene}-k{k}.json", "--driver", str(k), "--address", address,
+                    "--image", str(image), "--scene", scene, "--width", str(args.width),
+                    "--height", str(args.height), "--spp", str(args.spp),
+                    "--bounces", str(args.bounces))
+    return report, np.load(image)
 
 
 def _train(meta, parallel: bool, args, tmp: Path) -> dict:
@@ -158,7 +160,7 @@ def main(argv=None) -> int:
         ray.init(num_cpus=args.ray_cpus, include_dashboard=False, log_to_driver=False)
         try:
             address = ray.get_runtime_context().gcs_address
-            bare_mb = _bare(args, address, tmp)
+            bare_mb = _bare(address, tmp)
             renders = {k: _render(k, args, address, tmp) for k in (4, 8)}
             small, _ = _render(4, args, address, tmp, args.small_scene)
         finally:

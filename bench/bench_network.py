@@ -83,20 +83,16 @@ def traced_render(scene, s, pools: PoolRegistry) -> dict:
     info, trace, and each shard process's CPU seconds over its busy seconds (how much of a
     call's time it had a core)."""
     coord = Coordinator(scene, s, pools=pools, trace=True)
-    try:
-        return _traced(coord, scene, s)
-    finally:
-        coord.close()  # the pool goes back to the registry, warm
-
-
-def _traced(coord: Coordinator, scene, s) -> dict:
     pids = [i["pid"] for i in coord.shard_info]
     cpu0 = [cpu_seconds(p) for p in pids]
     load = os.getloadavg()[0]
     t0 = time.perf_counter()
-    result = render(scene, s, renderer=coord)
-    wall = time.perf_counter() - t0
-    cpu = [cpu_seconds(p) - c for p, c in zip(pids, cpu0, strict=True)]
+    try:
+        result = render(scene, s, renderer=coord)
+        wall = time.perf_counter() - t0
+        cpu = [cpu_seconds(p) - c for p, c in zip(pids, cpu0, strict=True)]
+    finally:
+        coord.close()  # the pool goes back to the registry, warm; info() still answers
     info = coord.info()
     busy = [sh["busy_s"] for sh in info["shard_stats"]]
     return {"wall_s": round(wall, 4), "load_average": round(load, 2),
