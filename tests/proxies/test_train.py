@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch", reason="training needs PyTorch (the 'train'
 
 from nprt.proxies.config import ProxyConfig  # noqa: E402
 from nprt.proxies.encoding import N_INPUTS  # noqa: E402
-from nprt.proxies.export import export_onnx  # noqa: E402
+from nprt.proxies.export import export_onnx, fourier_as_matmul  # noqa: E402
 from nprt.proxies.inference import Proxy  # noqa: E402
 from nprt.proxies.model import ResidualMLP  # noqa: E402
 from nprt.proxies.train import train_proxy  # noqa: E402
@@ -102,3 +102,31 @@ def test_onnx_runtime_output_equals_torch_within_1e_5(sigmoid, encoding, fourier
     got = proxy.run("visibility", x)
     assert got.shape == want.shape
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-5)
+
+
+def test_fourier_front_end_exports_as_one_matmul_with_bit_identical_outputs():
+    import onnx
+
+    torch.manual_seed(0)
+    n_in = N_INPUTS["line"]
+    net = ResidualMLP(n_in, 16, 1, sigmoid=True, fourier=3)
+    blob = export_onnx(net, n_in)
+    ops = [n.op_type for n in onnx.load_from_string(blob).graph.node]
+    assert ops[0] == "MatMul" and "Unsqueeze" not in ops and "Flatten" not in ops
+    assert fourier_as_matmul(blob) == blob  # shipped blobs can pass through it again
+    # Against the graph torch exports (broadcast Mul): the same bits, not just close.
+    import io
+    import warnings
+
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(net.eval(), (torch.zeros(2, n_in),), buf, input_names=["x"],
+                          output_names=["y"], dynamic_axes={"x": {0: "n"}, "y": {0: "n"}},
+                          opset_version=17, dynamo=False)
+    assert "Mul" in [n.op_type for n in onnx.load_from_string(buf.getvalue()).graph.node]
+    x = np.random.default_rng(2).random((5000, n_in), dtype=np.float32) * 4 - 2
+    meta = {"box": [[0, 0, 0], [1, 1, 1]], "diag": 3**0.5, "encoding": "line"}
+    old = Proxy(meta, {"visibility": buf.getvalue(), "depth": buf.getvalue()})
+    new = Proxy(meta, {"visibility": blob, "depth": blob})
+    assert np.array_equal(old.run("visibility", x), new.run("visibility", x))
