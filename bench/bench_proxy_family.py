@@ -36,6 +36,10 @@ def main(argv=None) -> int:
     ap.add_argument("--spp", type=int, default=4)
     ap.add_argument("--proxy-width", type=int, default=16)
     ap.add_argument("--internal", choices=("exact", "trust"), default="exact")
+    ap.add_argument("--band", type=float, default=ProxySettings().band,
+                    help="confidence band of secondary rays (default: the render default)")
+    ap.add_argument("--shadow-band", type=float, default=ProxySettings().shadow_band,
+                    help="confidence band of shadow rays (default: the render default)")
     args = ap.parse_args(argv)
     # Read by nprt.workers.proxy_query at import, in the shard actors started after ray.init.
     os.environ["NPRT_PROXY_INTERNAL_AMBIGUOUS"] = args.internal
@@ -47,7 +51,8 @@ def main(argv=None) -> int:
     try:
         ex_row, ex_img, _ = timed_render(scene, base)
         s = base.model_copy(update={"mode": "proxy",
-                                    "proxy": ProxySettings(width=args.proxy_width)})
+                                    "proxy": ProxySettings(width=args.proxy_width, band=args.band,
+                                                          shadow_band=args.shadow_band)})
         px_row, px_img, info = timed_render(scene, s)
     finally:
         ray.shutdown()

@@ -43,7 +43,7 @@ BEGIN, END = "<!-- bench_proxy_sweep:begin -->", "<!-- bench_proxy_sweep:end -->
 # One knob at a time; every other knob at its default (ProxySettings()).
 SWEEPS = {
     "threshold": [0.3, 0.4, None, 0.6, 0.7],  # None: each proxy's calibrated threshold
-    "band": [0.0, 0.05, 0.1, 0.2, 0.3, 0.5],
+    "band": [0.0, 0.1, 0.2, 0.3, 0.4, 0.5],
     "shadow_band": [0.0, 0.05, 0.1, 0.2, 0.4],
     "width": [16, 32, 64],
     "steps": [4000, 12000, 24000],  # 12000: the default
@@ -115,7 +115,8 @@ def markdown(res: dict) -> str:
     lines = [f"`{res['scene']}` size `{res['size']}`, K={s['shards']}, {s['width']}x"
              f"{s['height']}, {s['spp']} spp, {s['bounces']} bounces, seed {s['seed']}; "
              f"{res['machine']['cpus']} cores. One knob at a time, the others at their "
-             "defaults (threshold: each proxy's calibrated one; band 0.1; shadow band 0; "
+             f"defaults (threshold: each proxy's calibrated one; band {ProxySettings().band}; "
+             f"shadow band {ProxySettings().shadow_band}; "
              f"width: narrowest of 16/32/64 reaching 97 %; budget {ProxyConfig.steps} steps). "
              "Bytes are ray batches sent between shards; quality is against exact at the same "
              "seed.", "",

@@ -15,6 +15,7 @@ from nprt.proxies.config import ProxyConfig
 from nprt.scene.errors import SceneError
 from nprt.service.logconfig import add_log_flags
 from nprt.service.preflight import CliError
+from nprt.workers.settings import ProxySettings
 
 log = logging.getLogger(__name__)
 # RenderSettings fields whose flag is not "--" + the field name with dashes.
@@ -66,9 +67,9 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
                    help="samples per pixel that one pass renders")
     p.add_argument("--threshold", type=float, default=None,
                    help="proxy visibility threshold (default: each proxy's calibrated one)")
-    p.add_argument("--band", type=float, default=0.1,
+    p.add_argument("--band", type=float, default=ProxySettings().band,
                    help="proxy confidence band for secondary rays (wider: more exact fallback)")
-    p.add_argument("--shadow-band", type=float, default=0.0,
+    p.add_argument("--shadow-band", type=float, default=ProxySettings().shadow_band,
                    help="proxy confidence band for shadow rays (0: shadow rays never move)")
     p.add_argument("--proxy-width", type=int, default=None, choices=(16, 32, 64, 128, 256),
                    help="one proxy width for every mesh (default: narrowest meeting 97%%)")
@@ -82,7 +83,7 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
 
 
 def settings_from_args(a: argparse.Namespace):
-    from nprt.workers.settings import ProxySettings, RenderSettings
+    from nprt.workers.settings import RenderSettings
 
     return RenderSettings(
         width=a.width, height=a.height, spp=a.spp, bounces=a.bounces,
