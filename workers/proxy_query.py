@@ -16,10 +16,11 @@ from nprt.workers.world import ShardWorld
 @dataclass(frozen=True)
 class Prediction:
     """Per ray: t (n,) float32 closest confident predicted hit (inf if none), inst (n,)
-    int32 (-1), uncertain (n,) bool (some visibility within the band, or a box with no
-    proxy), internal (n,) bool (the predicted hit is a proxy's answer for a box the ray
-    starts inside: the paper's internal case, whose t is the surface nearest the box exit,
-    not the first one from the origin), ambiguous (n,) bool (a ray also confidently hits a
+    int32 (-1), uncertain (n,) bool (the ray enters a box whose visibility is within the
+    band, or that has no proxy, before its closest confident hit), internal (n,) bool (the
+    predicted hit is a proxy's answer for a box the ray starts inside: the paper's internal
+    case, whose t is the surface nearest the box exit, not the first one from the origin),
+    ambiguous (n,) bool (a ray also confidently hits a
     box it starts inside, other than the chosen one: its first surface there may come before
     the chosen hit). A prediction inside the band is never a hit."""
 
@@ -65,14 +66,12 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
         rows = np.flatnonzero(q.crosses & (mesh == m))
         proxy = proxies.get(int(m))
         if proxy is None:  # no proxy for this mesh: only exact forwarding can tell
-            uncertain[ray[rows]] = True
             continue
         thr[rows] = proxy.meta["threshold"] if threshold is None else threshold
         v, tp = proxy.query(q.point[rows], q.qdir[rows], min_visibility=float(thr[rows[0]]))
         vis[rows], t_proxy[rows] = v, tp / q.length[rows]
     has_proxy = q.crosses & np.isin(mesh, np.fromiter(proxies, np.int64, len(proxies)))
     unsure = has_proxy & (np.abs(vis - thr) < band)
-    uncertain[ray[unsure]] = True
     hit = has_proxy & ~unsure & (vis >= thr)
     hit &= ~q.internal | (t_proxy <= q.t_box)  # internal: the surface lies behind the origin
     t = np.where(q.internal, q.t_box - t_proxy, q.t_box + t_proxy).astype(np.float32)
@@ -88,6 +87,12 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     better = t < best_t[r]
     best_t[r[better]], best_i[r[better]] = t[better], i[better]
     internal[r[better]] = inner[better]
+    # A box no proxy answers with confidence (in the band, or without a proxy) matters only
+    # if the ray enters it before its closest confident hit: only then can it hide a nearer
+    # surface. (Shadow rays use `uncertain` only where nothing occludes: best_t is inf.)
+    t_enter = np.where(q.internal, 0.0, q.t_box)
+    open_ = (unsure | (q.crosses & ~has_proxy)) & (t_enter < best_t[ray])
+    uncertain[ray[open_]] = True
     # An internal t is the surface nearest the box exit; the ray's first surface in that box
     # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
     ambiguous = inner_hits - internal > 0

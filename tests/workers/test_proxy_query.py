@@ -1,0 +1,82 @@
+"""What `predict` makes of proxy answers along one ray: real Proxy objects whose ONNX nets
+give a fixed visibility, so each case is set by hand. Two unit cubes of different meshes,
+A at x = 5 and B at x = 10, on shards 1 and 2; the rays start at the origin along +x."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from nprt.proxies.inference import Proxy
+from nprt.scene.model import Camera, Instance, Scene
+from nprt.workers.proxy_query import predict
+from nprt.workers.world import ShardWorld
+from tests.workers.helpers import mesh_from_trimesh, trs
+
+onnx = pytest.importorskip("onnx", reason="building the fixed nets needs onnx")
+from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+
+BAND = 0.4
+
+
+def _constant_net(value: float, n_in: int = 6) -> bytes:
+    """x (n, n_in) -> y (n, 1) = value, through a real MatMul so the batch axis flows."""
+    zeros = numpy_helper.from_array(np.zeros((n_in, 1), np.float32), "w")
+    const = numpy_helper.from_array(np.array([value], np.float32), "c")
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["x", "w"], ["z"]), helper.make_node("Add", ["z", "c"], ["y"])],
+        "constant", [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", n_in])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", 1])], [zeros, const])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+def _proxy(visibility: float) -> Proxy:
+    """A proxy of the unit cube answering `visibility` everywhere; depth y = 0 puts the hit
+    at the line's closest point to the box centre (half a unit in, along +x)."""
+    box = [[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]
+    meta = {"box": box, "diag": 3 ** 0.5, "encoding": "line", "threshold": 0.5}
+    return Proxy(meta, {"visibility": _constant_net(visibility), "depth": _constant_net(0.0)})
+
+
+@pytest.fixture(scope="module")
+def world():
+    cube = trimesh.creation.box((1.0, 1.0, 1.0))
+    meshes = (mesh_from_trimesh(cube, "a"), mesh_from_trimesh(cube, "b"))
+    scene = Scene(meshes, (Instance(0, trs((5, 0, 0))), Instance(1, trs((10, 0, 0)))),
+                  camera=Camera(eye=(0, 0, 0), target=(1, 0, 0), up=(0, 1, 0), fov_deg=40))
+    return ShardWorld.build(scene, np.array([1, 2], np.int32))
+
+
+def _ask(world, proxies: dict):
+    origin = np.zeros((1, 3), np.float32)
+    direction = np.array([[1.0, 0.0, 0.0]], np.float32)
+    tmax = np.full(1, np.inf, np.float32)
+    return predict(world, proxies, np.array([0, 1], np.int32), origin, direction, tmax,
+                   threshold=None, band=BAND)
+
+
+def test_an_unsure_box_beyond_the_closest_confident_hit_does_not_matter(world):
+    pred = _ask(world, {0: _proxy(0.99), 1: _proxy(0.5)})
+    assert pred.inst[0] == 0 and not pred.uncertain[0]
+    assert pred.t[0] == pytest.approx(5.0, abs=1e-4)
+
+
+def test_an_unsure_box_before_the_confident_hit_sends_the_ray_to_exact(world):
+    pred = _ask(world, {0: _proxy(0.5), 1: _proxy(0.99)})
+    assert pred.uncertain[0] and pred.inst[0] == 1  # the hit is known; A may hide a nearer one
+
+
+def test_a_box_without_proxy_counts_only_before_the_confident_hit(world):
+    assert not _ask(world, {0: _proxy(0.99)}).uncertain[0]
+    pred = _ask(world, {1: _proxy(0.99)})
+    assert pred.uncertain[0] and pred.inst[0] == 1
+
+
+def test_confident_misses_leave_no_hit_and_no_doubt(world):
+    pred = _ask(world, {0: _proxy(0.01), 1: _proxy(0.02)})
+    assert pred.inst[0] == -1 and np.isinf(pred.t[0]) and not pred.uncertain[0]
+    pred = _ask(world, {0: _proxy(0.01), 1: _proxy(0.6)})  # no hit, and B is unsure
+    assert pred.inst[0] == -1 and pred.uncertain[0]
