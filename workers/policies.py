@@ -48,7 +48,13 @@ class ExactPolicy:
 class ProxyPolicy(ExactPolicy):
     """remote : (m,) int32 instances not held here (exact fallback forwarding covers all of
     them); known : those of them whose base mesh this shard holds, answered exactly; the
-    rest (`modeled`) are answered by proxies."""
+    rest (`modeled`) are answered by proxies.
+
+    A secondary ray goes to the owner of its closest confident predicted hit, where that
+    hit is final if real (a miss there falls back to exact forwarding). A ray that first
+    enters a box no proxy answers with confidence goes to that box's owner instead, which
+    intersects it exactly and asks the proxies again about the shards not visited yet: at
+    band 1 this is exact forwarding, step for step."""
 
     def __init__(self, world, shard, remote, proxies: dict, settings: RenderSettings,
                  known: LocalGeometry):
@@ -76,11 +82,17 @@ class ProxyPolicy(ExactPolicy):
             with stats.phase("proxy"):
                 pred = predict(self.world, self.proxies, self.modeled, rays.origin[f],
                                rays.direction[f], rays.tmax[f], self.threshold, self.band,
-                               self.known)
+                               self.known, rays.visited[f])
             stats.count("proxy_queries", f)
             stats.count("proxy_uncertain", f[pred.uncertain])
             stats.count("proxy_internal_ambiguous", f[pred.ambiguous])
-            flags[f[pred.uncertain]] |= FLAG_EXACT
+            # An uncertain ray visits the owner of the first box it cannot trust, where that
+            # box is intersected exactly and the proxies are asked again about the shards
+            # not visited yet; one uncertain only for ambiguity falls back to exact forwarding.
+            settle = pred.uncertain & (pred.first_open >= 0)
+            flags[f[pred.uncertain & ~settle]] |= FLAG_EXACT
+            target[f[settle]] = self.world.owner[pred.first_open[settle]]
+            stats.count("proxy_settled", f[settle])
             go = ~pred.uncertain & (pred.inst >= 0)
             target[f[go]] = self.world.owner[pred.inst[go]]
             flags[f[go]] |= FLAG_TARGETED
@@ -88,6 +100,9 @@ class ProxyPolicy(ExactPolicy):
             flags[f[inner]] |= FLAG_INTERNAL
             stats.count("proxy_targeted", f[go])
             stats.count("proxy_internal_targeted", f[inner])
+            # No hit ahead: the closest is the one the ray carries, shaded by its owner.
+            rest = f[~pred.uncertain & (pred.inst < 0)]
+            target[rest] = self._owner_of(rays.hit_inst[rest])
         rays = rays.replace(flags=flags)
         exact = ~secondary | ((flags & FLAG_EXACT) != 0)  # primary rays are always exact
         if exact.any():

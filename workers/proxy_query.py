@@ -22,13 +22,16 @@ class Prediction:
     case, whose t is the surface nearest the box exit, not the first one from the origin),
     ambiguous (n,) bool (a ray also confidently hits a
     box it starts inside, other than the chosen one: its first surface there may come before
-    the chosen hit). A prediction inside the band is never a hit."""
+    the chosen hit). A prediction inside the band is never a hit. first_open (n,) int32: of
+    the boxes that make a ray uncertain, the one it enters first (-1: none, or uncertain only
+    for ambiguity); visiting its owner settles it exactly."""
 
     t: np.ndarray
     inst: np.ndarray
     uncertain: np.ndarray
     internal: np.ndarray
     ambiguous: np.ndarray
+    first_open: np.ndarray
 
 
 # The internal case's ambiguity (Prediction.ambiguous) goes to exact forwarding unless
@@ -38,24 +41,31 @@ EXACT_IF_AMBIGUOUS = os.environ.get("NPRT_PROXY_INTERNAL_AMBIGUOUS", "exact") !=
 
 def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.ndarray,
             direction: np.ndarray, tmax: np.ndarray, threshold: float | None,
-            band: float, known=None) -> Prediction:
+            band: float, known=None, visited: np.ndarray | None = None) -> Prediction:
     """origin, direction (n, 3) float32 world; tmax (n,) float32; remote (m,) int32: the
     instances to ask proxies about; threshold None: each proxy's own (calibrated at
-    training); known: LocalGeometry of other remote instances, intersected exactly."""
+    training); known: LocalGeometry of other remote instances, intersected exactly;
+    visited: (n,) uint64 shard bitmask of each ray, whose shards' boxes are not asked about
+    (their geometry was intersected exactly, and the ray carries what it found)."""
     n = len(origin)
     best_t = np.full(n, np.inf, np.float32)
     best_i = np.full(n, -1, np.int32)
     uncertain = np.zeros(n, bool)
     internal = np.zeros(n, bool)
     ambiguous = np.zeros(n, bool)
+    first_open = np.full(n, -1, np.int32)
     if known is not None and len(known.instances) and n:
         t, inst, _, _, _ = known.intersect_closest(origin, direction, tmax)
         hit = inst >= 0
         best_t[hit], best_i[hit] = t[hit], inst[hit]
     table = world.table
     ray, inst, _, _ = table.box_entries(origin, direction, tmax, remote)
+    if visited is not None and len(ray):
+        owner = world.owner[inst].astype(np.uint64)  # remote instances have one owner
+        keep = (visited[ray] >> owner) & np.uint64(1) == 0
+        ray, inst = ray[keep], inst[keep]
     if len(ray) == 0:
-        return Prediction(best_t, best_i, uncertain, internal, ambiguous)
+        return Prediction(best_t, best_i, uncertain, internal, ambiguous, first_open)
     # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
     q = _box_queries(table, inst, origin[ray], direction[ray], tmax[ray])
     mesh = table.mesh[inst]
@@ -93,12 +103,17 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     t_enter = np.where(q.internal, 0.0, q.t_box)
     open_ = (unsure | (q.crosses & ~has_proxy)) & (t_enter < best_t[ray])
     uncertain[ray[open_]] = True
+    o = np.flatnonzero(open_)
+    o = o[np.lexsort((inst[o], t_enter[o], ray[o]))]  # per ray, nearest entry first
+    lead = np.ones(len(o), bool)
+    lead[1:] = ray[o[1:]] != ray[o[:-1]]
+    first_open[ray[o[lead]]] = inst[o[lead]]
     # An internal t is the surface nearest the box exit; the ray's first surface in that box
     # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
     ambiguous = inner_hits - internal > 0
     if EXACT_IF_AMBIGUOUS:
         uncertain |= ambiguous
-    return Prediction(best_t, best_i, uncertain, internal, ambiguous)
+    return Prediction(best_t, best_i, uncertain, internal, ambiguous, first_open)
 
 
 @dataclass(frozen=True)

@@ -23,8 +23,9 @@ class ProxySettings(BaseModel):
     # K = 4 on the demos, 0.1 gave 43.5-44.7 dB against exact and 0.4 gives 45.4-48 dB for
     # 2-5 % more ray bytes (bench/README.md, "Confidence band").
     band: float = Field(0.4, ge=0.0, le=1.0,
-                        description="secondary rays: |visibility - threshold| < band falls back "
-                                    "to exact forwarding")
+                        description="secondary rays: a box entered before the closest confident "
+                                    "hit with |visibility - threshold| < band is settled "
+                                    "exactly, on its own shard")
     shadow_band: float = Field(
         0.0, ge=0.0, le=1.0,
         description="shadow rays: |visibility - threshold| < shadow_band falls back to exact "

@@ -50,12 +50,13 @@ def world():
     return ShardWorld.build(scene, np.array([1, 2], np.int32))
 
 
-def _ask(world, proxies: dict):
+def _ask(world, proxies: dict, visited: int | None = None):
     origin = np.zeros((1, 3), np.float32)
     direction = np.array([[1.0, 0.0, 0.0]], np.float32)
     tmax = np.full(1, np.inf, np.float32)
+    seen = None if visited is None else np.array([visited], np.uint64)
     return predict(world, proxies, np.array([0, 1], np.int32), origin, direction, tmax,
-                   threshold=None, band=BAND)
+                   threshold=None, band=BAND, visited=seen)
 
 
 def test_an_unsure_box_beyond_the_closest_confident_hit_does_not_matter(world):
@@ -67,6 +68,16 @@ def test_an_unsure_box_beyond_the_closest_confident_hit_does_not_matter(world):
 def test_an_unsure_box_before_the_confident_hit_sends_the_ray_to_exact(world):
     pred = _ask(world, {0: _proxy(0.5), 1: _proxy(0.99)})
     assert pred.uncertain[0] and pred.inst[0] == 1  # the hit is known; A may hide a nearer one
+    assert pred.first_open[0] == 0  # the box to settle exactly first
+
+
+def test_boxes_of_visited_shards_are_not_asked_about(world):
+    """A's shard (1) was visited: its geometry was intersected exactly, so its unsure box no
+    longer holds the ray back."""
+    pred = _ask(world, {0: _proxy(0.5), 1: _proxy(0.99)}, visited=1 << 1)
+    assert not pred.uncertain[0] and pred.inst[0] == 1 and pred.first_open[0] == -1
+    pred = _ask(world, {0: _proxy(0.99), 1: _proxy(0.99)}, visited=(1 << 1) | (1 << 2))
+    assert pred.inst[0] == -1 and not pred.uncertain[0]
 
 
 def test_a_box_without_proxy_counts_only_before_the_confident_hit(world):
@@ -79,4 +90,4 @@ def test_confident_misses_leave_no_hit_and_no_doubt(world):
     pred = _ask(world, {0: _proxy(0.01), 1: _proxy(0.02)})
     assert pred.inst[0] == -1 and np.isinf(pred.t[0]) and not pred.uncertain[0]
     pred = _ask(world, {0: _proxy(0.01), 1: _proxy(0.6)})  # no hit, and B is unsure
-    assert pred.inst[0] == -1 and pred.uncertain[0]
+    assert pred.inst[0] == -1 and pred.uncertain[0] and pred.first_open[0] == 1
