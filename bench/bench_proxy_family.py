@@ -34,7 +34,10 @@ def main(argv=None) -> int:
     ap.add_argument("--shards", type=int, default=4)
     ap.add_argument("--width", type=int, default=160)
     ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--proxy-width", type=int, default=16)
+    ap.add_argument("--proxy-width", type=int, default=16, choices=(0, 16, 32, 64, 128, 256),
+                    help="one width for every mesh (16: the shipped ones); 0: the policy's "
+                         "narrowest of 16/32/64 reaching the accuracy target (trains the "
+                         "missing widths into the user cache, minutes)")
     ap.add_argument("--internal", choices=("exact", "trust"), default="exact")
     ap.add_argument("--band", type=float, default=ProxySettings().band,
                     help="confidence band of secondary rays (default: the render default)")
@@ -50,9 +53,9 @@ def main(argv=None) -> int:
              logging_level=logging.WARNING)
     try:
         ex_row, ex_img, _ = timed_render(scene, base)
-        s = base.model_copy(update={"mode": "proxy",
-                                    "proxy": ProxySettings(width=args.proxy_width, band=args.band,
-                                                          shadow_band=args.shadow_band)})
+        knobs = ProxySettings(width=args.proxy_width or None, band=args.band,
+                              shadow_band=args.shadow_band)
+        s = base.model_copy(update={"mode": "proxy", "proxy": knobs})
         px_row, px_img, info = timed_render(scene, s)
     finally:
         ray.shutdown()
@@ -63,9 +66,12 @@ def main(argv=None) -> int:
            "quality_vs_exact": quality(ex_img, px_img),
            "bytes_exact": ex_row["total_bytes"], "bytes_proxy": px_row["total_bytes"],
            "counters": {k: c.get(k, 0) for k in COUNTERS},
-           "plan": info["proxy_plan"]["counts"]}
+           "plan": info["proxy_plan"]["counts"],
+           "proxies": [{k: d[k] for k in ("name", "decision", "width", "accuracy")}
+                       for d in info["proxy_plan"]["decisions"]]}
     RESULTS.mkdir(exist_ok=True)
-    path = RESULTS / f"proxy_family_{args.size}_{args.internal}.json"
+    width = "" if args.proxy_width == 16 else f"_w{args.proxy_width or 'policy'}"
+    path = RESULTS / f"proxy_family_{args.size}_{args.internal}{width}.json"
     path.write_text(json.dumps(out, indent=1))
     print(json.dumps({k: v for k, v in out.items() if k != "settings"}, indent=1))
     return 0

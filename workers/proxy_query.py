@@ -20,11 +20,11 @@ class Prediction:
     band, or that has no proxy, before its closest confident hit), internal (n,) bool (the
     predicted hit is a proxy's answer for a box the ray starts inside: the paper's internal
     case, whose t is the surface nearest the box exit, not the first one from the origin),
-    ambiguous (n,) bool (a ray also confidently hits a
-    box it starts inside, other than the chosen one: its first surface there may come before
-    the chosen hit). A prediction inside the band is never a hit. first_open (n,) int32: of
-    the boxes that make a ray uncertain, the one it enters first (-1: none, or uncertain only
-    for ambiguity); visiting its owner settles it exactly."""
+    ambiguous (n,) bool (a ray also confidently hits a box it starts inside, other than the
+    chosen one: its first surface there may come before the chosen hit), first_open (n,)
+    int32 (of the boxes that make a ray uncertain, the one it enters first; -1: none, or
+    uncertain only for ambiguity; visiting its owner settles it exactly). A prediction
+    inside the band is never a hit."""
 
     t: np.ndarray
     inst: np.ndarray

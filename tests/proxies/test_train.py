@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import io
+import warnings
 from dataclasses import replace
 
 import numpy as np
@@ -115,9 +117,6 @@ def test_fourier_front_end_exports_as_one_matmul_with_bit_identical_outputs():
     assert ops[0] == "MatMul" and "Unsqueeze" not in ops and "Flatten" not in ops
     assert fourier_as_matmul(blob) == blob  # shipped blobs can pass through it again
     # Against the graph torch exports (broadcast Mul): the same bits, not just close.
-    import io
-    import warnings
-
     buf = io.BytesIO()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DeprecationWarning)
