@@ -156,7 +156,8 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
             if proxy is None:
                 d.decision, d.reason = "fallback", f"traced exactly: {why}"
             else:
-                _choose(d, proxy, target_accuracy)
+                _choose(d, proxy, target_accuracy,
+                        estimate_proxy_bytes(config.with_width(max(widths))))
         if d.decision == "replicate":
             replicated.add(i)
         elif d.decision == "proxy":
@@ -165,10 +166,14 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
     return ProxyPlan(decisions, proxies, replicated, target_accuracy)
 
 
-def _choose(d: ProxyDecision, proxy: Proxy, target: float) -> None:
-    """Fill a `proxy` decision, or `replicate` when even the chosen proxy outweighs the mesh."""
+def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
+    """Fill a `proxy` decision, or `replicate` when the mesh is the cheaper way to meet the
+    target: the chosen proxy outweighs it, or no width met the target and the mesh is
+    lighter than the widest proxy tried (budget: its estimated bytes). An exact copy always
+    meets the target, and it fits in what the policy was ready to ship."""
     d.width, d.accuracy = int(proxy.meta["width"]), _accuracy(proxy)
     d.proxy_bytes, d.train_s = proxy.nbytes, proxy.timing.get("train_s")
+    best_w = max(d.tried, key=lambda w: (d.tried[w], -w)) if d.tried else d.width
     if proxy.nbytes >= d.mesh_bytes:
         d.decision = "replicate"
         d.reason = (f"proxy at width {d.width} is {proxy.nbytes} B >= mesh {d.mesh_bytes} B: "
@@ -176,6 +181,11 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float) -> None:
     elif d.accuracy >= target:
         d.decision = "proxy"
         d.reason = f"width {d.width} is the narrowest meeting accuracy {target:.3f}"
+    elif d.mesh_bytes <= budget:
+        d.decision = "replicate"
+        d.reason = (f"no width met accuracy {target:.3f} (best {d.tried[best_w]:.4f} at width "
+                    f"{best_w}), and the mesh ({d.mesh_bytes} B) is lighter than the widest "
+                    f"proxy (about {budget} B): replicated exactly on every shard")
     else:
         d.decision = "proxy"
         d.reason = (f"no width met accuracy {target:.3f}; best held-out accuracy "

@@ -11,7 +11,7 @@ from nprt.proxies.cache import ProxyCache
 from nprt.proxies.config import ProxyConfig
 from nprt.proxies.policy import plan_proxies
 from nprt.scene.partition import partition
-from tests.proxies.helpers import scene_of, sphere, torus, triangle
+from tests.proxies.helpers import scene_of, sphere, stand_in_proxy, torus, triangle
 
 QUICK = ProxyConfig(steps=1000, n_samples=1 << 17, grid=32,
                     eval_samples=1 << 14)
@@ -47,6 +47,22 @@ def test_a_mesh_lighter_than_its_proxy_is_replicated(cache):
     # Nothing cached and training off: the torus is traced exactly, and the plan says why.
     assert tor.decision == "fallback" and "training is disabled" in tor.reason
     json.dumps(plan.to_dict())
+
+
+def test_a_mesh_no_width_models_well_enough_is_replicated_if_lighter_than_the_widest(cache):
+    """Below the target at every width, an exact copy is the better buy when it costs less
+    than the widest proxy the policy was ready to ship; a heavier mesh keeps its best proxy."""
+    light, heavy = torus(), torus(128, 64)  # about 37 kB and 393 kB
+    for m in (light, heavy):
+        for w in (16, 64):  # stand-ins score 0.5 held-out accuracy
+            cfg = ProxyConfig().with_width(w)
+            cache.put(m, cfg, stand_in_proxy(m, cfg))
+    scene = scene_of(light, heavy)
+    plan = plan_proxies(scene, partition(scene, 2), cache=cache, train=False, widths=(16, 64))
+    lt, hv = plan.decisions
+    assert lt.decision == "replicate" and "lighter than the widest proxy" in lt.reason, lt
+    assert hv.decision == "proxy" and "no width met" in hv.reason, hv
+    assert plan.replicated == {0} and set(plan.proxies) == {1}
 
 
 def test_an_easy_mesh_gets_the_narrowest_width(cache):
