@@ -53,7 +53,9 @@ def test_stale_metadata_is_recomputed_and_a_changed_mesh_is_refused(scene_cache)
 
 
 def test_each_shard_loads_only_its_meshes(ray_local, scene_cache, monkeypatch):
-    meta = open_scene("forest:small")
+    # city: 11 meshes, and in proxy mode only the ground and the lightest building are
+    # replicated (at `small`, forest replicates every tree but pine, so one shard holds all).
+    meta = open_scene("city:small")
     refuse_mesh_reads(monkeypatch)
     for k, mode in ((2, "exact"), (3, "proxy")):
         s = settings(k, mode=mode)
@@ -61,7 +63,7 @@ def test_each_shard_loads_only_its_meshes(ray_local, scene_cache, monkeypatch):
         try:
             replicated = pool.plan.replicated if pool.plan is not None else set()
             if mode == "proxy":
-                assert replicated, "forest's ground is replicated in proxy mode"
+                assert replicated, "city's ground is replicated in proxy mode"
             for sid, info in enumerate(pool.shard_info):
                 want = set(pool.partition.shard_meshes[sid]) | replicated
                 assert info["meshes"] == sorted(want)
