@@ -169,8 +169,8 @@ def plan_proxies(scene, partition, target_accuracy: float = 0.97, cache: ProxyCa
 def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
     """Fill a `proxy` decision, or `replicate` when the mesh is the cheaper way to meet the
     target: the chosen proxy outweighs it, or no width met the target and the mesh is
-    lighter than the widest proxy tried (budget: its estimated bytes). An exact copy always
-    meets the target, and it fits in what the policy was ready to ship."""
+    lighter than a proxy at the widest width tried (budget: its estimated bytes). An exact
+    copy always meets the target, and it fits in what the policy was ready to ship."""
     d.width, d.accuracy = int(proxy.meta["width"]), _accuracy(proxy)
     d.proxy_bytes, d.train_s = proxy.nbytes, proxy.timing.get("train_s")
     best_w = max(d.tried, key=lambda w: (d.tried[w], -w)) if d.tried else d.width
