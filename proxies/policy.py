@@ -173,7 +173,6 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
     copy always meets the target, and it fits in what the policy was ready to ship."""
     d.width, d.accuracy = int(proxy.meta["width"]), _accuracy(proxy)
     d.proxy_bytes, d.train_s = proxy.nbytes, proxy.timing.get("train_s")
-    best_w = max(d.tried, key=lambda w: (d.tried[w], -w)) if d.tried else d.width
     if proxy.nbytes >= d.mesh_bytes:
         d.decision = "replicate"
         d.reason = (f"proxy at width {d.width} is {proxy.nbytes} B >= mesh {d.mesh_bytes} B: "
@@ -182,6 +181,7 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
         d.decision = "proxy"
         d.reason = f"width {d.width} is the narrowest meeting accuracy {target:.3f}"
     elif d.mesh_bytes <= budget:
+        best_w = max(d.tried, key=lambda w: (d.tried[w], -w))
         d.decision = "replicate"
         d.reason = (f"no width met accuracy {target:.3f} (best {d.tried[best_w]:.4f} at width "
                     f"{best_w}), and the mesh ({d.mesh_bytes} B) is lighter than the widest "
