@@ -9,6 +9,7 @@ held-out rays the proxy report uses. Smaller boxes are bench_proxy_cells; config
 (width, octaves, learning rate, blocks) are bench_proxy_thin and bench_proxy_calibrate.
 
     python -m bench.bench_proxy_levers [--mesh forest:default:pine] [--steps 3600]
+    python -m bench.bench_proxy_levers --speed [--width 32]   # onnxruntime queries/s only
 
 Appends rows to bench/results/proxy_levers.jsonl.
 """
@@ -64,6 +65,65 @@ class ChordGrids(torch.nn.Module):
              for G in self.grids]
         f = torch.cat(f, 0).permute(1, 2, 0).reshape(n, -1)
         return self.mlp(torch.cat([f, self.fourier(line)], 1))
+
+
+class GatherGrid(torch.nn.Module):
+    """One (r^3, features) grid read trilinearly by Gather ops, as onnxruntime would run it
+    (torch's 3-D grid_sample has no ONNX export at opset 17): u (n, CHORD_POINTS, 3) in
+    [-1, 1] -> (n, CHORD_POINTS * features)."""
+
+    def __init__(self, r: int, features: int):
+        super().__init__()
+        self.r = r
+        self.table = torch.nn.Parameter(1e-2 * torch.randn(r ** 3, features))
+        corners = [[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)]
+        self.register_buffer("corners", torch.tensor(corners, dtype=torch.float32))
+        self.register_buffer("stride", torch.tensor([1.0, r, r * r]))
+
+    def forward(self, u: torch.Tensor) -> torch.Tensor:
+        x = (u + 1) * (0.5 * (self.r - 1))
+        x0 = torch.clamp(torch.floor(x), 0, self.r - 2)
+        f = (x - x0).unsqueeze(2)  # (n, K, 1, 3)
+        c = self.corners  # (8, 3)
+        w = torch.prod(c * f + (1 - c) * (1 - f), dim=3)  # (n, K, 8) trilinear weights
+        idx = ((x0.unsqueeze(2) + c) * self.stride).sum(3).long()  # (n, K, 8)
+        return (self.table[idx] * w.unsqueeze(3)).sum(2).flatten(1)
+
+
+class ChordNetOnnx(torch.nn.Module):
+    """ChordGrids on one flat input x (n, 6 + 3 * CHORD_POINTS), for the ONNX speed check."""
+
+    def __init__(self, resolutions: list[int], features: int, width: int):
+        from nprt.proxies.model import Fourier, ResidualMLP
+
+        super().__init__()
+        self.grids = torch.nn.ModuleList([GatherGrid(r, features) for r in resolutions])
+        self.fourier = Fourier(3)
+        n_in = CHORD_POINTS * features * len(resolutions) + 6 * 7
+        self.mlp = ResidualMLP(n_in, width, 2, sigmoid=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        line, chord = x[:, :6], x[:, 6:].reshape(-1, CHORD_POINTS, 3)
+        return self.mlp(torch.cat([*(g(chord) for g in self.grids), self.fourier(line)], 1))
+
+
+def onnx_queries_per_s(net: torch.nn.Module, n_in: int) -> float:
+    """Queries/s of one net in onnxruntime (2 threads, 4096 rows a call per thread, as
+    nprt.proxies.inference runs proxies); weights are random: speed only."""
+    from nprt.proxies.export import export_onnx
+    from nprt.proxies.inference import ROWS_PER_THREAD, Proxy
+
+    model = export_onnx(net, n_in)
+    sess = Proxy({"box": np.zeros((2, 3)).tolist(), "diag": 1.0},
+                 {"visibility": model, "depth": model}, threads=2).session("visibility")
+    x = np.random.default_rng(0).uniform(-1, 1, (1 << 16, n_in)).astype(np.float32)
+    chunk, best = 2 * ROWS_PER_THREAD, np.inf
+    for _ in range(5):
+        t0 = time.perf_counter()
+        for s in range(0, len(x), chunk):
+            sess.run(None, {"x": x[s:s + chunk]})
+        best = min(best, time.perf_counter() - t0)
+    return len(x) / best
 
 
 class LineNet(torch.nn.Module):
@@ -169,8 +229,22 @@ def main(argv=None) -> None:
                     help="visibility steps (train.py gives it 60 %% of ProxyConfig.steps)")
     ap.add_argument("--samples", type=int, default=1 << 19)
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--speed", action="store_true",
+                    help="only time the chord-grid variants' visibility net in onnxruntime")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    if args.speed:
+        from nprt.proxies.model import ResidualMLP
+
+        torch.manual_seed(0)
+        nets = {"production": (ResidualMLP(6, args.width, 2, True, fourier=3), 6)}
+        nets.update({name: (ChordNetOnnx(*v["grid"], args.width), 6 + 3 * CHORD_POINTS)
+                     for name, v in VARIANTS.items() if "grid" in v})
+        for name, (net, n_in) in nets.items():
+            qps = onnx_queries_per_s(net, n_in)
+            print(f"{name}, width {args.width}: visibility net {qps / 1e6:.3f} M queries/s "
+                  f"(load {os.getloadavg()[0]:.1f})")
+        return
     RESULTS.mkdir(exist_ok=True)
     for spec in args.mesh:
         for row in run_mesh(spec, args.width, args.steps, args.samples, args.variants):
