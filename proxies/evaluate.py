@@ -36,6 +36,27 @@ def query_metrics(proxy: Proxy, samples: RaySamples, threshold: float) -> dict:
     }
 
 
+def confidence_curve(proxy: Proxy, samples: RaySamples, threshold: float,
+                     bands: np.ndarray) -> list[dict]:
+    """Accuracy where the renderer trusts the proxy, band by band.
+
+    Proxy mode answers a query itself only when |visibility - threshold| >= band and
+    settles the others exactly (nprt.workers.proxy_query), so what decides the image is
+    the accuracy on that share, not on every query.
+    bands : (b,) float; returns one dict per band: band, share (of queries answered),
+    accuracy (on those; None where the share is 0)
+    """
+    vis, _ = proxy.query(samples.points, samples.directions, min_visibility=np.inf)
+    correct = (vis >= threshold) == samples.hit
+    margin = np.abs(vis - threshold)
+    out = []
+    for band in np.asarray(bands, np.float64):
+        conf = margin >= band
+        out.append({"band": float(band), "share": float(conf.mean()),
+                    "accuracy": float(correct[conf].mean()) if conf.any() else None})
+    return out
+
+
 def internal_metrics(proxy: Proxy, mesh: Mesh, n: int, seed: int, threshold: float,
                      geometry=None) -> dict:
     """The paper's internal-ray rule (exit point, reversed direction; a hit iff visible and
