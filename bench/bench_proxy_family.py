@@ -3,10 +3,13 @@ exact at the same seed and K: PSNR, SSIM, FLIP, ray bytes, and the internal-case
 (secondary rays routed by a box they start inside, and how many of those missed).
 
     python -m bench.bench_proxy_family [--size small] [--shards 4] [--internal exact|trust]
+        [--internal-margin M]
 
 --internal trust routes rays by the nearest confident prediction even where a box they start
 inside may hide a nearer surface (the paper's rule); exact (the default) sends those to
-exact forwarding. Writes results/proxy_family_<size>_<internal>.json.
+exact forwarding. --internal-margin M (0: the paper's rule) sets the unsure zone of an
+internal answer around the ray's origin, in the proxy's p90 depth errors. Writes
+results/proxy_family_<size>_<internal>[_w<width>][_m<M>].json.
 """
 
 from __future__ import annotations
@@ -19,7 +22,8 @@ from pathlib import Path
 
 RESULTS = Path(__file__).resolve().parent / "results"
 COUNTERS = ("proxy_targeted", "proxy_internal_targeted", "proxy_internal_ambiguous",
-            "proxy_mispredictions", "proxy_internal_mispredictions", "proxy_uncertain")
+            "proxy_mispredictions", "proxy_internal_mispredictions", "proxy_uncertain",
+            "proxy_settled")
 
 
 def main(argv=None) -> int:
@@ -39,6 +43,9 @@ def main(argv=None) -> int:
                          "narrowest of 16/32/64 reaching the accuracy target (trains the "
                          "missing widths into the user cache, minutes)")
     ap.add_argument("--internal", choices=("exact", "trust"), default="exact")
+    ap.add_argument("--internal-margin", type=float, default=None,
+                    help="unsure zone of internal answers around the origin, in p90 depth "
+                         "errors (default: nprt.workers.proxy_query.INTERNAL_MARGIN)")
     ap.add_argument("--band", type=float, default=ProxySettings().band,
                     help="confidence band of secondary rays (default: the render default)")
     ap.add_argument("--shadow-band", type=float, default=ProxySettings().shadow_band,
@@ -46,6 +53,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     # Read by nprt.workers.proxy_query at import, in the shard actors started after ray.init.
     os.environ["NPRT_PROXY_INTERNAL_AMBIGUOUS"] = args.internal
+    if args.internal_margin is not None:
+        os.environ["NPRT_PROXY_INTERNAL_MARGIN"] = str(args.internal_margin)
     scene = family.build(args.size)
     base = RenderSettings(width=args.width, height=args.width * 3 // 4, spp=args.spp,
                           spp_per_pass=args.spp, bounces=5, seed=0, shards=args.shards)
@@ -71,7 +80,8 @@ def main(argv=None) -> int:
                        for d in info["proxy_plan"]["decisions"]]}
     RESULTS.mkdir(exist_ok=True)
     width = "" if args.proxy_width == 16 else f"_w{args.proxy_width or 'policy'}"
-    path = RESULTS / f"proxy_family_{args.size}_{args.internal}{width}.json"
+    margin = "" if args.internal_margin is None else f"_m{args.internal_margin:g}"
+    path = RESULTS / f"proxy_family_{args.size}_{args.internal}{width}{margin}.json"
     path.write_text(json.dumps(out, indent=1))
     print(json.dumps({k: v for k, v in out.items() if k != "settings"}, indent=1))
     return 0

@@ -21,7 +21,7 @@ from nprt.workers.batch import (
 )
 from nprt.workers.local import LocalGeometry
 from nprt.workers.protocol import EVERYWHERE
-from nprt.workers.proxy_query import predict
+from nprt.workers.proxy_query import INTERNAL_MARGIN, predict
 from nprt.workers.routing import DONE, route_exact, route_shadow_exact
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats import SplitStats
@@ -82,7 +82,7 @@ class ProxyPolicy(ExactPolicy):
             with stats.phase("proxy"):
                 pred = predict(self.world, self.proxies, self.modeled, rays.origin[f],
                                rays.direction[f], rays.tmax[f], self.threshold, self.band,
-                               self.known, rays.visited[f])
+                               self.known, rays.visited[f], INTERNAL_MARGIN)
             stats.count("proxy_queries", f)
             stats.count("proxy_uncertain", f[pred.uncertain])
             stats.count("proxy_internal_ambiguous", f[pred.ambiguous])

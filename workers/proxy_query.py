@@ -24,7 +24,8 @@ class Prediction:
     chosen one: its first surface there may come before the chosen hit), first_open (n,)
     int32 (of the boxes that make a ray uncertain, the one it enters first; -1: none, or
     uncertain only for ambiguity; visiting its owner settles it exactly). A prediction
-    inside the band is never a hit."""
+    inside the band, or an internal one within INTERNAL_MARGIN of the origin, is never a
+    hit."""
 
     t: np.ndarray
     inst: np.ndarray
@@ -37,16 +38,26 @@ class Prediction:
 # The internal case's ambiguity (Prediction.ambiguous) goes to exact forwarding unless
 # NPRT_PROXY_INTERNAL_AMBIGUOUS=trust (read at import: for benchmarking the rule only).
 EXACT_IF_AMBIGUOUS = os.environ.get("NPRT_PROXY_INTERNAL_AMBIGUOUS", "exact") != "trust"
+# Internal case, secondary rays: the depth net cannot tell on which side of the origin a
+# surface lies when it is predicted within this fraction of the proxy's held-out
+# 90th-percentile depth error of it; such an answer is unsure, like one in the band
+# (bench/README.md, "The internal case"). NPRT_PROXY_INTERNAL_MARGIN overrides it, read
+# at import: for benchmarking only.
+INTERNAL_MARGIN = float(os.environ.get("NPRT_PROXY_INTERNAL_MARGIN", "0.5"))
 
 
 def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.ndarray,
             direction: np.ndarray, tmax: np.ndarray, threshold: float | None,
-            band: float, known=None, visited: np.ndarray | None = None) -> Prediction:
+            band: float, known=None, visited: np.ndarray | None = None,
+            internal_margin: float = 0.0) -> Prediction:
     """origin, direction (n, 3) float32 world; tmax (n,) float32; remote (m,) int32: the
     instances to ask proxies about; threshold None: each proxy's own (calibrated at
     training); known: LocalGeometry of other remote instances, intersected exactly;
     visited: (n,) uint64 shard bitmask of each ray, whose shards' boxes are not asked about
-    (their geometry was intersected exactly, and the ray carries what it found)."""
+    (their geometry was intersected exactly, and the ray carries what it found);
+    internal_margin: a confident internal answer whose surface lies within this fraction
+    of the proxy's held-out p90 depth error of the origin is unsure (INTERNAL_MARGIN for
+    secondary rays; 0 keeps the paper's rule)."""
     n = len(origin)
     best_t = np.full(n, np.inf, np.float32)
     best_i = np.full(n, -1, np.int32)
@@ -72,6 +83,7 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     vis = np.zeros(len(ray), np.float32)
     t_proxy = np.full(len(ray), np.inf)
     thr = np.zeros(len(ray), np.float32)
+    margin = np.zeros(len(ray))  # world-t half-width of the internal case's unsure zone
     for m in np.unique(mesh[q.crosses]):
         rows = np.flatnonzero(q.crosses & (mesh == m))
         proxy = proxies.get(int(m))
@@ -80,8 +92,11 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
         thr[rows] = proxy.meta["threshold"] if threshold is None else threshold
         v, tp = proxy.query(q.point[rows], q.qdir[rows], min_visibility=float(thr[rows[0]]))
         vis[rows], t_proxy[rows] = v, tp / q.length[rows]
+        p90 = proxy.meta.get("report", {}).get("depth_err_rel_p90", 0.0)
+        margin[rows] = internal_margin * p90 * float(proxy.diag) / q.length[rows]
     has_proxy = q.crosses & np.isin(mesh, np.fromiter(proxies, np.int64, len(proxies)))
-    unsure = has_proxy & (np.abs(vis - thr) < band)
+    near_origin = q.internal & (vis >= thr) & (np.abs(t_proxy - q.t_box) < margin)
+    unsure = has_proxy & ((np.abs(vis - thr) < band) | near_origin)
     hit = has_proxy & ~unsure & (vis >= thr)
     hit &= ~q.internal | (t_proxy <= q.t_box)  # internal: the surface lies behind the origin
     t = np.where(q.internal, q.t_box - t_proxy, q.t_box + t_proxy).astype(np.float32)

@@ -91,3 +91,29 @@ def test_confident_misses_leave_no_hit_and_no_doubt(world):
     assert pred.inst[0] == -1 and np.isinf(pred.t[0]) and not pred.uncertain[0]
     pred = _ask(world, {0: _proxy(0.01), 1: _proxy(0.6)})  # no hit, and B is unsure
     assert pred.inst[0] == -1 and pred.uncertain[0] and pred.first_open[0] == 1
+
+
+def _ask_from(world, x: float, proxies: dict, margin: float):
+    """One ray from (x, 0, 0) along +x, with the internal margin of secondary rays."""
+    origin = np.array([[x, 0.0, 0.0]], np.float32)
+    direction = np.array([[1.0, 0.0, 0.0]], np.float32)
+    return predict(world, proxies, np.array([0, 1], np.int32), origin, direction,
+                   np.full(1, np.inf, np.float32), threshold=None, band=BAND,
+                   internal_margin=margin)
+
+
+def test_an_internal_hit_within_the_depth_error_of_the_origin_is_settled_not_trusted(world):
+    """Inside A the reversed query puts A's surface at x = 5 (A spans 4.5-5.5). With a p90
+    depth error of 0.2 diagonals and margin 0.5, surfaces within 0.173 of the origin are
+    on an unknown side of it: the ray must visit A's shard, which settles it exactly."""
+    a = _proxy(0.99)
+    a.meta["report"] = {"depth_err_rel_p90": 0.2}
+    proxies = {0: a, 1: _proxy(0.01)}
+    far = _ask_from(world, 4.6, proxies, 0.5)  # surface 0.4 ahead: a confident hit
+    assert far.inst[0] == 0 and far.internal[0] and not far.uncertain[0]
+    assert far.t[0] == pytest.approx(0.4, abs=1e-4)
+    for x in (4.9, 5.1):  # 0.1 ahead, 0.1 behind
+        near = _ask_from(world, x, proxies, 0.5)
+        assert near.uncertain[0] and near.first_open[0] == 0 and near.inst[0] == -1
+        paper = _ask_from(world, x, proxies, 0.0)  # the paper's rule trusts the depth net
+        assert not paper.uncertain[0] and paper.inst[0] == (0 if x < 5 else -1)
