@@ -41,8 +41,8 @@ EXACT_IF_AMBIGUOUS = os.environ.get("NPRT_PROXY_INTERNAL_AMBIGUOUS", "exact") !=
 # Internal case, secondary rays: the depth net cannot tell on which side of the origin a
 # surface lies when it is predicted within this fraction of the proxy's held-out
 # 90th-percentile depth error of it; such an answer is unsure, like one in the band
-# (bench/README.md, "The internal case"). NPRT_PROXY_INTERNAL_MARGIN overrides it, read
-# at import: for benchmarking only.
+# (bench/README.md, "The unsure zone around the origin"). NPRT_PROXY_INTERNAL_MARGIN
+# overrides it, read at import: for benchmarking only.
 INTERNAL_MARGIN = float(os.environ.get("NPRT_PROXY_INTERNAL_MARGIN", "0.5"))
 
 
