@@ -104,16 +104,10 @@ def run_one(mesh, levels: int, width: int, steps: int, samples: int, eval_n: int
 
 def find_mesh(spec: str):
     """'forest:default:pine' (a demo mesh) or 'family:small:sparse_foliage'."""
+    from bench.common import bench_scene
+
     scene, size, name = spec.split(":")
-    if scene == "family":
-        from nprt.scene.demos.family import family_meshes
-
-        meshes = family_meshes(size)
-    else:
-        from nprt.scene.demos import make_demo
-
-        meshes = make_demo(scene, size).meshes
-    return next(m for m in meshes if m.name == name)
+    return next(m for m in bench_scene(scene, size).meshes if m.name == name)
 
 
 def main(argv=None) -> None:

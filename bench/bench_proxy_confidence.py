@@ -19,23 +19,13 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import BENCH_README, replace_section, save
+from bench.common import BENCH_README, bench_scene, replace_section, save
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BEGIN, END = "<!-- bench_proxy_confidence:begin -->", "<!-- bench_proxy_confidence:end -->"
 BANDS = np.round(np.linspace(0.0, 0.5, 26), 3)
 TABLE_BANDS = (0.0, 0.1, 0.2, 0.4)
 TARGET = 0.97
-
-
-def scene_of(name: str, size: str):
-    if name == "family":
-        from nprt.scene.demos import family
-
-        return family.build(size)
-    from nprt.scene.demos import make_demo
-
-    return make_demo(name, size)
 
 
 def run(scenes: list[str], size: str, family_size: str) -> dict:
@@ -51,7 +41,7 @@ def run(scenes: list[str], size: str, family_size: str) -> dict:
         name, _, width = spec.partition("@")
         settings = RenderSettings(shards=4, proxy={"width": int(width) if width else None})
         sz = family_size if name == "family" else size
-        scene = scene_of(name, sz)
+        scene = bench_scene(name, sz)
         plan = make_plan(scene, partition(scene, 4), settings, train=False)
         for i, proxy in sorted(plan.proxies.items()):
             mesh = scene.meshes[i]

@@ -55,6 +55,17 @@ def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1)
     return row, result.film.image(), info
 
 
+def bench_scene(name: str, size: str) -> Scene:
+    """A demo scene, or the test family's overlapping-instances scene ("family")."""
+    if name == "family":
+        from nprt.scene.demos import family
+
+        return family.build(size)
+    from nprt.scene.demos import make_demo
+
+    return make_demo(name, size)
+
+
 def quality(base: np.ndarray, img: np.ndarray) -> dict:
     """PSNR (dB, inf when identical), SSIM and mean FLIP of img against base."""
     return {k: round(v, 5) for k, v in compare(base, img).items()}
