@@ -38,33 +38,11 @@ VARIANTS = {
     "grids along the ray, 8/16/32 x 4": {"grid": ([8, 16, 32], 4)},
 }
 CHORD_POINTS = 8  # points sampled along the ray's chord through the box
+N_IN = 6 + 3 * CHORD_POINTS  # line encoding, then the chord points
 BATCH = 4096
 # Mining: from MINE_START of the steps on, half of each batch comes from the MINE_TOP share
 # of training rays with the largest error, re-ranked every MINE_EVERY steps.
 MINE_START, MINE_TOP, MINE_EVERY = 0.2, 0.2, 500
-
-
-class ChordGrids(torch.nn.Module):
-    """Dense 3D feature grids at several resolutions, sampled trilinearly at CHORD_POINTS
-    points along each ray's chord; their features (in ray order) join the line encoding."""
-
-    def __init__(self, resolutions: list[int], features: int, width: int):
-        from nprt.proxies.model import Fourier, ResidualMLP
-
-        super().__init__()
-        self.grids = torch.nn.ParameterList(
-            [torch.nn.Parameter(1e-2 * torch.randn(1, features, r, r, r)) for r in resolutions])
-        self.fourier = Fourier(3)
-        n_in = CHORD_POINTS * features * len(resolutions) + 6 * 7
-        self.mlp = ResidualMLP(n_in, width, 2, sigmoid=True)
-
-    def forward(self, chord: torch.Tensor, line: torch.Tensor) -> torch.Tensor:
-        n = len(chord)
-        g = chord.view(1, n, CHORD_POINTS, 1, 3)
-        f = [torch.nn.functional.grid_sample(G, g, align_corners=True).view(-1, n, CHORD_POINTS)
-             for G in self.grids]
-        f = torch.cat(f, 0).permute(1, 2, 0).reshape(n, -1)
-        return self.mlp(torch.cat([f, self.fourier(line)], 1))
 
 
 class GatherGrid(torch.nn.Module):
@@ -90,8 +68,11 @@ class GatherGrid(torch.nn.Module):
         return (self.table[idx] * w.unsqueeze(3)).sum(2).flatten(1)
 
 
-class ChordNetOnnx(torch.nn.Module):
-    """ChordGrids on one flat input x (n, 6 + 3 * CHORD_POINTS), for the ONNX speed check."""
+class ChordGrids(torch.nn.Module):
+    """Dense 3D feature grids at several resolutions, read trilinearly at CHORD_POINTS points
+    along each ray's chord; their features (in ray order) join the line encoding.
+    x (n, N_IN) float32 as `inputs` builds it -> (n,) visibility. Trained here and exported
+    as is for the onnxruntime speed check."""
 
     def __init__(self, resolutions: list[int], features: int, width: int):
         from nprt.proxies.model import Fourier, ResidualMLP
@@ -127,7 +108,7 @@ def onnx_queries_per_s(net: torch.nn.Module, n_in: int) -> float:
 
 
 class LineNet(torch.nn.Module):
-    """The production visibility net; ignores the chord points."""
+    """The production visibility net; reads the line encoding, ignores the chord points."""
 
     def __init__(self, width: int):
         from nprt.proxies.model import ResidualMLP
@@ -135,30 +116,30 @@ class LineNet(torch.nn.Module):
         super().__init__()
         self.mlp = ResidualMLP(6, width, 2, sigmoid=True, fourier=3)
 
-    def forward(self, chord: torch.Tensor, line: torch.Tensor) -> torch.Tensor:
-        return self.mlp(line)
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.mlp(x[:, :6])
 
 
-def inputs(box, s):
-    """(chord (n, CHORD_POINTS, 3) float32 in [-1, 1], line (n, 6) float32) of samples s."""
+def inputs(box, s) -> torch.Tensor:
+    """(n, N_IN) float32 of samples s: the line encoding (6), then the chord points
+    (CHORD_POINTS x 3, in [-1, 1] box coordinates)."""
     from nprt.proxies.encoding import encode
     from nprt.proxies.sampling import box_exit
 
     p, d = s.points.astype(np.float64), s.directions.astype(np.float64)
     t = box_exit(box, p, d)[:, None] * (np.arange(CHORD_POINTS) + 0.5) / CHORD_POINTS
     pts = p[:, None, :] + t[..., None] * d[:, None, :]
-    chord = 2 * (pts - box[0]) / (box[1] - box[0]) - 1
-    return (torch.from_numpy(chord.astype(np.float32)),
-            torch.from_numpy(encode(box, s.points, s.directions, "line")))
+    chord = (2 * (pts - box[0]) / (box[1] - box[0]) - 1).reshape(len(p), -1)
+    line = encode(box, s.points, s.directions, "line")
+    return torch.from_numpy(np.concatenate([line, chord], axis=1).astype(np.float32))
 
 
-def predict(net, chord, line) -> np.ndarray:
+def predict(net, x) -> np.ndarray:
     with torch.no_grad():
-        return torch.cat([net(chord[i:i + 65536], line[i:i + 65536])
-                          for i in range(0, len(line), 65536)]).numpy()
+        return torch.cat([net(x[i:i + 65536]) for i in range(0, len(x), 65536)]).numpy()
 
 
-def train(net, chord, line, y, steps: int, loss: str, mining: bool) -> None:
+def train(net, x, y, steps: int, loss: str, mining: bool) -> None:
     """Adam, lr 2e-3 (1e-2 on grids), cosine decay to 5 %, as nprt.proxies.train does."""
     grids = [p for n, p in net.named_parameters() if n.startswith("grids")]
     rest = [p for n, p in net.named_parameters() if not n.startswith("grids")]
@@ -176,11 +157,11 @@ def train(net, chord, line, y, steps: int, loss: str, mining: bool) -> None:
         idx = torch.randint(len(y), (BATCH,), generator=gen)
         if mining and frac >= MINE_START:
             if hard is None or step % MINE_EVERY == 0:
-                err = np.abs(predict(net, chord, line) - y.numpy())
+                err = np.abs(predict(net, x) - y.numpy())
                 hard = torch.from_numpy(np.argsort(-err, kind="stable")[:int(MINE_TOP * len(y))])
             idx[BATCH // 2:] = hard[torch.randint(len(hard), (BATCH - BATCH // 2,),
                                                   generator=gen)]
-        out = loss_fn(net(chord[idx], line[idx]), y[idx])
+        out = loss_fn(net(x[idx]), y[idx])
         opt.zero_grad(set_to_none=True)
         out.backward()
         opt.step()
@@ -205,12 +186,12 @@ def run_mesh(spec: str, width: int, steps: int, samples: int, variants: list[str
         torch.manual_seed(0)
         net = ChordGrids(*v["grid"], width) if "grid" in v else LineNet(width)
         c0 = time.process_time()
-        train(net, *x["train"], y, steps, v.get("loss", "mse"), v.get("mining", False))
+        train(net, x["train"], y, steps, v.get("loss", "mse"), v.get("mining", False))
         cpu = time.process_time() - c0
-        calib = predict(net, *x["calib"])
+        calib = predict(net, x["calib"])
         acc = [((calib >= t) == sets["calib"].hit).mean() for t in THRESHOLDS]
         thr = float(THRESHOLDS[int(np.argmax(acc))])
-        held = predict(net, *x["held"]) >= thr
+        held = predict(net, x["held"]) >= thr
         rows.append({"spec": spec, "triangles": len(mesh.faces), "mesh_bytes": mesh.nbytes,
                      "variant": name, "width": width, "steps": steps,
                      "accuracy": float((held == sets["held"].hit).mean()), "threshold": thr,
@@ -238,7 +219,7 @@ def main(argv=None) -> None:
 
         torch.manual_seed(0)
         nets = {"production": (ResidualMLP(6, args.width, 2, True, fourier=3), 6)}
-        nets.update({name: (ChordNetOnnx(*v["grid"], args.width), 6 + 3 * CHORD_POINTS)
+        nets.update({name: (ChordGrids(*v["grid"], args.width), N_IN)
                      for name, v in VARIANTS.items() if "grid" in v})
         for name, (net, n_in) in nets.items():
             qps = onnx_queries_per_s(net, n_in)
