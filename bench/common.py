@@ -14,10 +14,10 @@ import numpy as np
 import ray
 
 from nprt.scene.model import Scene
-from nprt.workers.coordinator import Coordinator
-from nprt.workers.metrics import compare
 from nprt.workers.render import render
+from nprt.workers.runtime.coordinator import Coordinator
 from nprt.workers.settings import RenderSettings
+from nprt.workers.stats.quality import compare
 
 BENCH_README = Path(__file__).resolve().parent / "README.md"
 

@@ -41,7 +41,7 @@ def confidence_curve(proxy: Proxy, samples: RaySamples, threshold: float,
     """Accuracy where the renderer trusts the proxy, band by band.
 
     Proxy mode answers a query itself only when |visibility - threshold| >= band and
-    settles the others exactly (nprt.workers.proxy_query), so what decides the image is
+    settles the others exactly (nprt.workers.routing.proxy_query), so what decides the image is
     the accuracy on that share, not on every query.
     bands : (b,) float; returns one dict per band: band, share (of queries answered),
     accuracy (on those; None where the share is 0)

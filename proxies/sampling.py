@@ -139,7 +139,7 @@ def label(geometry, box: np.ndarray, points: np.ndarray, directions: np.ndarray)
 def _geometry(mesh: Mesh, geometry):
     if geometry is not None:
         return geometry
-    from nprt.workers.geometry import MeshGeometry
+    from nprt.workers.traversal.geometry import MeshGeometry
 
     return MeshGeometry(mesh)
 

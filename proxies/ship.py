@@ -20,7 +20,7 @@ SIZES = ("default", "small", "tiny")
 SHARDS = 2  # with 2 or more shards every demo mesh is non-local somewhere
 TARGET_ACCURACY = 0.97  # the render path's default in plan_proxies
 # The test family's scene (scene/demos/family.py) at the size its slow proxy-mode test and
-# `bench.bench_proxy_family` render, with every width the policy tries: the test forces
+# `bench.proxy.bench_proxy_family` render, with every width the policy tries: the test forces
 # width 16, and the benchmark's policy run (--proxy-width 0) needs the rest. No training.
 FAMILY_SIZE, FAMILY_WIDTHS = "small", DEFAULT_WIDTHS
 

@@ -124,7 +124,7 @@ def _train(mesh: Mesh, config: ProxyConfig, progress: bool, geometry) -> Proxy:
     torch.manual_seed(config.seed)
     gen = torch.Generator().manual_seed(config.seed)
     if geometry is None:
-        from nprt.workers.geometry import MeshGeometry
+        from nprt.workers.traversal.geometry import MeshGeometry
 
         geometry = MeshGeometry(mesh)
     t_start = time.perf_counter()

@@ -1,6 +1,6 @@
 """Moving a whole scene by a similarity x -> s R x + t (instances, camera, lights), with
 the radiometry adjusted so that the rendered image must not change: the invariance that
-the numerics tests and `bench/bench_extremes.py` check.
+the numerics tests and `bench/render/bench_extremes.py` check.
 
 Radiance (quad lights, emission, environment) and irradiance (directional lights) are
 invariant under a similarity; a point light's intensity scales by s^2, since its

@@ -20,8 +20,8 @@ def cmd_demo(a) -> int:
 
     from nprt.scene.store import open_scene
     from nprt.service.cli import render_with_progress, settings_from_args
-    from nprt.workers.metrics import compare
-    from nprt.workers.raysession import ensure_ray
+    from nprt.workers.runtime.raysession import ensure_ray
+    from nprt.workers.stats.quality import compare
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

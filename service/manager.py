@@ -30,10 +30,10 @@ from nprt.service.scenes import SceneStore
 from nprt.service.store import TERMINAL, UNFINISHED, JobRecord, JobStore
 from nprt.workers.film import Film
 from nprt.workers.passes import count_passes
-from nprt.workers.pool import PoolRegistry
 from nprt.workers.render import PassDone, Progress, RenderCanceled, make_renderer, render
+from nprt.workers.runtime.pool import PoolRegistry
 from nprt.workers.settings import RenderSettings
-from nprt.workers.stats import RenderStats
+from nprt.workers.stats.counters import RenderStats
 
 log = logging.getLogger(__name__)
 
@@ -405,7 +405,7 @@ class JobManager:
         other sharded job, and every job would pay the start-up again."""
         import ray
 
-        from nprt.workers.raysession import ensure_ray
+        from nprt.workers.runtime.raysession import ensure_ray
 
         address, attempts = self.settings.ray_address, self.settings.ray_start_attempts
         with self._ray_lock:
@@ -520,5 +520,6 @@ def _check_cancel(live: _Live, stage: str) -> None:
 
 def _shards_lost(exc: BaseException) -> bool:
     """Whether a render failed because Ray lost its shards (a node died), not by a bug."""
-    coordinator = sys.modules.get("nprt.workers.coordinator")  # never imported: no shards to lose
+    # never imported: no shards to lose
+    coordinator = sys.modules.get("nprt.workers.runtime.coordinator")
     return coordinator is not None and isinstance(exc, coordinator.ShardsLost)

@@ -110,8 +110,8 @@ class MemoryEstimate:
 
 def estimate_memory(s: RenderSettings) -> MemoryEstimate:
     """Peak memory of rendering `s` in this process (the film lives in the driver)."""
-    from nprt.workers.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
     from nprt.workers.film import ACCUM_DTYPE
+    from nprt.workers.runtime.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
 
     pixels = s.width * s.height
     film = pixels * (3 * ACCUM_DTYPE().itemsize + 8)  # sums (3 float64) + samples (int64)

@@ -69,7 +69,7 @@ def test_wheel_carries_data_a_render_and_the_service_need(wheel):
 
 def test_installed_package_imports_outside_the_checkout(tmp_path):
     """From another directory only the namespace resolves: nprt.* imports, bare names don't."""
-    code = ("import importlib.util as u, nprt.service.cli, nprt.workers.shard; "
+    code = ("import importlib.util as u, nprt.service.cli, nprt.workers.wavefront.shard; "
             f"print([n for n in {FOLDERS!r} if u.find_spec(n) is not None])")
     r = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True,
                        text=True, check=True, env={"PATH": "/usr/bin:/bin"})

@@ -16,7 +16,7 @@ from nprt.scene.model import Scene
 from nprt.workers.film import Film
 from nprt.workers.passes import Pass, count_passes, iter_passes
 from nprt.workers.settings import RenderSettings
-from nprt.workers.stats import RenderStats
+from nprt.workers.stats.counters import RenderStats
 
 log = logging.getLogger(__name__)
 
@@ -86,11 +86,11 @@ def make_renderer(scene, settings: RenderSettings, ray_address: str | None = Non
     scene: a Scene, or a SceneMeta from nprt.scene.store.open_scene (the driver then holds no
     geometry); on_progress: per-mesh proxy training progress (Coordinator)."""
     if settings.shards == 0:
-        from nprt.workers.reference import ReferenceRenderer
+        from nprt.workers.wavefront.reference import ReferenceRenderer
 
         return ReferenceRenderer(scene.load() if isinstance(scene, SceneMeta) else scene,
                                  settings)
-    from nprt.workers.coordinator import Coordinator
+    from nprt.workers.runtime.coordinator import Coordinator
 
     return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir,
                        pools=pools, on_progress=on_progress)

@@ -19,7 +19,7 @@ REPO = Path(__file__).resolve().parents[2]
 @pytest.mark.slow
 def test_scaling_traces_replay_and_report(tmp_path):
     shutil.copy(REPO / "bench" / "results" / "network_bandwidth.json", tmp_path)
-    cmd = [sys.executable, "-m", "bench.bench_network", "scaling", "--size", "tiny",
+    cmd = [sys.executable, "-m", "bench.network.bench_network", "scaling", "--size", "tiny",
            "--scenes", "sculpture", "--ks", "2,3", "--width", "32", "--spp", "1",
            "--bounces", "2", "--no-readme", "--out", str(tmp_path)]
     env = {**os.environ, "RAY_ADDRESS": "local", "PYTHONPATH": str(REPO)}

@@ -69,7 +69,7 @@ def test_cluster_yaml_copies_no_virtualenv_but_all_code(cluster):
     for venv_file in (".venv/bin/python", ".venv/lib/python3.11/site-packages/ray/__init__.py",
                       "sub/.venv/pyvenv.cfg", ".git/HEAD", "workers/__pycache__/x.pyc"):
         assert _rsync_excluded(venv_file, excluded), venv_file
-    for code in ("workers/shard.py", "deploy/bootstrap.sh", "proxies/shipped/a.nprx",
+    for code in ("workers/wavefront/shard.py", "deploy/bootstrap.sh", "proxies/shipped/a.nprx",
                  "pyproject.toml", "service/static/app.js"):
         assert not _rsync_excluded(code, excluded), code
     assert ".gitignore" in cluster["rsync_filter"]  # and whatever else it ignores

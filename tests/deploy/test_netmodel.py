@@ -1,10 +1,10 @@
-"""bench/netmodel.py on hand-made traces whose times can be worked out on paper."""
+"""bench/network/netmodel.py on hand-made traces whose times can be worked out on paper."""
 
 from __future__ import annotations
 
 import pytest
 
-from bench.netmodel import cpu_corrected, replay
+from bench.network.netmodel import cpu_corrected, replay
 
 RPC = 0.01
 GBIT = 1e9

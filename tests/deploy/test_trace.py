@@ -1,13 +1,13 @@
 """The coordinator's optional trace: every shard call, its bytes and what it consumed, is
-consistent with the render's own statistics (bench/netmodel.py replays it)."""
+consistent with the render's own statistics (bench/network/netmodel.py replays it)."""
 
 from __future__ import annotations
 
 import pytest
 
 from nprt.scene.demos import make_demo
-from nprt.workers.coordinator import Coordinator
 from nprt.workers.render import render
+from nprt.workers.runtime.coordinator import Coordinator
 from nprt.workers.settings import RenderSettings
 
 K = 3  # several targets per call, so the producer -> consumer matching is exercised

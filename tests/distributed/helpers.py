@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nprt.workers.batch import RayBatch, ShadowRayBatch
 from nprt.workers.render import RenderResult, render
 from nprt.workers.settings import RenderSettings
+from nprt.workers.wavefront.batch import RayBatch, ShadowRayBatch
 
 SCENES = ("forest", "city", "sculpture")
 SIZE = "small"

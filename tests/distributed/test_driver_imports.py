@@ -1,5 +1,5 @@
 """The driver imports none of the libraries that trace: the pool starts shards through
-`nprt.workers.remote`, whose forwarder must cover every call the Shard answers, and builds
+`nprt.workers.runtime.remote`, whose forwarder must cover every call the Shard answers, and builds
 the instance table (numba's BVH) in a Ray task. Checked in a fresh driver process, since
 this test process has imported everything already."""
 
@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from nprt.scene.store import open_scene
-from nprt.workers.remote import ShardActor
-from nprt.workers.shard import Shard
+from nprt.workers.runtime.remote import ShardActor
+from nprt.workers.wavefront.shard import Shard
 
 REPO = Path(__file__).resolve().parents[2]
 TRACING_LIBRARIES = ("numba", "llvmlite", "embreex", "onnxruntime", "trimesh", "torch")

@@ -8,9 +8,9 @@ from __future__ import annotations
 import pytest
 
 from nprt.scene.demos import family
-from nprt.workers.metrics import compare
 from nprt.workers.render import render
 from nprt.workers.settings import ProxySettings
+from nprt.workers.stats.quality import compare
 from tests.distributed.helpers import settings
 
 K = 4

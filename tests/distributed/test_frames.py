@@ -18,11 +18,11 @@ from nprt.scene.demos import make_demo
 from nprt.scene.io import load_scene
 from nprt.scene.meta import SceneMeta
 from nprt.scene.store import open_scene
-from nprt.workers import placement
-from nprt.workers.coordinator import Coordinator
 from nprt.workers.frames import render_frames
-from nprt.workers.pool import PoolRegistry
 from nprt.workers.render import render
+from nprt.workers.runtime import placement
+from nprt.workers.runtime.coordinator import Coordinator
+from nprt.workers.runtime.pool import PoolRegistry
 from tests.distributed.helpers import assert_matches, reference, refuse_mesh_reads, settings
 
 

@@ -10,9 +10,9 @@ import pytest
 import ray
 from ray.cluster_utils import Cluster
 
-from nprt.workers.batch import KIND_NAMES
-from nprt.workers.coordinator import Coordinator
 from nprt.workers.render import render
+from nprt.workers.runtime.coordinator import Coordinator
+from nprt.workers.wavefront.batch import KIND_NAMES
 from tests.distributed.helpers import assert_matches, settings
 
 NODES = 3

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import ray
 
-import nprt.workers.coordinator as coordinator_module
-from nprt.workers.batch import RayBatch, ShadowRayBatch
-from nprt.workers.coordinator import Coordinator
-from nprt.workers.protocol import Manifest
+import nprt.workers.runtime.coordinator as coordinator_module
 from nprt.workers.render import render
-from nprt.workers.shard import Parcel
+from nprt.workers.runtime.coordinator import Coordinator
+from nprt.workers.runtime.protocol import Manifest
+from nprt.workers.wavefront.batch import RayBatch, ShadowRayBatch
+from nprt.workers.wavefront.shard import Parcel
 from tests.distributed.helpers import assert_matches, settings
 
 RAY_DATA = (RayBatch, ShadowRayBatch, Parcel)
@@ -34,7 +34,8 @@ def _types(x, out: set) -> set:
 
 
 class RecordingRay:
-    """Stands in for the `ray` module inside nprt.workers.coordinator; records what get returns."""
+    """Stands in for the `ray` module inside nprt.workers.runtime.coordinator; records what get
+    returns."""
 
     def __init__(self):
         self.got: set[type] = set()

@@ -10,8 +10,8 @@ import time
 import pytest
 import ray
 
-from nprt.workers.coordinator import Coordinator
 from nprt.workers.render import render
+from nprt.workers.runtime.coordinator import Coordinator
 from tests.distributed.helpers import assert_matches, reference, settings
 
 SCENE = "city"
@@ -49,7 +49,7 @@ def _pid(actor) -> int:
 
 def _retries(caplog, words: str = "re-running") -> list[str]:
     return [r.getMessage() for r in caplog.records
-            if r.name == "nprt.workers.coordinator" and words in r.getMessage()]
+            if r.name == "nprt.workers.runtime.coordinator" and words in r.getMessage()]
 
 
 def _render_with_kill(scene, s, kill):
@@ -101,7 +101,7 @@ def test_shard_killed_with_several_passes_in_flight_reruns_them(
             killed.append(shard)
             ray.kill(coord.actors[shard], no_restart=False)
 
-    caplog.set_level(logging.WARNING, logger="nprt.workers.coordinator")
+    caplog.set_level(logging.WARNING, logger="nprt.workers.runtime.coordinator")
     result, before, _, after = _render_with_kill(scenes[SCENE], s, kill)
     assert killed, "the kill never happened"
     assert after[killed[0]] != before[killed[0]], "the shard was not restarted"
@@ -129,7 +129,7 @@ def test_shard_that_dies_idle_and_restarts_unseen_does_not_lose_its_film(
         time.sleep(RESTART_SETTLE_S)  # ...and the driver has heard that it restarted
         _pid(coord.actors[victim])
 
-    caplog.set_level(logging.WARNING, logger="nprt.workers.coordinator")
+    caplog.set_level(logging.WARNING, logger="nprt.workers.runtime.coordinator")
     result, before, _, after = _render_with_kill(scenes[SCENE], s, kill)
     assert killed, "the kill never happened"
     assert after[killed[0]] != before[killed[0]], "the shard was not restarted"

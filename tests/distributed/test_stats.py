@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from nprt.workers.batch import KIND_NAMES
 from nprt.workers.render import render
+from nprt.workers.wavefront.batch import KIND_NAMES
 from tests.distributed.helpers import RAY_ROW_BYTES, SHADOW_ROW_BYTES, settings
 
 SCENE = "city"  # the most secondary rays of the three demos

@@ -9,9 +9,9 @@ import pytest
 from nprt.scene.errors import SceneError
 from nprt.scene.meta import load_scene_meta, meta_path
 from nprt.scene.store import DirectorySource, open_scene, open_source
-from nprt.workers.placement import plan_placement
-from nprt.workers.pool import ShardPool, pool_key
 from nprt.workers.render import render
+from nprt.workers.runtime.placement import plan_placement
+from nprt.workers.runtime.pool import ShardPool, pool_key
 from tests.distributed.helpers import refuse_mesh_reads, rel_error, settings
 
 

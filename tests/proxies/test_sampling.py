@@ -13,7 +13,7 @@ from nprt.proxies.sampling import (
     sample_internal_rays,
     sample_rays,
 )
-from nprt.workers.geometry import MeshGeometry
+from nprt.workers.traversal.geometry import MeshGeometry
 from tests.proxies.helpers import box, sphere, torus, triangle
 
 

@@ -169,7 +169,7 @@ def test_partition_of_arrays_equals_partition_of_a_list():
 def test_many_instances_set_up_without_an_object_per_instance(tmp_path, monkeypatch):
     """20k instances: load, partition, table, BVH and the world's pickle round trip never
     make an `Instance` (a per-instance Python object on the setup path)."""
-    from nprt.workers.world import ShardWorld
+    from nprt.workers.wavefront.world import ShardWorld
 
     n = 20_000
     rng = np.random.default_rng(5)

@@ -10,8 +10,8 @@ import time
 import numpy as np
 import pytest
 
-import nprt.workers.coordinator as coordinator
-import nprt.workers.raysession as raysession
+import nprt.workers.runtime.coordinator as coordinator
+import nprt.workers.runtime.raysession as raysession
 from nprt.service import manager as manager_module
 from nprt.service.errors import Conflict
 from nprt.service.manager import JobManager, RayUnavailable

@@ -11,10 +11,10 @@ import pytest
 
 ray = pytest.importorskip("ray")
 
-import nprt.workers.coordinator as coordinator  # noqa: E402
-import nprt.workers.pool as pool  # noqa: E402
+import nprt.workers.runtime.coordinator as coordinator  # noqa: E402
+import nprt.workers.runtime.pool as pool  # noqa: E402
 from nprt.scene.demos import make_demo  # noqa: E402
-from nprt.workers.remote import ShardActor  # noqa: E402
+from nprt.workers.runtime.remote import ShardActor  # noqa: E402
 from nprt.workers.settings import RenderSettings  # noqa: E402
 
 pytestmark = pytest.mark.slow

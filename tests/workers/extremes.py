@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from nprt.scene.model import DirectionalLight, Environment, Material, PointLight, QuadLight
 from nprt.scene.transform import similarity
-from nprt.workers.blocks import block_z
+from nprt.workers.stats.blocks import block_z
 from tests.workers.helpers import (
     Camera,
     Instance,

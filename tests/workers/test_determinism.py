@@ -100,8 +100,8 @@ def test_resume_from_passes_finished_out_of_order_equals_uninterrupted_render(sc
     # A pipelined render finishes passes out of order; its checkpoint holds every pass
     # below next_pass plus a few above it (done). Resuming renders exactly the others.
     from nprt.workers.passes import iter_passes
-    from nprt.workers.reference import ReferenceRenderer
     from nprt.workers.render import Progress
+    from nprt.workers.wavefront.reference import ReferenceRenderer
 
     settings = RenderSettings(**BASE, tile_size=16, spp_per_pass=2)
     full = render(scene, settings).film.image()

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from nprt.scene.model import Instance, Mesh, Scene
-from nprt.workers.geometry import MeshGeometry
-from nprt.workers.local import LocalGeometry
-from nprt.workers.toplevel import InstanceTable
+from nprt.workers.traversal.geometry import MeshGeometry
+from nprt.workers.traversal.local import LocalGeometry
+from nprt.workers.traversal.toplevel import InstanceTable
 from tests.workers.helpers import trs
 
 # One triangle in the x = 0 plane covering y + z <= 1 of the unit square; its box is the

@@ -8,10 +8,10 @@ import pytest
 import trimesh
 
 from nprt.scene.model import DirectionalLight, PointLight
-from nprt.workers.geometry import MeshGeometry
-from nprt.workers.reference import ReferenceRenderer
 from nprt.workers.render import render
-from nprt.workers.toplevel import InstanceTable
+from nprt.workers.traversal.geometry import MeshGeometry
+from nprt.workers.traversal.toplevel import InstanceTable
+from nprt.workers.wavefront.reference import ReferenceRenderer
 from tests.workers.helpers import (
     Camera,
     Environment,

@@ -1,4 +1,5 @@
-"""Spawned-ray origins (nprt.workers.offset): rays leaving a flat or convex surface never hit it
+"""Spawned-ray origins (nprt.workers.kernels.offset): rays leaving a flat or convex surface never
+hit it
 again, at any grazing angle, scale or distance from the origin, and the push off the
 surface is a small fraction of the object, not a fixed epsilon."""
 
@@ -10,12 +11,12 @@ import trimesh
 
 from nprt.scene.model import Instance, Scene
 from nprt.scene.transform import similarity
-from nprt.workers import shade_kernels
-from nprt.workers.geometry import MeshGeometry
-from nprt.workers.local import LocalGeometry
-from nprt.workers.sampling import frame, normalize
-from nprt.workers.surface import SurfaceTables
-from nprt.workers.toplevel import InstanceTable
+from nprt.workers.kernels import shade as shade_kernels
+from nprt.workers.kernels.sampling import frame, normalize
+from nprt.workers.traversal.geometry import MeshGeometry
+from nprt.workers.traversal.local import LocalGeometry
+from nprt.workers.traversal.toplevel import InstanceTable
+from nprt.workers.wavefront.surface import SurfaceTables
 from tests.workers.helpers import mesh_from_trimesh, plane_mesh, trs
 
 N_RAYS = 6000

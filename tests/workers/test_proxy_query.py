@@ -10,8 +10,8 @@ import trimesh
 
 from nprt.proxies.inference import Proxy
 from nprt.scene.model import Camera, Instance, Scene
-from nprt.workers.proxy_query import predict
-from nprt.workers.world import ShardWorld
+from nprt.workers.routing.proxy_query import predict
+from nprt.workers.wavefront.world import ShardWorld
 from tests.workers.helpers import mesh_from_trimesh, trs
 
 onnx = pytest.importorskip("onnx", reason="building the fixed nets needs onnx")

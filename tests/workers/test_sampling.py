@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from nprt.workers.rng import uniform
-from nprt.workers.sampling import cosine_hemisphere, frame
+from nprt.workers.kernels.rng import uniform
+from nprt.workers.kernels.sampling import cosine_hemisphere, frame
 
 N = 200_000
 THETA_BINS, PHI_BINS = 10, 16

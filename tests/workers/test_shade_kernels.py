@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 from nprt.scene.demos import make_demo
-from nprt.workers import shade_kernels
-from nprt.workers.integrator import RR_START_DEPTH, SHADOW_TMAX_SCALE, PathIntegrator
-from nprt.workers.lights import FAR_T, LightSet
-from nprt.workers.offset import offset_ray_origin
-from nprt.workers.rng import DIM_BSDF_U, DIM_BSDF_V, DIM_LIGHT_BASE, DIM_RR, uniform
-from nprt.workers.sampling import cosine_hemisphere, normalize
-from nprt.workers.surface import SurfaceTables, surface_at
-from nprt.workers.toplevel import InstanceTable
+from nprt.workers.kernels import shade as shade_kernels
+from nprt.workers.kernels.offset import offset_ray_origin
+from nprt.workers.kernels.rng import DIM_BSDF_U, DIM_BSDF_V, DIM_LIGHT_BASE, DIM_RR, uniform
+from nprt.workers.kernels.sampling import cosine_hemisphere, normalize
+from nprt.workers.traversal.toplevel import InstanceTable
+from nprt.workers.wavefront.integrator import RR_START_DEPTH, SHADOW_TMAX_SCALE, PathIntegrator
+from nprt.workers.wavefront.lights import FAR_T, LightSet
+from nprt.workers.wavefront.surface import SurfaceTables, surface_at
 
 
 def _lights(rng, quads=2, points=2, dirs=1) -> LightSet:

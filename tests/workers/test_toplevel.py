@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from nprt.workers import kernels
-from nprt.workers.toplevel import BVH_MIN_INSTANCES, InstanceTable
+from nprt.workers.kernels import bvh as kernels
+from nprt.workers.traversal.toplevel import BVH_MIN_INSTANCES, InstanceTable
 from tests.workers.helpers import Instance, Scene, mesh_from_trimesh, plane_mesh, trs
 
 

@@ -1,0 +1,1 @@
+"""Proxy experiments that were measured and not adopted (smaller boxes, levers, thin shells)."""

@@ -1,0 +1,1 @@
+"""The network: shaped-link clusters, the trace-driven model and its report."""

@@ -1,0 +1,461 @@
+"""Tables, plots and the bench/README.md section of bench_network.py, from its JSON results
+(network_bandwidth.json: real renders on two shaped nodes; network_scaling.json: traces
+with K = 2..8 shards). Every model number comes from bench/network/netmodel.py.
+
+Columns of the bandwidth table (one row per scene, link and mode):
+- *link*: the rate tc enforces, and what one Ray object really reached node to node;
+- *MB*: ray bytes that crossed between the nodes; *wire s*: MB / measured link rate, the
+  time the link alone needs for them;
+- *exposed s*: wall time minus the best wall time of the same render on the fast links
+  (>= 2 Gbit/s, where these few MB take under 0.05 s), the time transfers really added
+  (they overlap compute, so it can be less than the wire time);
+- *proxy / intersection / shading s*: phase seconds summed over both shards (intersection =
+  local intersection + top level - proxy; shading = shading + camera rays). These are wall
+  seconds on a host shared with other work; *CPU s* is what both shard processes used;
+- *total s*: the render's wall time (fastest of the repeats); *speedup*: exact / proxy;
+- *model s*: the model replaying the best fast-link trace of the same scene and mode on
+  dedicated cores (each call's CPU seconds) and ideal links at the nominal rate: the
+  bandwidth's effect without this host's noise.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from bench.common import BENCH_README, replace_section
+from bench.network.netmodel import cpu_corrected, fit_rpc_s, replay
+
+log = logging.getLogger(__name__)
+
+BEGIN, END = "<!-- bench_network:begin -->", "<!-- bench_network:end -->"
+# Xu et al., Table 4: Sculpture, 1920x1080, 1 spp, two nodes (transmission s, the three
+# compute columns summed, total s) at 1, 2, 4 and 20 GigE.
+PAPER_T4 = {"proxy": {1: (0.927, 2.117, 3.044), 2: (0.563, 2.108, 2.671),
+                      4: (0.431, 2.117, 2.548), 20: (0.343, 2.121, 2.464)},
+            "exact": {1: (3.505, 5.257, 8.762), 2: (1.889, 5.257, 7.146),
+                      4: (1.116, 5.251, 6.367), 20: (0.666, 5.233, 5.903)}}
+PAPER_PATHS = 1920 * 1080  # camera paths per frame at 1 spp
+PAPER_SHARE = 3.505 / 8.762  # exact's transmission share of its total at 1 GigE
+# Xu et al., Table 2: render seconds against node count (City, scene grown with the nodes).
+PAPER_T2 = {"proxy": {2: 2.66, 3: 2.86, 4: 2.93, 6: 2.84, 8: 2.83},
+            "exact": {2: 7.02, 3: 9.12, 4: 10.83, 6: 13.58, 8: 15.12}}
+SPEEDUP_TARGET, FLAT_TARGET = 2.3, 0.15
+FAST_BPS = 2e9  # links at least this fast: transfers cost nothing measurable here
+
+
+def _bits(bw: str) -> float:
+    from bench.network.bench_network import bits_per_s
+
+    return bits_per_s(bw)
+
+
+def _films(run: dict) -> dict[int, int]:
+    return {int(t): b for t, b in run["film_bytes"].items()}
+
+
+def _phases(run: dict) -> tuple[float, float, float]:
+    """(proxy, intersection, shading) seconds summed over the shards."""
+    p = run["stats"]["phase_s"]
+    proxy = p.get("proxy", 0.0)
+    return (proxy, p.get("local_intersect", 0.0) + p.get("top_level", 0.0) - proxy,
+            p.get("shade", 0.0) + p.get("generate", 0.0))
+
+
+def _fast(bw_res: dict, run: dict) -> bool:
+    return _bits(run["bandwidth"]) >= FAST_BPS
+
+
+def best_fast(bw_res: dict, scene: str, mode: str) -> dict | None:
+    """The fastest render of (scene, mode) on a fast link: the least disturbed by the
+    other work on this host, so the base for exposed transfer time and for the model."""
+    runs = [r for r in bw_res["runs"] if r["scene"] == scene and r["mode"] == mode
+            and _fast(bw_res, r)]
+    return min(runs, key=lambda r: r["wall_s"], default=None)
+
+
+def model_s(run: dict, bps: float, rpc_s: float, dedicated: bool = True) -> float:
+    """The model's render time for this run's trace on links of `bps`."""
+    cpu = cpu_corrected(run["trace"], run["cpu_over_busy"]) if dedicated else None
+    return replay(run["trace"], bps, rpc_s, run["window"], _films(run), cpu).makespan_s
+
+
+# -- the bandwidth runs -------------------------------------------------------------------------
+
+
+def validate(bw_res: dict) -> dict:
+    """Fit the one free parameter (coordinator latency) on the runs over fast links, where
+    transfers cost nothing, then predict the runs over slower links from their own traces
+    (recorded compute times, the measured link rate) and compare with the measured walls."""
+    runs, links = bw_res["runs"], bw_res["links"]
+
+    def case(r):
+        return (r["trace"], links[r["bandwidth"]], r["wall_s"], r["window"], _films(r))
+
+    rpc_s, fit_err = fit_rpc_s([case(r) for r in runs if _fast(bw_res, r)])
+    rows = []
+    for r in runs:
+        pred = replay(r["trace"], links[r["bandwidth"]], rpc_s, r["window"],
+                      _films(r)).makespan_s
+        rows.append({"scene": r["scene"], "mode": r["mode"], "bandwidth": r["bandwidth"],
+                     "measured_s": r["wall_s"], "model_s": round(pred, 3),
+                     "error": round(pred / r["wall_s"] - 1, 4), "fitted": _fast(bw_res, r)})
+    held = [abs(x["error"]) for x in rows if not x["fitted"]]
+    return {"rpc_s": rpc_s, "fit_log_error": fit_err, "rows": rows,
+            "mean_abs_error": float(np.mean(held)) if held else None,
+            "max_abs_error": float(np.max(held)) if held else None}
+
+
+def share_and_speedup(bw_res: dict, rpc_s: float) -> dict:
+    """Per scene: exact's exposed transfer share at each link (real runs, and the model on
+    dedicated cores), the link rate where it equals the paper's 1 GigE share, and the
+    proxy speedup there."""
+    out = {}
+    for scene in dict.fromkeys(r["scene"] for r in bw_res["runs"]):
+        runs = {(r["mode"], r["bandwidth"]): r for r in bw_res["runs"] if r["scene"] == scene}
+        ex, px = best_fast(bw_res, scene, "exact"), best_fast(bw_res, scene, "proxy")
+        if ex is None or px is None:
+            continue
+        real = []
+        for bw in bw_res["bandwidths"]:
+            if ("exact", bw) in runs and ("proxy", bw) in runs:
+                e, p = runs["exact", bw]["wall_s"], runs["proxy", bw]["wall_s"]
+                real.append((bw, max(0.0, 1 - ex["wall_s"] / e), e / p))
+
+        def model_pair(bps, ex=ex, px=px):
+            return model_s(ex, bps, rpc_s), model_s(px, bps, rpc_s)
+
+        e_inf, _ = model_pair(1e15)
+        # Bisection on log bandwidth for the paper's transfer share.
+        lo, hi = np.log(1e5), np.log(1e11)
+        for _ in range(30):
+            mid = (lo + hi) / 2
+            e, _ = model_pair(np.exp(mid))
+            lo, hi = (mid, hi) if 1 - e_inf / e > PAPER_SHARE else (lo, mid)
+        b_star = float(np.exp((lo + hi) / 2))
+        e, p = model_pair(b_star)
+        out[scene] = {"real": real, "model_b_star_bps": b_star, "model_speedup": e / p,
+                      "model_exact_s": e, "model_proxy_s": p, "real_b_star": _interp(real)}
+    return out
+
+
+def _interp(real: list) -> dict | None:
+    """Where the measured share crosses the paper's (log-linear between links)."""
+    for (b0, s0, x0), (b1, s1, x1) in zip(real, real[1:], strict=False):
+        if (s0 - PAPER_SHARE) * (s1 - PAPER_SHARE) <= 0 and s0 != s1:
+            w = (PAPER_SHARE - s0) / (s1 - s0)
+            bps = float(np.exp(np.log(_bits(b0)) + w * (np.log(_bits(b1)) - np.log(_bits(b0)))))
+            return {"bps": bps, "speedup": x0 + w * (x1 - x0)}
+    return None
+
+
+def compute_per_path(bw_res: dict) -> dict:
+    """CPU seconds of both shards per camera path (best fast-link run), beside the paper's
+    compute seconds per path (Sculpture, Table 4 at 20 GigE)."""
+    s = bw_res["settings"]
+    paths = s["width"] * s["height"] * s["spp"]
+    ours = {}
+    for scene in dict.fromkeys(r["scene"] for r in bw_res["runs"]):
+        for mode in ("exact", "proxy"):
+            r = best_fast(bw_res, scene, mode)
+            if r is not None:
+                ours[f"{scene} {mode}"] = sum(r["cpu_s"]) / paths
+    paper = {m: PAPER_T4[m][20][1] / PAPER_PATHS for m in PAPER_T4}
+    return {"ours": ours, "paper": paper}
+
+
+def bandwidth_table(bw_res: dict, rpc_s: float) -> str:
+    s = bw_res["settings"]
+    lines = ["| scene | link (measured) | mode | MB | wire s | exposed s | proxy / intersection "
+             "/ shading s | CPU s | total s | speedup | model s (speedup) |",
+             "| --- | --- | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: |"]
+    runs = {(r["scene"], r["mode"], r["bandwidth"]): r for r in bw_res["runs"]}
+    for scene in dict.fromkeys(r["scene"] for r in bw_res["runs"]):
+        for bw in bw_res["bandwidths"]:
+            pair = [runs.get((scene, m, bw)) for m in ("exact", "proxy")]
+            if None in pair:
+                continue
+            models = [model_s(best_fast(bw_res, scene, m), _bits(bw), rpc_s)
+                      for m in ("exact", "proxy")]
+            for r, m in zip(pair, models, strict=True):
+                link = bw_res["links"][bw]
+                mb = r["stats"]["total_bytes"] / 1e6
+                base = best_fast(bw_res, scene, r["mode"])["wall_s"]
+                ph = _phases(r)
+                speed = (f"{pair[0]['wall_s'] / pair[1]['wall_s']:.2f}x"
+                         if r["mode"] == "proxy" else "")
+                mspeed = f" ({models[0] / models[1]:.2f}x)" if r["mode"] == "proxy" else ""
+                lines.append(
+                    f"| {scene} | {bw} ({link / 1e6:,.0f} Mbit/s) | {r['mode']} | {mb:.2f} | "
+                    f"{mb * 8e6 / link:.3f} | {r['wall_s'] - base:.2f} | "
+                    + " / ".join(f"{x:.2f}" for x in ph)
+                    + f" | {sum(r['cpu_s']):.2f} | {r['wall_s']:.2f} | {speed} | "
+                    f"{m:.2f}{mspeed} |")
+    head = (f"{s['width']}x{s['height']}, {s['spp']} spp, {s['bounces']} bounces, "
+            f"{s['shadow_rays']} shadow rays, K = 2 shards on 2 nodes (network namespaces, "
+            f"one CPU each by cgroup quota), fastest of {bw_res['repeat']}; load average "
+            f"{bw_res['machine']['load_average_before'][0]:.1f} before the run on "
+            f"{bw_res['machine']['cpus']} cores.")
+    return head + "\n\n" + "\n".join(lines)
+
+
+# -- the scaling model ------------------------------------------------------------------------
+
+
+def scaling_rows(sc_res: dict, rpc_s: float, bps_list: dict[str, float]) -> list[dict]:
+    rows = []
+    for r in sc_res["runs"]:
+        row = {"scene": r["scene"], "mode": r["mode"], "k": r["k"],
+               "mb": r["stats"]["total_bytes"] / 1e6, "cpu_s": sum(r["cpu_s"]),
+               "local_wall_s": r["wall_s"]}
+        for label, bps in bps_list.items():
+            row[label] = model_s(r, bps, rpc_s)
+        rows.append(row)
+    return rows
+
+
+def scaling_table(rows: list[dict], labels: list[str]) -> str:
+    lines = ["| scene | mode | K | MB moved | CPU s | " + " | ".join(
+        f"model s at {x}" for x in labels) + " | paper s (1 GigE) |",
+             "| --- | --- | ---: | ---: | ---: |" + " ---: |" * (len(labels) + 1)]
+    for r in rows:
+        paper = PAPER_T2[r["mode"]].get(r["k"])
+        lines.append(f"| {r['scene']} | {r['mode']} | {r['k']} | {r['mb']:.2f} | "
+                     f"{r['cpu_s']:.2f} | " + " | ".join(f"{r[x]:.2f}" for x in labels)
+                     + f" | {paper if paper else ''} |")
+    return "\n".join(lines)
+
+
+def flatness(rows: list[dict], label: str) -> dict:
+    """Per scene and mode: (model time at the largest K, and at the worst K) over the
+    time at the smallest K."""
+    out = {}
+    for r in rows:
+        out.setdefault((r["scene"], r["mode"]), {})[r["k"]] = r[label]
+    return {f"{sc} {m}": (v[max(v)] / v[min(v)], max(v.values()) / v[min(v)])
+            for (sc, m), v in out.items()}
+
+
+# -- plots ---------------------------------------------------------------------------------------
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_bandwidth(bw_res: dict, rpc_s: float, path: Path) -> None:
+    plt = _pyplot()
+    scenes = list(dict.fromkeys(r["scene"] for r in bw_res["runs"]))
+    fig, axes = plt.subplots(1, len(scenes) + 1, figsize=(5 * (len(scenes) + 1), 4.2))
+    for ax, scene in zip(axes, scenes, strict=False):
+        for mode, color in (("exact", "tab:red"), ("proxy", "tab:blue")):
+            runs = [r for r in bw_res["runs"] if r["scene"] == scene and r["mode"] == mode]
+            x = [_bits(r["bandwidth"]) / 1e9 for r in runs]
+            ax.plot(x, [r["wall_s"] for r in runs], "o-", color=color, label=f"{mode} measured")
+            base = best_fast(bw_res, scene, mode)
+            grid = np.geomspace(5e6, 2e10, 16)
+            ax.plot(grid / 1e9, [model_s(base, b, rpc_s) for b in grid], "--", color=color,
+                    alpha=0.6, label=f"{mode} model, dedicated cores")
+        ax.set_title(f"{scene}: 2 shaped nodes")
+    ax = axes[-1]
+    for mode, color in (("exact", "tab:red"), ("proxy", "tab:blue")):
+        bws = sorted(PAPER_T4[mode])
+        ax.plot(bws, [PAPER_T4[mode][b][2] for b in bws], "o-", color=color,
+                label=f"paper {'Wald et al.' if mode == 'exact' else 'ours'}")
+    ax.set_title("paper, Table 4 (Sculpture, GPUs, 1 spp 1080p)")
+    for ax in axes:
+        ax.set_xscale("log")
+        ax.set_xlabel("link bandwidth (Gbit/s)")
+        ax.set_ylabel("render time (s)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_scaling(rows: list[dict], label: str, path: Path) -> None:
+    plt = _pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    styles = {"exact": "tab:red", "proxy": "tab:blue"}
+    marks = ["o", "s", "^", "v"]
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    for si, scene in enumerate(scenes):
+        for mode, color in styles.items():
+            mine = sorted((r["k"], r[label]) for r in rows
+                          if r["scene"] == scene and r["mode"] == mode)
+            if not mine:
+                continue
+            ks, t = zip(*mine, strict=True)
+            axes[0].plot(ks, t, marks[si % 4] + "-", color=color, label=f"{scene} {mode}")
+            axes[1].plot(ks, np.array(t) / t[0], marks[si % 4] + "-", color=color,
+                         label=f"{scene} {mode}")
+    for mode, color in styles.items():
+        ks = sorted(PAPER_T2[mode])
+        t = np.array([PAPER_T2[mode][k] for k in ks])
+        name = "paper Wald et al." if mode == "exact" else "paper ours"
+        axes[0].plot(ks, t, "--", color=color, alpha=0.5, lw=2, label=name)
+        axes[1].plot(ks, t / t[0], "--", color=color, alpha=0.5, lw=2, label=name)
+    axes[0].set_title(f"render time, model at {label} (paper: 1 GigE, GPUs)")
+    axes[1].set_title("relative to K = 2")
+    for ax in axes:
+        ax.set_xlabel("nodes K")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# -- the README section -------------------------------------------------------------------------
+
+
+def _mbit(bps: float) -> str:
+    return f"{bps / 1e6:,.0f} Mbit/s"
+
+
+def report(out: Path, update_readme: bool = True) -> int:
+    bw_path, sc_path = out / "network_bandwidth.json", out / "network_scaling.json"
+    if not bw_path.exists():
+        log.error("no %s: run `python -m bench.network.bench_network bandwidth` first", bw_path)
+        return 1
+    bw_res = json.loads(bw_path.read_text())
+    val = validate(bw_res)
+    rpc_s = val["rpc_s"]
+    share = share_and_speedup(bw_res, rpc_s)
+    per_path = compute_per_path(bw_res)
+    plot_bandwidth(bw_res, rpc_s, out / "network_bandwidth.png")
+    parts = [section_bandwidth(bw_res, val, share, per_path)]
+    summary = {"validation": val, "share": share, "compute_per_path": per_path}
+    if sc_path.exists():
+        sc_res = json.loads(sc_path.read_text())
+        b_star = float(np.median([v["model_b_star_bps"] for v in share.values()]))
+        labels = {"1 Gbit/s": 1e9, f"{_mbit(b_star)} (B*)": b_star}
+        rows = scaling_rows(sc_res, rpc_s, labels)
+        plot_scaling(rows, list(labels)[1], out / "network_scaling.png")
+        flat = {x: flatness(rows, x) for x in labels}
+        parts.append(section_scaling(sc_res, rows, list(labels), flat))
+        summary.update(scaling=rows, flatness=flat)
+    (out / "network_summary.json").write_text(json.dumps(summary, indent=1, default=float))
+    text = "\n\n".join(parts)
+    print(text)
+    if update_readme:
+        replace_section(BENCH_README, BEGIN, END, text)
+    return 0
+
+
+def section_bandwidth(bw_res, val, share, per_path) -> str:
+    ours = per_path["ours"]
+    scenes = [sc for sc in dict.fromkeys(k.rsplit(" ", 1)[0] for k in ours)
+              if f"{sc} exact" in ours and f"{sc} proxy" in ours]
+    links = ", ".join(f"{bw}: {_mbit(v)}" for bw, v in bw_res["links"].items())
+    lines = [
+        "## Shaped network links (`bench_network.py`)",
+        "",
+        "`python -m bench.network.bench_network bandwidth` brings up two Ray nodes on this "
+        "host with "
+        "`deploy/netcluster.sh` (one network namespace each, htb-shaped veth links, one "
+        "CPU each), renders with K = 2 shards, one per node, at each link rate, and records "
+        "every shard call (`Coordinator(trace=True)`). `scaling` records traces for K = 2 "
+        "to 8 and `report` writes this section; bench/network/network_report.py explains each "
+        "column. Plot: `results/network_bandwidth.png`.",
+        "",
+        f"What one Ray object really reached between the nodes: {links}. The host (2 "
+        f"shared cores, veth, Ray's object transfer) caps it near "
+        f"{_mbit(max(bw_res['links'].values()))}, so links above that are the same link; "
+        "and down to 1 Gbit/s these few MB cross in under 0.1 s, so those rows differ by "
+        "the noise of a shared host only.",
+        "",
+        bandwidth_table(bw_res, val["rpc_s"]),
+        "",
+        "**Our nodes compute far slower than the paper's GPUs.** CPU seconds of both shard "
+        "processes per camera path: "
+        + ", ".join(f"{k} {v * 1e6:.1f} µs" for k, v in per_path["ours"].items())
+        + "; the paper's Table 4 (Sculpture, two RTX 5000 nodes, compute columns at 20 GigE): "
+        + ", ".join(f"{'Wald et al.' if k == 'exact' else 'proxy'} {v * 1e6:.2f} µs"
+                    for k, v in per_path["paper"].items())
+        + ". So a link here must be that many times slower than 1 GigE to cost the same "
+        "share of the time as in the paper. Compute alone, exact over proxy: "
+        + ", ".join(f"{sc} {ours[f'{sc} exact'] / ours[f'{sc} proxy']:.2f}x" for sc in scenes)
+        + f" here, {per_path['paper']['exact'] / per_path['paper']['proxy']:.2f}x in the paper"
+        " (its GPU proxies are cheap next to the intersections they save; our CPU proxy "
+        "inference is not), which bounds the speedup the network alone can add to.",
+        "",
+        f"**Model validation.** The model (bench/network/netmodel.py) replays each run's own trace "
+        f"(recorded call times, measured link rate). Its one free parameter, the one-way "
+        f"coordinator latency, is fitted on the runs over links of 2 Gbit/s and more: "
+        f"{val['rpc_s'] * 1e3:.1f} ms. On the other "
+        f"{sum(not r['fitted'] for r in val['rows'])} runs the predicted wall time is off by "
+        f"{val['mean_abs_error']:.1%} on average, at most {val['max_abs_error']:.1%}:",
+        "",
+        "| scene | mode | link | measured s | model s | error |",
+        "| --- | --- | --- | ---: | ---: | ---: |",
+    ]
+    for r in val["rows"]:
+        lines.append(f"| {r['scene']} | {r['mode']} | {r['bandwidth']}"
+                     f"{' (fitted)' if r['fitted'] else ''} | {r['measured_s']:.2f} | "
+                     f"{r['model_s']:.2f} | {r['error']:+.1%} |")
+    lines += ["", f"**Target: proxy >= {SPEEDUP_TARGET}x faster than exact where transfers "
+              f"take the share of exact's time that they take in the paper at 1 GigE "
+              f"({PAPER_SHARE:.0%}).**", ""]
+    for scene, v in share.items():
+        real = v["real_b_star"]
+        real_txt = (f"measured: the share crosses {PAPER_SHARE:.0%} near {_mbit(real['bps'])}, "
+                    f"speedup there {real['speedup']:.2f}x" if real else
+                    "measured: the share never crosses it between the links run")
+        met = v["model_speedup"] >= SPEEDUP_TARGET
+        lines.append(f"- {scene}: model on dedicated cores: B* = {_mbit(v['model_b_star_bps'])}"
+                     f", exact {v['model_exact_s']:.2f} s, proxy {v['model_proxy_s']:.2f} s, "
+                     f"speedup **{v['model_speedup']:.2f}x ({'met' if met else 'NOT met'})**; "
+                     f"{real_txt}. Measured share by link: "
+                     + ", ".join(f"{b} {s:.0%} ({x:.2f}x)" for b, s, x in v["real"]) + ".")
+    return "\n".join(lines)
+
+
+def section_scaling(sc_res, rows, labels, flat) -> str:
+    s = sc_res["settings"]
+    lines = [
+        "### Node count (the paper's Table 2), by the model",
+        "",
+        f"`python -m bench.network.bench_network scaling --width {s['width']}`: traces of real "
+        f"renders with K = {', '.join(map(str, sc_res['ks']))} shards on one "
+        f"local Ray ({s['width']}x{s['height']}, {s['spp']} spp), replayed on K dedicated "
+        "nodes (each call's CPU seconds) with links of 1 Gbit/s and of B*, the rate at which "
+        "exact's transfers take the paper's share of its time (scaled for our slower "
+        "compute). Unlike the paper, whose scene grew with the node count, the scene here "
+        "is fixed, so more nodes also split the compute. Plot: `results/network_scaling.png`"
+        " (the paper's times dashed). Every tile is one pass and all are in flight at "
+        "once, so the passes are what hides the coordinator's round trips: 320x240 has 20; "
+        "160x120 has 6, too few, and there three runs of the model had proxy grow 1.15-1.33x "
+        "from K = 2 to 8 at 1 Gbit/s (the paper renders full frames).",
+        "",
+        scaling_table(rows, labels),
+        "",
+        f"**Target: proxy flat within {FLAT_TARGET:.0%} from K = 2 to 8 while exact grows** "
+        "(time at K = 8 over K = 2; for proxy also the worst K over K = 2, which is what "
+        "the verdict uses):",
+        "",
+    ]
+    for label in labels:
+        f = flat[label]
+        parts = []
+        for key, (end, worst) in f.items():
+            scene, mode = key.rsplit(" ", 1)
+            if mode == "proxy":
+                ok = worst <= 1 + FLAT_TARGET
+                parts.append(f"{key} {end:.2f}x, worst {worst:.2f}x "
+                             f"({'met' if ok else 'NOT met'})")
+            else:
+                parts.append(f"{key} {end:.2f}x ({'met' if end > 1.0 else 'NOT met'})")
+        lines.append(f"- at {label}: " + ", ".join(parts))
+    paper = {m: PAPER_T2[m][8] / PAPER_T2[m][2] for m in PAPER_T2}
+    lines.append(f"- paper: proxy {paper['proxy']:.2f}x, exact {paper['exact']:.2f}x")
+    return "\n".join(lines)

@@ -1,0 +1,1 @@
+"""Render benchmarks: reference, distributed, scale, extremes, frames, massive scenes, setup."""

@@ -1,0 +1,1 @@
+"""The service under load: submissions, watchers, latency per route."""

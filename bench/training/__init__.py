@@ -1,0 +1,1 @@
+"""Proxy training benchmarks: accuracy against steps and width, determinism."""

@@ -1,0 +1,1 @@
+"""numba kernels: the top-level BVH, shading, the counter-based RNG, sampling, origin offsets."""

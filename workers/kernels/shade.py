@@ -1,0 +1,404 @@
+"""Jitted shading kernels: the counter RNG, next-event light sampling, BSDF continuation
+and surface interactions, row by row with exactly the float operations (and their order)
+of the numpy formulas they replace, so film sums stay bit-identical.
+
+One fixed sum order, written out in the numpy oracles too
+(`nprt.workers.wavefront.surface.surface_at`):
+three-term dot products, instance transforms included, sum (p0 + p2) + p1 (`_dot`), then
+add a translation; norms sum (x0² + x1²) + x2² (`_norm`). These are also the orders numpy
+2.x takes for `np.einsum("ij,ij->i")` and `np.linalg.norm(v, axis=1)` on C-ordered rows,
+which the light formulas use (checked in tests/workers/test_shade_kernels.py). Sines and
+cosines stay in numpy, whose SIMD versions need not round like libm.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from nprt.workers.kernels.rng import DIM_BSDF_U, DIM_LIGHT_BASE, DIM_RR
+
+# error_model="numpy": x / 0.0 is inf or NaN (as in numpy), not a ZeroDivisionError.
+JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_TO_UNIT = 1.0 / (1 << 53)
+
+
+@njit(inline="always", **JIT)
+def _mix(x):
+    """splitmix64 finaliser on a uint64 (wrapping)."""
+    x = (x ^ (x >> np.uint64(30))) * _M1
+    x = (x ^ (x >> np.uint64(27))) * _M2
+    return x ^ (x >> np.uint64(31))
+
+
+@njit(inline="always", **JIT)
+def dim_key(seed, dim):
+    """The per-(seed, dimension) key of `nprt.workers.kernels.rng.uniform`; seed and dim uint64."""
+    return _mix(seed + _GOLDEN * (dim + np.uint64(1)))
+
+
+@njit(inline="always", **JIT)
+def uniform_keyed(key, pixel, sample, bounce):
+    """`nprt.workers.kernels.rng.uniform` for one row, given its dimension's key (uint64)."""
+    x = key ^ (np.uint64(pixel) << np.uint64(32)) ^ np.uint64(sample)
+    x = _mix(x)
+    x = _mix(x ^ (np.uint64(bounce) * _GOLDEN))
+    return np.float64(x >> np.uint64(11)) * _TO_UNIT
+
+
+@njit(**JIT)
+def uniform_rows(seed, rows, pixel, sample, bounce, dim):
+    """(k,) float64 uniforms of one dimension for `rows` (k,) int64 of pixel, sample (n,)
+    u32 and bounce (n,) u8."""
+    key = dim_key(np.uint64(seed), np.uint64(dim))
+    out = np.empty(len(rows))
+    for j in range(len(rows)):
+        i = rows[j]
+        out[j] = uniform_keyed(key, pixel[i], sample[i], bounce[i])
+    return out
+
+
+# The rounding-error constants of nprt.workers.kernels.offset, whose formulas the next three copy.
+# They live here, not there: numba's cache is keyed on this file, so a constant taken
+# from another module would stay frozen in cached code after it changed.
+# pbrt's gamma(n) = n u / (1 - n u), u the unit roundoff of the format.
+_U32, _U64 = 2.0**-24, 2.0**-53
+GAMMA32_7 = 7 * _U32 / (1 - 7 * _U32)
+GAMMA64_3 = 3 * _U64 / (1 - 3 * _U64)
+# Local error per unit of the hit triangle's largest |vertex coordinate|: |v - o| of any
+# vertex v and a ray origin o near the triangle is at most twice that.
+LOCAL_REL = 2 * GAMMA32_7
+_LOCAL_REL = LOCAL_REL
+_G64 = GAMMA64_3
+_G64_1 = 1.0 + GAMMA64_3
+
+
+@njit(inline="always", **JIT)
+def _abs_rowdot(m, it, c, v0, v1, v2):
+    """(|m[it, c, 0]| v0 + |m[it, c, 1]| v1) + |m[it, c, 2]| v2."""
+    return (abs(m[it, c, 0]) * v0 + abs(m[it, c, 1]) * v1) + abs(m[it, c, 2]) * v2
+
+
+@njit(inline="always", **JIT)
+def point_error(l2w, w2l, it, v_max, pl, p, i, out):
+    """out[i] = `nprt.workers.kernels.offset.hit_point_error` of world point p[i] (3,) float64 of
+    instance it, from its local point pl (3,) float64 and its triangle's largest
+    |local vertex coordinate| v_max."""
+    e = _LOCAL_REL * v_max
+    for c in range(3):
+        a = ((abs(l2w[it, c, 0] * pl[0]) + abs(l2w[it, c, 1] * pl[1]))
+             + abs(l2w[it, c, 2] * pl[2])) + abs(l2w[it, c, 3])
+        m = (abs(l2w[it, c, 0]) + abs(l2w[it, c, 1])) + abs(l2w[it, c, 2])
+        out[i, c] = _G64 * a + _G64_1 * (m * e)
+    q0, q1, q2 = abs(p[i, 0]) + out[i, 0], abs(p[i, 1]) + out[i, 1], abs(p[i, 2]) + out[i, 2]
+    b0 = _G64 * (_abs_rowdot(w2l, it, 0, q0, q1, q2) + abs(w2l[it, 0, 3]))
+    b1 = _G64 * (_abs_rowdot(w2l, it, 1, q0, q1, q2) + abs(w2l[it, 1, 3]))
+    b2 = _G64 * (_abs_rowdot(w2l, it, 2, q0, q1, q2) + abs(w2l[it, 2, 3]))
+    for c in range(3):
+        out[i, c] = out[i, c] + _abs_rowdot(l2w, it, c, b0, b1, b2)
+
+
+@njit(inline="always", **JIT)
+def offset_origin(p, p_err, n, i, out, k):
+    """out[k] = `nprt.workers.kernels.offset.offset_ray_origin` of row i of p, p_err, n (h, 3)
+    float64, in float64 with its one-step rounding away from the surface."""
+    d = (abs(n[i, 0]) * p_err[i, 0] + abs(n[i, 1]) * p_err[i, 1]) + abs(n[i, 2]) * p_err[i, 2]
+    for c in range(3):
+        off = d * n[i, c]
+        o = p[i, c] + off
+        if off > 0:
+            o = np.nextafter(o, np.inf)
+        elif off < 0:
+            o = np.nextafter(o, -np.inf)
+        out[k, c] = o
+
+
+@njit(**JIT)
+def offset_rows(p, p_err, n):
+    """`nprt.workers.kernels.offset.offset_ray_origin` for (k, 3) float64 p, p_err and n (its oracle
+    test)."""
+    out = np.empty_like(p)
+    for i in range(len(p)):
+        offset_origin(p, p_err, n, i, out, i)
+    return out
+
+
+@njit(inline="always", **JIT)
+def _dot(a0, a1, a2, b0, b1, b2):
+    """Three products in the fixed order (a0 b0 + a2 b2) + a1 b1."""
+    return (a0 * b0 + a2 * b2) + a1 * b1
+
+
+@njit(inline="always", **JIT)
+def _norm(a0, a1, a2):
+    """The fixed order sqrt((a0² + a1²) + a2²)."""
+    return np.sqrt((a0 * a0 + a1 * a1) + a2 * a2)
+
+
+@njit(**JIT)
+def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, albedo, thr,
+               q_corner, q_u, q_v, q_normal, q_area, q_radiance,
+               pt_pos, pt_intensity, dir_dir, dir_irradiance, far_t, tmax_scale):
+    """S light samples per row in `rows` (int64 indices into the per-hit arrays; hit i
+    belongs to ray ray_of[i] of pixel, sample, depth), kept where the light is above both
+    the shading and geometric surface and the contribution is positive (and not NaN).
+
+    pixel, sample (n,) u32; depth (n,) u8 per ray; p, p_err, ns, ng, albedo, thr (h, 3)
+    float64 per hit; light arrays as in `LightSet` (float64); far_t, tmax_scale float64.
+    returns k and, in their first k rows: origin (m, 3) float64 (offset as
+    `nprt.workers.kernels.offset`), direction (m, 3) float32,
+    tmax (m,) float32, contribution (m, 3) float32, pixel (m,) uint32; m = len(rows) * S.
+    """
+    n_quads, n_points = len(q_area), len(pt_pos)
+    count = n_quads + n_points + len(dir_dir)
+    fcount = np.float64(count)
+    fS = np.float64(S)
+    m = len(rows) * S
+    o_p = np.empty((m, 3), np.float64)
+    o_dir = np.empty((m, 3), np.float32)
+    o_tmax = np.empty(m, np.float32)
+    o_con = np.empty((m, 3), np.float32)
+    o_pix = np.empty(m, np.uint32)
+    useed = np.uint64(seed)
+    keys = np.empty(3 * S, np.uint64)
+    for j in range(3 * S):
+        keys[j] = dim_key(useed, np.uint64(DIM_LIGHT_BASE + j))  # light s, draw k: j = 3 s + k
+    wi = np.empty(3)
+    val = np.empty(3)
+    k = 0
+    for r in range(len(rows)):
+        i = rows[r]
+        j = ray_of[i]
+        px, sm, dp = pixel[j], sample[j], depth[j]
+        p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
+        for s in range(S):
+            pick = uniform_keyed(keys[3 * s], px, sm, dp)
+            u1 = uniform_keyed(keys[3 * s + 1], px, sm, dp)
+            u2 = uniform_keyed(keys[3 * s + 2], px, sm, dp)
+            li = min(np.int64(pick * fcount), count - 1)
+            dist = far_t
+            pdf_l = 0.0
+            if li < n_quads:
+                v0 = ((q_corner[li, 0] + u1 * q_u[li, 0]) + u2 * q_v[li, 0]) - p0
+                v1 = ((q_corner[li, 1] + u1 * q_u[li, 1]) + u2 * q_v[li, 1]) - p1
+                v2 = ((q_corner[li, 2] + u1 * q_u[li, 2]) + u2 * q_v[li, 2]) - p2
+                d = _norm(v0, v1, v2)
+                dd = max(d, 1e-30)
+                wi[0], wi[1], wi[2] = v0 / dd, v1 / dd, v2 / dd
+                cos_l = -_dot(wi[0], wi[1], wi[2],
+                              q_normal[li, 0], q_normal[li, 1], q_normal[li, 2])
+                dist = d
+                if cos_l > 0:
+                    pdf_q = d * d / (max(cos_l, 1e-30) * q_area[li]) / fcount
+                    pdf_l = pdf_q
+                    for c in range(3):
+                        val[c] = q_radiance[li, c] / pdf_q
+                else:
+                    val[0] = val[1] = val[2] = 0.0
+            elif li < n_quads + n_points:
+                lp = li - n_quads
+                v0, v1, v2 = pt_pos[lp, 0] - p0, pt_pos[lp, 1] - p1, pt_pos[lp, 2] - p2
+                d = _norm(v0, v1, v2)
+                dd = max(d, 1e-30)
+                wi[0], wi[1], wi[2] = v0 / dd, v1 / dd, v2 / dd
+                dist = d
+                d2 = max(d * d, 1e-30)
+                for c in range(3):
+                    val[c] = pt_intensity[lp, c] / d2 * fcount
+            else:
+                ld = li - n_quads - n_points
+                for c in range(3):
+                    wi[c] = -dir_dir[ld, c]
+                    val[c] = dir_irradiance[ld, c] * fcount
+            cos_s = _dot(wi[0], wi[1], wi[2], ns[i, 0], ns[i, 1], ns[i, 2])
+            cos_g = _dot(wi[0], wi[1], wi[2], ng[i, 0], ng[i, 1], ng[i, 2])
+            if not (cos_s > 0 and cos_g > 0):
+                continue
+            mc = max(cos_s, 0.0)
+            pdf_b = mc / np.pi
+            if pdf_l > 0:
+                w = fS * pdf_l / (fS * pdf_l + pdf_b) / fS
+            else:
+                w = 1.0 / fS
+            scale = mc * w
+            c0 = thr[i, 0] * (albedo[i, 0] / np.pi) * val[0] * scale
+            c1 = thr[i, 1] * (albedo[i, 1] / np.pi) * val[1] * scale
+            c2 = thr[i, 2] * (albedo[i, 2] / np.pi) * val[2] * scale
+            if c0 != c0 or c1 != c1 or c2 != c2 or not (c0 > 0 or c1 > 0 or c2 > 0):
+                continue  # contrib.max(axis=1) > 0: NaN propagates and fails
+            offset_origin(p, p_err, ng, i, o_p, k)
+            for c in range(3):
+                o_dir[k, c] = np.float32(wi[c])
+            o_con[k, 0], o_con[k, 1], o_con[k, 2] = (np.float32(c0), np.float32(c1),
+                                                     np.float32(c2))
+            o_tmax[k] = np.float32(dist * tmax_scale)
+            o_pix[k] = px
+            k += 1
+    return k, o_p, o_dir, o_tmax, o_con, o_pix
+
+
+@njit(**JIT)
+def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, verts,
+            faces, normals, uvs, mesh_vbase, mesh_fbase, mesh_has_n, mesh_has_uv, mesh_mat,
+            mat_albedo, mat_emission, mat_tex, tex_base, tex_h, tex_w, texels, w2l):
+    """Surface interactions of `nprt.workers.wavefront.surface.surface_at` for `rows` (k,)
+    int64 of the
+    hit records inst, prim (n,) int32; u, v (n,) float32; direction (n, 3) float32.
+    slot_of_mesh (M,) int64 base mesh -> slot here (-1: not held); inst_mesh (m,) int32;
+    l2w (m, 3, 4), nmat (m, 3, 3) float64 (rows applied in `_dot`'s order);
+    verts, normals (V, 3) float32; uvs (V, 2) float32; faces (F, 3) int64 (vertex base
+    added). Per slot: vertex / face base, has-normals / has-uvs flags, material. Per
+    material: albedo, emission (3,) float64, texture (-1: none). Per texture: texel base,
+    height, width; texels (T, 3) float32; w2l (m, 3, 4) float64 (inverses of l2w).
+    returns bad (the first of rows whose mesh is not held, else -1), p, ng, ns, albedo,
+    emission, p_err (k, 3) float64 (p's error bound, `nprt.workers.kernels.offset.hit_point_error`).
+    """
+    n = len(rows)
+    p = np.empty((n, 3))
+    ng = np.empty((n, 3))
+    ns = np.empty((n, 3))
+    albedo = np.empty((n, 3))
+    emission = np.empty((n, 3))
+    p_err = np.empty((n, 3))
+    pl = np.empty(3)
+    gl = np.empty(3)
+    sl = np.empty(3)
+    for i in range(n):
+        h = rows[i]
+        it = inst[h]
+        slot = slot_of_mesh[inst_mesh[it]]
+        if slot < 0:
+            return h, p, ng, ns, albedo, emission, p_err
+        b1, b2 = np.float64(u[h]), np.float64(v[h])
+        b0 = 1.0 - b1 - b2
+        f = mesh_fbase[slot] + prim[h]
+        t0, t1, t2 = faces[f, 0], faces[f, 1], faces[f, 2]
+        v_max = 0.0
+        for c in range(3):
+            x0 = np.float64(verts[t0, c])
+            pl[c] = b0 * x0 + b1 * np.float64(verts[t1, c]) + b2 * np.float64(verts[t2, c])
+            v_max = max(v_max, abs(x0), abs(np.float64(verts[t1, c])),
+                        abs(np.float64(verts[t2, c])))
+        e10 = np.float64(verts[t1, 0]) - np.float64(verts[t0, 0])
+        e11 = np.float64(verts[t1, 1]) - np.float64(verts[t0, 1])
+        e12 = np.float64(verts[t1, 2]) - np.float64(verts[t0, 2])
+        e20 = np.float64(verts[t2, 0]) - np.float64(verts[t0, 0])
+        e21 = np.float64(verts[t2, 1]) - np.float64(verts[t0, 1])
+        e22 = np.float64(verts[t2, 2]) - np.float64(verts[t0, 2])
+        gl[0] = e11 * e22 - e12 * e21  # np.cross's order
+        gl[1] = e12 * e20 - e10 * e22
+        gl[2] = e10 * e21 - e11 * e20
+        if mesh_has_n[slot]:
+            for c in range(3):
+                sl[c] = (b0 * np.float64(normals[t0, c]) + b1 * np.float64(normals[t1, c])
+                         + b2 * np.float64(normals[t2, c]))
+        else:
+            sl[0], sl[1], sl[2] = gl[0], gl[1], gl[2]
+        mat = mesh_mat[slot]
+        tx = mat_tex[mat]
+        if tx >= 0 and mesh_has_uv[slot]:
+            uu = (b0 * np.float64(uvs[t0, 0]) + b1 * np.float64(uvs[t1, 0])
+                  + b2 * np.float64(uvs[t2, 0]))
+            vv = (b0 * np.float64(uvs[t0, 1]) + b1 * np.float64(uvs[t1, 1])
+                  + b2 * np.float64(uvs[t2, 1]))
+            th, tw = tex_h[tx], tex_w[tx]
+            x = np.int64(np.floor((uu % 1.0) * tw)) % tw
+            y = np.int64(np.floor(((1.0 - vv) % 1.0) * th)) % th
+            for c in range(3):
+                albedo[i, c] = np.float64(texels[tex_base[tx] + y * tw + x, c])
+        else:
+            for c in range(3):
+                albedo[i, c] = mat_albedo[mat, c]
+        for c in range(3):
+            emission[i, c] = mat_emission[mat, c]
+        for c in range(3):
+            p[i, c] = (_dot(l2w[it, c, 0], l2w[it, c, 1], l2w[it, c, 2], pl[0], pl[1], pl[2])
+                       + l2w[it, c, 3])
+        point_error(l2w, w2l, it, v_max, pl, p, i, p_err)
+        g0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], gl[0], gl[1], gl[2])
+        g1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], gl[0], gl[1], gl[2])
+        g2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], gl[0], gl[1], gl[2])
+        s0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], sl[0], sl[1], sl[2])
+        s1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], sl[0], sl[1], sl[2])
+        s2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], sl[0], sl[1], sl[2])
+        ln = _norm(g0, g1, g2)  # normalize: zero vectors stay zero
+        if not ln > 0:
+            ln = 1.0
+        g0, g1, g2 = g0 / ln, g1 / ln, g2 / ln
+        ln = _norm(s0, s1, s2)
+        if not ln > 0:
+            ln = 1.0
+        s0, s1, s2 = s0 / ln, s1 / ln, s2 / ln
+        # Two-sided diffuse: both normals face the side the ray came from.
+        if _dot(g0, g1, g2, np.float64(direction[h, 0]), np.float64(direction[h, 1]),
+                np.float64(direction[h, 2])) > 0:
+            g0, g1, g2 = -g0, -g1, -g2
+        if _dot(s0, s1, s2, g0, g1, g2) < 0:
+            s0, s1, s2 = -s0, -s1, -s2
+        ng[i, 0], ng[i, 1], ng[i, 2] = g0, g1, g2
+        ns[i, 0], ns[i, 1], ns[i, 2] = s0, s1, s2
+    return -1, p, ng, ns, albedo, emission, p_err
+
+
+@njit(**JIT)
+def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p, p_err, ng,
+                  ns, albedo, thr, russian_roulette, rr_start_depth):
+    """Cosine-hemisphere continuation of `rows` (k,) int64 (of `nprt.workers.kernels.sampling.
+    cosine_hemisphere` and `PathIntegrator._continue`): cos_phi, sin_phi (k,) float64 of
+    phi = 2 pi u2 come from numpy, whose SIMD sines need not round like libm's.
+
+    ray_of (h,) int64 hit -> ray; pixel, sample (n,) u32; depth (n,) u8 per ray;
+    p, p_err, ng, ns, albedo, thr (h, 3) float64 per hit.
+    returns c and, in their first c rows: row (c,) int64 (into the per-hit arrays),
+    origin (c, 3) float64 (offset as `nprt.workers.kernels.offset`), direction, throughput (c, 3)
+    float32, pdf (c,) float32.
+    """
+    k = len(rows)
+    o_row = np.empty(k, np.int64)
+    o_p = np.empty((k, 3), np.float64)
+    o_d = np.empty((k, 3), np.float32)
+    o_t = np.empty((k, 3), np.float32)
+    o_pdf = np.empty(k, np.float32)
+    useed = np.uint64(seed)
+    key_u = dim_key(useed, np.uint64(DIM_BSDF_U))
+    key_rr = dim_key(useed, np.uint64(DIM_RR))
+    c = 0
+    for j in range(k):
+        i = rows[j]
+        ray = ray_of[i]
+        px, sm, dp = pixel[ray], sample[ray], depth[ray]
+        u1 = uniform_keyed(key_u, px, sm, dp)
+        r = np.sqrt(u1)
+        x, y = r * cos_phi[j], r * sin_phi[j]
+        z = np.sqrt(max(0.0, 1.0 - u1))
+        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
+        sign = 1.0 if n2 >= 0 else -1.0  # Duff et al. frame, as nprt.workers.kernels.sampling.frame
+        a = -1.0 / (sign + n2)
+        b = n0 * n1 * a
+        d0 = x * (1.0 + sign * (n0 * n0) * a) + y * b + z * n0
+        d1 = x * (sign * b) + y * (sign + (n1 * n1) * a) + z * n1
+        d2 = x * (-sign * n0) + y * (-n1) + z * n2
+        if not _dot(d0, d1, d2, ng[i, 0], ng[i, 1], ng[i, 2]) > 0:
+            continue  # below the true surface: absorbed
+        t0, t1, t2 = thr[i, 0] * albedo[i, 0], thr[i, 1] * albedo[i, 1], thr[i, 2] * albedo[i, 2]
+        if t0 != t0 or t1 != t1 or t2 != t2:
+            continue  # t.max(axis=1) > 0 fails on NaN
+        if russian_roulette and np.int64(dp) + 1 >= rr_start_depth:
+            q = min(max(1.0 - max(max(t0, t1), t2), 0.0), 0.95)
+            if not uniform_keyed(key_rr, px, sm, dp) >= q:
+                continue
+            s = 1.0 - q
+            t0, t1, t2 = t0 / s, t1 / s, t2 / s
+        if not max(max(t0, t1), t2) > 0:
+            continue
+        o_row[c] = i
+        offset_origin(p, p_err, ng, i, o_p, c)
+        o_d[c, 0], o_d[c, 1], o_d[c, 2] = np.float32(d0), np.float32(d1), np.float32(d2)
+        o_t[c, 0], o_t[c, 1], o_t[c, 2] = np.float32(t0), np.float32(t1), np.float32(t2)
+        o_pdf[c] = np.float32(z / np.pi)
+        c += 1
+    return c, o_row, o_p, o_d, o_t, o_pdf

@@ -1,0 +1,1 @@
+"""Routing: where a ray goes next (exact forwarding, proxy prediction, the oracle)."""

@@ -1,0 +1,163 @@
+"""Traversal policies: where each ray goes after this shard's local intersection.
+
+- exact: Wald-style forwarding to the nearest unvisited box (the reference).
+- proxy: the paper's method for secondary and shadow rays; primary rays stay exact.
+- oracle: benchmark-only lower bound; forwards straight to the true closest-hit shard,
+  using a full copy of the scene that only the benchmark may afford.
+Targets are shard ids, or DONE (shade here / add the shadow contribution here).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nprt.workers.routing.exact import DONE, route_exact, route_shadow_exact
+from nprt.workers.routing.proxy_query import INTERNAL_MARGIN, predict
+from nprt.workers.runtime.protocol import EVERYWHERE
+from nprt.workers.settings import RenderSettings
+from nprt.workers.stats.counters import SplitStats
+from nprt.workers.traversal.local import LocalGeometry
+from nprt.workers.wavefront.batch import (
+    FLAG_EXACT,
+    FLAG_INTERNAL,
+    FLAG_TARGETED,
+    SECONDARY,
+    RayBatch,
+    ShadowRayBatch,
+)
+from nprt.workers.wavefront.world import ShardWorld
+
+
+class ExactPolicy:
+    def __init__(self, world: ShardWorld, shard: int, remote: np.ndarray):
+        self.world, self.shard, self.remote = world, shard, remote
+
+    def route_rays(self, rays: RayBatch, stats: SplitStats) -> tuple[RayBatch, np.ndarray]:
+        return rays, route_exact(self.world, self.shard, self.remote, rays)
+
+    def route_shadow(self, shadow: ShadowRayBatch, stats: SplitStats):
+        """Returns (shadow rays still live, their targets)."""
+        return shadow, route_shadow_exact(self.world, self.remote, shadow)
+
+    def _owner_of(self, inst: np.ndarray) -> np.ndarray:
+        """Shard owning each hit instance, DONE when it is here (or none)."""
+        owner = np.where(inst >= 0, self.world.owner[np.maximum(inst, 0)], EVERYWHERE)
+        return np.where((owner == EVERYWHERE) | (owner == self.shard), DONE, owner)
+
+
+class ProxyPolicy(ExactPolicy):
+    """remote : (m,) int32 instances not held here (exact fallback forwarding covers all of
+    them); known : those of them whose base mesh this shard holds, answered exactly; the
+    rest (`modeled`) are answered by proxies.
+
+    A secondary ray goes to the owner of its closest confident predicted hit, where that
+    hit is final if real (a miss there falls back to exact forwarding). A ray that first
+    enters a box no proxy answers with confidence goes to that box's owner instead, which
+    intersects it exactly and asks the proxies again about the shards not visited yet: at
+    band 1 this is exact forwarding, step for step."""
+
+    def __init__(self, world, shard, remote, proxies: dict, settings: RenderSettings,
+                 known: LocalGeometry):
+        super().__init__(world, shard, remote)
+        self.modeled = remote[~np.isin(remote, known.instances)]
+        self.known, self.proxies = known, proxies
+        knobs = settings.proxy
+        self.threshold, self.band, self.shadow_band = knobs.threshold, knobs.band, knobs.shadow_band
+
+    def route_rays(self, rays, stats):
+        target = np.full(len(rays), DONE, np.int32)
+        flags = rays.flags.copy()
+        secondary = rays.kind == SECONDARY
+        # Arrived where a proxy sent it: a real hit here is final, a miss is a misprediction.
+        arrived = (flags & FLAG_TARGETED) != 0
+        missed = arrived & ((rays.hit_inst < 0) | (self._owner_of(rays.hit_inst) != DONE))
+        stats.count("proxy_mispredictions", missed)
+        # The paper's internal case (origin inside the predicted box) counted on its own.
+        stats.count("proxy_internal_mispredictions", missed & ((flags & FLAG_INTERNAL) != 0))
+        flags[missed] |= FLAG_EXACT
+        flags &= np.uint8(~(FLAG_TARGETED | FLAG_INTERNAL) & 0xFF)
+        fresh = secondary & ~arrived & ((flags & FLAG_EXACT) == 0)
+        if fresh.any():
+            f = np.flatnonzero(fresh)
+            with stats.phase("proxy"):
+                pred = predict(self.world, self.proxies, self.modeled, rays.origin[f],
+                               rays.direction[f], rays.tmax[f], self.threshold, self.band,
+                               self.known, rays.visited[f], INTERNAL_MARGIN)
+            stats.count("proxy_queries", f)
+            stats.count("proxy_uncertain", f[pred.uncertain])
+            stats.count("proxy_internal_ambiguous", f[pred.ambiguous])
+            # An uncertain ray visits the owner of the first box it cannot trust, where that
+            # box is intersected exactly and the proxies are asked again about the shards
+            # not visited yet; one uncertain only for ambiguity falls back to exact forwarding.
+            settle = pred.uncertain & (pred.first_open >= 0)
+            flags[f[pred.uncertain & ~settle]] |= FLAG_EXACT
+            target[f[settle]] = self.world.owner[pred.first_open[settle]]
+            stats.count("proxy_settled", f[settle])
+            go = ~pred.uncertain & (pred.inst >= 0)
+            target[f[go]] = self.world.owner[pred.inst[go]]
+            flags[f[go]] |= FLAG_TARGETED
+            inner = go & pred.internal
+            flags[f[inner]] |= FLAG_INTERNAL
+            stats.count("proxy_targeted", f[go])
+            stats.count("proxy_internal_targeted", f[inner])
+            # No hit ahead: the closest is the one the ray carries, shaded by its owner.
+            rest = f[~pred.uncertain & (pred.inst < 0)]
+            target[rest] = self._owner_of(rays.hit_inst[rest])
+        rays = rays.replace(flags=flags)
+        exact = ~secondary | ((flags & FLAG_EXACT) != 0)  # primary rays are always exact
+        if exact.any():
+            target[exact] = route_exact(self.world, self.shard, self.remote, rays.take(exact))
+        return rays, target
+
+    def route_shadow(self, shadow, stats):
+        """Decided here: occluded if any proxy confidently predicts a hit before the light.
+        Rays that cross a box of a mesh without a proxy, or (shadow_band > 0) a prediction
+        inside the band, and have no confident occluder, fall back to exact forwarding."""
+        if not len(shadow):
+            return shadow, np.zeros(0, np.int32)
+        with stats.phase("proxy"):
+            pred = predict(self.world, self.proxies, self.modeled, shadow.origin,
+                           shadow.direction, shadow.tmax, self.threshold, self.shadow_band,
+                           self.known)
+        stats.count("proxy_queries")
+        occluded = pred.inst >= 0
+        stats.count("proxy_shadow_occluded", occluded)
+        stats.count_hops(shadow.hops, occluded)  # they finish here
+        stats.count("proxy_shadow_uncertain", np.flatnonzero(~occluded)[pred.uncertain[~occluded]])
+        shadow = shadow.take(~occluded)
+        target = np.full(len(shadow), DONE, np.int32)
+        unknown = pred.uncertain[~occluded]
+        if unknown.any():
+            target[unknown] = route_shadow_exact(self.world, self.remote, shadow.take(unknown))
+        return shadow, target
+
+
+class OraclePolicy(ExactPolicy):
+    """Knows every true closest hit (full scene on every shard): the transfer floor."""
+
+    def __init__(self, world, shard, remote, everything: LocalGeometry):
+        super().__init__(world, shard, remote)
+        self.everything = everything
+
+    def route_rays(self, rays, stats):
+        target = np.full(len(rays), DONE, np.int32)
+        arrived = (rays.flags & FLAG_TARGETED) != 0
+        fresh = (rays.kind == SECONDARY) & ~arrived
+        exact = ~fresh & ~arrived
+        if fresh.any():
+            f = np.flatnonzero(fresh)
+            _, inst, _, _, _ = self.everything.intersect_closest(
+                rays.origin[f], rays.direction[f], rays.tmax[f])
+            target[f] = self._owner_of(inst)
+            rays = rays.replace(flags=rays.flags | (fresh * FLAG_TARGETED).astype(np.uint8))
+        if exact.any():
+            target[exact] = route_exact(self.world, self.shard, self.remote, rays.take(exact))
+        done_here = target == DONE
+        target[done_here] = self._owner_of(rays.hit_inst[done_here])
+        return rays, target
+
+    def route_shadow(self, shadow, stats):
+        """Sent to the shard of the nearest true occluder (which drops it), else done."""
+        _, inst, _, _, _ = self.everything.intersect_closest(
+            shadow.origin, shadow.direction, shadow.tmax)
+        return shadow, self._owner_of(inst)

@@ -1,0 +1,67 @@
+"""Placement: which shard holds which meshes and instances, which meshes are replicated
+and which get a proxy, decided from scene metadata alone (`nprt.scene.meta.SceneMeta`): the
+driver reads no vertex array to plan, and each shard then loads its own meshes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from nprt.scene.meta import SceneMeta
+from nprt.scene.partition import Partition, partition
+from nprt.workers.runtime.protocol import EVERYWHERE
+from nprt.workers.settings import RenderSettings
+
+
+def make_plan(scene, part, settings: RenderSettings, proxy_dir=None, train=True,
+              trainer=None):
+    """Which meshes get a proxy, are replicated, or need nothing (nprt.proxies.policy).
+    scene: a Scene or SceneMeta; trainer: trains the missing proxies (for instance as
+    parallel Ray tasks, nprt.proxies.tasks), else they are trained here one after another."""
+    from nprt.proxies.cache import ProxyCache
+    from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig
+    from nprt.proxies.policy import plan_proxies
+
+    knobs = settings.proxy
+    return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,
+                        cache=ProxyCache(proxy_dir), train=train,
+                        config=ProxyConfig(steps=knobs.steps),
+                        widths=DEFAULT_WIDTHS if knobs.width is None else (knobs.width,),
+                        trainer=trainer)
+
+
+@dataclass(eq=False)
+class Placement:
+    """owner : (m,) int32 shard of each instance, or EVERYWHERE (replicated mesh);
+    shard_meshes : per shard, the sorted mesh indices it loads (its own + replicated);
+    proxies : mesh index -> Proxy (proxy mode)."""
+
+    meta: SceneMeta
+    partition: Partition
+    owner: np.ndarray
+    shard_meshes: list[tuple[int, ...]]
+    plan: object = None
+    proxies: dict = field(default_factory=dict)
+
+
+def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
+                   trainer=None) -> Placement:
+    """Plan K shards for `scene` (a Scene or SceneMeta) from its metadata only."""
+    meta = SceneMeta.of(scene)
+    k = settings.shards
+    part = partition(meta, k)
+    owner = np.asarray(part.instance_shard, np.int32).copy()
+    held = [set(m) for m in part.shard_meshes]
+    plan, proxies = None, {}
+    if settings.mode in ("proxy", "oracle"):
+        # The oracle bounds the proxy mode, so it gets the same placement: meshes
+        # lighter than their proxy are replicated (it trains nothing to learn that).
+        plan = make_plan(meta, part, settings, proxy_dir, train=settings.mode == "proxy",
+                         trainer=trainer)
+        proxies = plan.proxies if settings.mode == "proxy" else {}
+        for m in plan.replicated:  # cheaper to copy than to model
+            owner[meta.instances_of_mesh(m)] = EVERYWHERE
+            for h in held:
+                h.add(m)
+    return Placement(meta, part, owner, [tuple(sorted(h)) for h in held], plan, proxies)

@@ -1,0 +1,1 @@
+"""Statistics: render counters and phase times, image quality, block statistics."""

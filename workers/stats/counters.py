@@ -1,0 +1,134 @@
+"""Render statistics: rays, transfers and bytes by kind, hops, time per phase.
+
+Every shard keeps one `RenderStats`; the coordinator merges them. Phase names are
+the stage names of the wavefront loop.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+
+import numpy as np
+
+from nprt.workers.wavefront.batch import KIND_NAMES
+
+MAX_HOPS = 64
+
+
+class RenderStats:
+    def __init__(self):
+        self.rays = defaultdict(int)  # kind name -> rays traced
+        self.transfers = defaultdict(int)  # kind name -> rays sent shard to shard
+        self.bytes = defaultdict(int)  # kind name -> bytes of those rays
+        self.phase_s = defaultdict(float)  # stage name -> seconds
+        self.counters = defaultdict(int)  # anything else: mispredictions, fallbacks...
+        self.hops = np.zeros(MAX_HOPS + 1, np.int64)  # rays finished after h transfers
+
+    @contextmanager
+    def phase(self, name: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.phase_s[name] += time.perf_counter() - t0
+
+    def count_rays(self, kind: np.ndarray | int, n: int | None = None) -> None:
+        """Count traced rays by kind: an array of kinds, or one kind and a count."""
+        if isinstance(kind, np.ndarray):
+            for k, c in enumerate(np.bincount(kind, minlength=3)[:3]):
+                self.rays[KIND_NAMES[k]] += int(c)
+        else:
+            self.rays[KIND_NAMES[kind]] += int(n)
+
+    def count_transfer(self, kind_name: str, n: int, nbytes: int) -> None:
+        self.transfers[kind_name] += int(n)
+        self.bytes[kind_name] += int(nbytes)
+
+    def count_hops(self, hops: np.ndarray) -> None:
+        self.hops += np.bincount(np.minimum(hops, MAX_HOPS), minlength=MAX_HOPS + 1)
+
+    def merge(self, other: RenderStats) -> RenderStats:
+        for mine, theirs in ((self.rays, other.rays), (self.transfers, other.transfers),
+                             (self.bytes, other.bytes), (self.phase_s, other.phase_s),
+                             (self.counters, other.counters)):
+            for k, v in theirs.items():
+                mine[k] += v
+        self.hops += other.hops
+        return self
+
+    def to_dict(self) -> dict:
+        last = int(np.flatnonzero(self.hops).max()) + 1 if self.hops.any() else 0
+        return {
+            "rays": {k: self.rays.get(k, 0) for k in KIND_NAMES},
+            "transfers": {k: self.transfers.get(k, 0) for k in KIND_NAMES},
+            "bytes": {k: self.bytes.get(k, 0) for k in KIND_NAMES},
+            "total_transfers": int(sum(self.transfers.values())),
+            "total_bytes": int(sum(self.bytes.values())),
+            "hops_histogram": self.hops[:last].tolist(),
+            "phase_s": {k: round(v, 6) for k, v in sorted(self.phase_s.items())},
+            "counters": dict(sorted(self.counters.items())),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> RenderStats:
+        s = cls()
+        for name in ("rays", "transfers", "bytes", "counters"):
+            getattr(s, name).update(d.get(name, {}))
+        s.phase_s.update(d.get("phase_s", {}))
+        h = d.get("hops_histogram", [])
+        s.hops[:len(h)] = h
+        return s
+
+
+class SplitStats:
+    """Statistics of one merged wavefront over several pass attempts. Counts go to the
+    attempt of each ray (a retried pass drops exactly its own); stage times cannot be
+    separated, so `finish` shares them out by rays traced.
+
+    parts : (t,) RenderStats, one per attempt; `bind(tok)` names the attempt index
+    (n,) int of every row of the batch that the next calls count (rows index it)."""
+
+    def __init__(self, parts: list[RenderStats]):
+        self.parts = parts
+        self.times = RenderStats()
+        self.tok = np.zeros(0, np.int64)
+        self._rays = np.zeros(len(parts))
+
+    def bind(self, tok: np.ndarray) -> SplitStats:
+        self.tok = tok
+        return self
+
+    def phase(self, name: str):
+        return self.times.phase(name)
+
+    def _per_part(self, rows) -> np.ndarray:
+        """(t,) int64 rows of the bound batch per attempt (rows: mask, indices or all)."""
+        tok = self.tok if rows is None else self.tok[rows]
+        return np.bincount(tok, minlength=len(self.parts))
+
+    def count(self, name: str, rows=None) -> None:
+        for part, c in zip(self.parts, self._per_part(rows), strict=True):
+            if c:
+                part.counters[name] += int(c)
+
+    def count_rays(self, kind: np.ndarray) -> None:
+        """kind : (n,) uint8 of the bound batch."""
+        for i, part in enumerate(self.parts):
+            part.count_rays(kind[self.tok == i])
+        self._rays += self._per_part(None)
+
+    def count_hops(self, hops: np.ndarray, rows=None) -> None:
+        """hops : (n,) of the bound batch; rows: which of them finished."""
+        tok = self.tok if rows is None else self.tok[rows]
+        hops = hops if rows is None else hops[rows]
+        for i, part in enumerate(self.parts):
+            part.count_hops(hops[tok == i])
+
+    def finish(self) -> None:
+        share = self._rays / self._rays.sum() if self._rays.sum() else \
+            np.full(len(self.parts), 1.0 / max(len(self.parts), 1))
+        for part, w in zip(self.parts, share, strict=True):
+            for name, s in self.times.phase_s.items():
+                part.phase_s[name] += float(s * w)

@@ -1,0 +1,1 @@
+"""Traversal: Embree geometry, the top-level instance boxes, local closest-hit and shadow tests."""

@@ -1,0 +1,139 @@
+"""The instance table: world boxes and float64 transforms of every instance, replicated
+on every shard, with a small BVH over the boxes (the top level) and the slab test."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nprt.scene.model import Scene
+from nprt.workers.kernels import bvh as kernels
+
+# Boxes are padded so flat geometry (a ground quad) never yields a zero-width slab.
+BOX_PAD_REL = 1e-5
+# Up to this many requested instances, a plain loop over their boxes beats the BVH.
+BVH_MIN_INSTANCES = 8
+
+
+class InstanceTable:
+    """mesh (m,) int32, local_to_world / world_to_local (m, 3, 4) float64,
+    normal_to_world (m, 3, 3) float64 (inverse transpose), world_bounds (m, 2, 3) float64,
+    local_bounds (m, 2, 3) float64 (the base mesh's box).
+
+    Built from the scene's instance arrays in vectorised numpy plus one compiled BVH
+    build; the BVH travels with the table when it is pickled (built once per scene)."""
+
+    def __init__(self, scene: Scene):
+        self.mesh = np.array(scene.instance_mesh, np.int32)
+        l2w = np.array(scene.instance_transform, np.float64)  # (m, 4, 4)
+        w2l = np.linalg.inv(l2w)
+        self.local_to_world = l2w[:, :3, :]
+        self.world_to_local = w2l[:, :3, :]
+        self.normal_to_world = np.transpose(w2l[:, :3, :3], (0, 2, 1))
+        mesh_bounds = np.stack([m.bounds for m in scene.meshes])  # (meshes, 2, 3)
+        local = mesh_bounds[self.mesh]  # (m, 2, 3)
+        corners = _box_corners(local)  # (m, 8, 3)
+        world = np.einsum("mij,mkj->mki", l2w[:, :3, :3], corners) + l2w[:, None, :3, 3]
+        lo, hi = world.min(axis=1), world.max(axis=1)
+        pad = BOX_PAD_REL * np.linalg.norm(hi - lo, axis=1, keepdims=True) + 1e-9
+        pad = pad + 1e-7 * np.abs(np.concatenate([lo, hi], axis=1)).max(axis=1, keepdims=True)
+        self.world_bounds = np.stack([lo - pad, hi + pad], axis=1)
+        self.local_bounds = local
+        boxes = np.array(self.world_bounds, np.float64, order="C")
+        bvh = kernels.bvh_build(boxes) if len(boxes) and np.isfinite(boxes).all() else None
+        self._owned(bvh)
+
+    def _owned(self, bvh) -> None:
+        """Kernel inputs, owned and writable (arrays unpickled from Ray's object store are
+        read-only, and numba compiles read-only arrays as a separate type). Copies only:
+        the BVH is never rebuilt here."""
+        self._bvh = None
+        if bvh is not None:
+            self._bvh = (np.array(self.world_bounds, np.float64, order="C"),
+                         *(np.array(a, order="C") for a in bvh))
+        self._mesh = np.array(self.mesh, np.int32)
+        self._world_to_local = np.array(self.world_to_local, np.float64, order="C")
+
+    @property
+    def bvh(self) -> tuple | None:
+        """`kernels.bvh_build(world_bounds)`'s arrays, or None (no boxes, or non-finite)."""
+        return None if self._bvh is None else self._bvh[1:]
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        for name in ("_bvh", "_mesh", "_world_to_local", "normal_to_world"):
+            state.pop(name, None)  # derived from other fields, restored on unpickling
+        state["bvh"] = self.bvh
+        return state
+
+    def __setstate__(self, state):
+        bvh = state.pop("bvh", None)
+        self.__dict__.update(state)
+        self.normal_to_world = np.transpose(self.world_to_local[:, :, :3], (0, 2, 1))
+        self._owned(bvh)
+
+    def __len__(self) -> int:
+        return len(self.mesh)
+
+    def to_local(self, inst: np.ndarray, origin: np.ndarray, direction: np.ndarray):
+        """Move rays into their instance's local space in float64, then cast to float32.
+
+        inst : (n,) int32; origin, direction : (n, 3) float32 world
+        returns origin, direction : (n, 3) float32 local (direction not renormalised,
+        so t is the same in both spaces)
+        """
+        return kernels.to_local(np.asarray(inst, np.int32), self._world_to_local,
+                                np.array(origin, np.float64, order="C"),
+                                np.array(direction, np.float64, order="C"))
+
+    def pairs_by_mesh(self, ray: np.ndarray, inst: np.ndarray, origin: np.ndarray,
+                      direction: np.ndarray):
+        """Crossings grouped by base mesh, rays moved to local space (as `to_local`).
+
+        ray (p,) int64, inst (p,) int32 (as from `box_entries`); origin, direction (n, 3)
+        returns ray (p,) int64, inst (p,) int32, start (meshes + 1,) int64 (mesh g's rows
+        are start[g]:start[g + 1], each in the order given), local origin, direction
+        (p, 3) float32
+        """
+        n_mesh = int(self._mesh.max()) + 1 if len(self._mesh) else 0
+        return kernels.pairs_by_mesh(
+            np.asarray(ray, np.int64), np.asarray(inst, np.int32), self._mesh, n_mesh,
+            self._world_to_local, np.array(origin, np.float64, order="C"),
+            np.array(direction, np.float64, order="C"))
+
+    def box_entries(self, origin, direction, tmax, instances: np.ndarray):
+        """Slab test of rays against a set of instance boxes, in float64.
+
+        origin, direction : (n, 3) float32; tmax : (n,) float32; instances : (k,) int
+        returns ray (p,) int64, inst (p,) int32, t_enter (p,) float64, t_exit (p,) float64
+        for every crossing with t_exit >= max(t_enter, 0) and t_enter < tmax, ray-major and
+        then in the order of `instances`. Per axis t = (plane - origin) * (1 / direction),
+        fmin/fmax drop the NaN of 0 * inf (origin on a slab plane, zero direction).
+        """
+        n, k = len(origin), len(instances)
+        if n == 0 or k == 0:
+            e = np.zeros(0)
+            return e.astype(np.int64), e.astype(np.int32), e, e
+        instances = np.asarray(instances)
+        # One dtype and layout, so the kernels are compiled (and cached) once.
+        o, d = np.array(origin, np.float64, order="C"), np.array(direction, np.float64, order="C")
+        tm = np.array(tmax, np.float64, order="C")
+        col_of = None
+        if self._bvh is not None and k > BVH_MIN_INSTANCES:
+            m = len(self)
+            if instances.min() >= 0 and instances.max() < m:
+                col_of = np.full(m, -1, np.int32)
+                col_of[instances] = np.arange(k, dtype=np.int32)
+                if np.count_nonzero(col_of >= 0) != k:  # repeated instances: plain loop
+                    col_of = None
+        if col_of is not None:
+            ray, col, t_enter, t_exit = kernels.bvh_slab(o, d, tm, *self._bvh, col_of)
+        else:
+            boxes = np.array(self.world_bounds[instances], np.float64, order="C")
+            ray, col, t_enter, t_exit = kernels.slab_all(o, d, tm, boxes)
+        return ray, instances[col].astype(np.int32), t_enter, t_exit
+
+
+def _box_corners(b: np.ndarray) -> np.ndarray:
+    """(m, 2, 3) boxes -> (m, 8, 3) corners."""
+    idx = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)])  # (8, 3)
+    return b[:, idx, np.arange(3)]

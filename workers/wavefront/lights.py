@@ -1,0 +1,128 @@
+"""Lights as arrays: quad area lights (sampled and intersectable, for MIS), point and
+directional lights (sampled only), and the environment seen by escaped rays.
+
+Next-event estimation picks one light uniformly per shadow ray; `pdf_quad_hit` gives
+the same density for BSDF rays that hit a quad, so both strategies share one MIS weight.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from nprt.scene.model import Environment, Scene
+from nprt.workers.kernels.sampling import normalize
+
+FAR_T = np.float32(1e30)  # tmax of shadow rays toward directional lights
+
+
+class LightSet:
+    """quad_corner, quad_u, quad_v, quad_normal (L, 3) float64, quad_area (L,) float64,
+    quad_radiance (L, 3); point_pos, point_intensity (P, 3); dir_dir (unit, direction
+    light travels), dir_irradiance (D, 3)."""
+
+    def __init__(self, scene: Scene):
+        def arr(items, attr, width=3):
+            return np.array([getattr(x, attr) for x in items], np.float64).reshape(-1, width)
+
+        q = scene.quad_lights
+        self.quad_corner, self.quad_u, self.quad_v = (arr(q, "corner"), arr(q, "edge_u"),
+                                                      arr(q, "edge_v"))
+        cross = np.cross(self.quad_u, self.quad_v)
+        self.quad_area = np.linalg.norm(cross, axis=1)
+        self.quad_normal = normalize(cross)
+        self.quad_radiance = arr(q, "radiance")
+        self.point_pos = arr(scene.point_lights, "position")
+        self.point_intensity = arr(scene.point_lights, "intensity")
+        self.dir_dir = normalize(arr(scene.directional_lights, "direction"))
+        self.dir_irradiance = arr(scene.directional_lights, "irradiance")
+        self.environment: Environment = scene.environment
+        self.n_quads, self.n_points = len(q), len(self.point_pos)
+        self.count = self.n_quads + self.n_points + len(self.dir_dir)
+
+    def intersect_quads(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray):
+        """Closest quad hit from the emitting side within (0, tmax], t compared as the
+        float32 that a hit record stores; on equal t the lower light index (the order of
+        `nprt.workers.wavefront.batch.precedes`). The caller decides a tie with tmax's own hit.
+
+        origin (n, 3) float64, direction (n, 3) float32; tmax : (n,) float32
+        returns t (n,) float32 (inf if none), light (n,) int32 (-1 if none)
+        """
+        n = len(origin)
+        best_t = np.full(n, np.inf, np.float32)
+        best_l = np.full(n, -1, np.int32)
+        o, d = origin.astype(np.float64), direction.astype(np.float64)
+        for i in range(self.n_quads):
+            nrm = self.quad_normal[i]
+            denom = d @ nrm  # < 0 when arriving at the emitting face
+            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+                t = ((self.quad_corner[i] - o) @ nrm) / denom
+                t32 = t.astype(np.float32)
+            rel = o + t[:, None] * d - self.quad_corner[i]
+            a = rel @ self.quad_u[i] / (self.quad_u[i] @ self.quad_u[i])
+            b = rel @ self.quad_v[i] / (self.quad_v[i] @ self.quad_v[i])
+            ok = (denom < 0) & (t > 0) & (t32 <= tmax) & (t32 < best_t) & \
+                 (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+            best_t[ok] = t32[ok]
+            best_l[ok] = i
+        return best_t, best_l
+
+    def pdf_quad_hit(self, light: np.ndarray, t: np.ndarray,
+                     direction: np.ndarray) -> np.ndarray:
+        """Solid-angle pdf with which NEE would have sampled this quad point, including
+        the 1/count light pick. light (n,) int; direction (n, 3); t (n,) -> (n,) f64."""
+        cos_l = np.abs(np.einsum("ij,ij->i", direction.astype(np.float64),
+                                 self.quad_normal[light]))
+        area = self.quad_area[light]
+        with np.errstate(divide="ignore"):
+            return (t.astype(np.float64) ** 2) / (np.maximum(cos_l, 1e-12) * area * self.count)
+
+    def environment_radiance(self, direction: np.ndarray) -> np.ndarray:
+        """(n, 3) float32 unit directions -> (n, 3) float64 radiance of escaped rays."""
+        env = self.environment
+        n = len(direction)
+        if env.kind == "sky":
+            w = np.clip(direction[:, 1].astype(np.float64), 0.0, 1.0)[:, None]
+            return (1 - w) * np.asarray(env.horizon)[None] + w * np.asarray(env.zenith)[None]
+        return np.broadcast_to(np.asarray(env.radiance, np.float64), (n, 3))
+
+    def sample(self, pick: np.ndarray, u1: np.ndarray, u2: np.ndarray, p: np.ndarray):
+        """Sample one light per row for next-event estimation from points p.
+
+        pick, u1, u2 : (n,) float64 uniforms; p : (n, 3) float64 shading points
+        returns wi (n, 3) f64 unit, dist (n,) f64 (FAR_T for directional),
+        radiance_over_pdf (n, 3) f64 = Le * G-terms / pdf excluding the receiver cosine,
+        pdf_solid (n,) f64 for MIS (0 for delta lights, meaning no MIS).
+        """
+        n = len(p)
+        idx = np.minimum((pick * self.count).astype(np.int64), self.count - 1)
+        wi = np.zeros((n, 3))
+        dist = np.full(n, float(FAR_T))
+        value = np.zeros((n, 3))
+        pdf = np.zeros(n)
+        q = idx < self.n_quads
+        if q.any():
+            li = idx[q]
+            y = self.quad_corner[li] + u1[q, None] * self.quad_u[li] + u2[q, None] * self.quad_v[li]
+            v = y - p[q]
+            d = np.linalg.norm(v, axis=1)
+            w = v / np.maximum(d, 1e-30)[:, None]
+            cos_l = -np.einsum("ij,ij->i", w, self.quad_normal[li])
+            pdf_q = np.where(cos_l > 0, d**2 / (np.maximum(cos_l, 1e-30) * self.quad_area[li]), 0.0)
+            pdf_q = pdf_q / self.count
+            ok = cos_l > 0
+            wi[q], dist[q], pdf[q] = w, d, np.where(ok, pdf_q, 0.0)
+            value[q] = np.where(ok[:, None], self.quad_radiance[li] /
+                                np.where(ok, pdf_q, 1.0)[:, None], 0.0)
+        pt = (idx >= self.n_quads) & (idx < self.n_quads + self.n_points)
+        if pt.any():
+            li = idx[pt] - self.n_quads
+            v = self.point_pos[li] - p[pt]
+            d = np.linalg.norm(v, axis=1)
+            wi[pt], dist[pt] = v / np.maximum(d, 1e-30)[:, None], d
+            value[pt] = self.point_intensity[li] / np.maximum(d**2, 1e-30)[:, None] * self.count
+        dl = idx >= self.n_quads + self.n_points
+        if dl.any():
+            li = idx[dl] - self.n_quads - self.n_points
+            wi[dl] = -self.dir_dir[li]
+            value[dl] = self.dir_irradiance[li] * self.count
+        return wi, dist, value, pdf

@@ -1,0 +1,73 @@
+"""The single-process reference renderer: the wavefront of one Shard that holds the whole
+scene, driven in this process without Ray. Every distributed image is compared against it,
+and it runs the same stages under the same names as every shard."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+from collections.abc import Iterator
+
+import numpy as np
+
+from nprt.scene.model import Scene
+from nprt.workers.passes import Pass
+from nprt.workers.runtime.protocol import ShardConfig, WorkItem
+from nprt.workers.settings import RenderSettings
+from nprt.workers.stats.counters import RenderStats
+from nprt.workers.wavefront.batch import KIND_NAMES
+from nprt.workers.wavefront.shard import Shard
+from nprt.workers.wavefront.world import ShardWorld
+
+
+class ReferenceRenderer:
+    def __init__(self, scene: Scene, settings: RenderSettings):
+        t0 = time.perf_counter()
+        self.scene, self.s = scene, settings
+        world = ShardWorld.build(scene, np.zeros(len(scene.instance_mesh), np.int32))
+        self.shard = Shard(ShardConfig(0, 1, settings), world, dict(enumerate(scene.meshes)))
+        self.warm_s = self.shard.warm()
+        self.prepare_s = time.perf_counter() - t0
+        self._tokens = itertools.count()
+
+    def set_frame(self, scene: Scene) -> None:
+        """Render `scene` (a frame of this one: same meshes and instance meshes) from now on:
+        only the instance table and lights change."""
+        self.scene = scene
+        self.shard.set_world(ShardWorld.build(scene, self.shard.world.owner))
+
+    @property
+    def geometry(self):
+        """The whole scene's LocalGeometry (tests swap in an instrumented one)."""
+        return self.shard.local
+
+    @geometry.setter
+    def geometry(self, value) -> None:
+        self.shard.local = value
+
+    def __repr__(self) -> str:
+        return f"ReferenceRenderer({self.scene.name!r}, {self.shard.local})"
+
+    def run_pass(self, p: Pass) -> tuple[np.ndarray, RenderStats]:
+        """Trace one pass. Returns tile sums (p.n_pixels, 3) float64 and its statistics."""
+        token = next(self._tokens)
+        self.shard.work(self.s, [WorkItem(token, p, True, 0)])
+        ((_, sums, stats, _),) = self.shard.collect([token])
+        st = RenderStats.from_dict(stats)
+        return sums, st
+
+    def render_passes(self, passes: Iterator[Pass], cancel: threading.Event | None = None):
+        """Yield (pass, tile sums, stats) one pass after another."""
+        for p in passes:
+            if cancel is not None and cancel.is_set():
+                return
+            sums, st = self.run_pass(p)
+            yield p, sums, st
+
+    def info(self) -> dict:
+        return {"scene": self.scene.summary(), "renderer": "reference",
+                "ray_kinds": list(KIND_NAMES), "prepare_s": round(self.prepare_s, 4)}
+
+    def close(self) -> None:
+        pass
