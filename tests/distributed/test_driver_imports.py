@@ -1,7 +1,8 @@
-"""The driver imports none of the libraries that trace: the pool starts shards through
-`nprt.workers.runtime.remote`, whose forwarder must cover every call the Shard answers, and builds
-the instance table (numba's BVH) in a Ray task. Checked in a fresh driver process, since
-this test process has imported everything already."""
+"""The driver imports none of the libraries that trace, checked at run time: the pool starts
+shards through `nprt.workers.runtime.remote`, whose forwarder must cover every call the Shard
+answers, and builds the instance table (numba's BVH) in a Ray task. Checked in a fresh
+driver process, since this test process has imported everything already. The fast static
+twin, which reads module-level imports, is tests/test_driver_contract.py."""
 
 from __future__ import annotations
 
@@ -17,9 +18,9 @@ import pytest
 from nprt.scene.store import open_scene
 from nprt.workers.runtime.remote import ShardActor
 from nprt.workers.wavefront.shard import Shard
+from tests.driver_contract import TRACING_LIBRARIES
 
 REPO = Path(__file__).resolve().parents[2]
-TRACING_LIBRARIES = ("numba", "llvmlite", "embreex", "onnxruntime", "trimesh", "torch")
 
 
 def _public(cls) -> set[str]:
