@@ -21,17 +21,6 @@ class Film:
         self.samples = np.zeros(width * height, np.int64)
         self.lock = threading.Lock()  # readers of a live film (the service) take it too
 
-    def add(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
-        """Scatter-add radiance. pixel : (n,) uint32, rgb : (n, 3) float."""
-        n = self.width * self.height
-        for c in range(3):
-            self.sums[:, c] += np.bincount(pixel, weights=rgb[:, c], minlength=n)
-
-    def add_sums(self, sums: np.ndarray, samples: np.ndarray) -> None:
-        """Merge another film's (partial) sums of the same size."""
-        self.sums += sums
-        self.samples += samples
-
     def image(self) -> np.ndarray:
         """(height, width, 3) float32 linear radiance, mean over accumulated samples."""
         div = np.maximum(self.samples, 1)[:, None]
