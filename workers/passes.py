@@ -50,6 +50,19 @@ def _grid(s: RenderSettings) -> tuple[int, int, int]:
             -(-s.spp // s.spp_per_pass))
 
 
+def count_tiles(s: RenderSettings) -> int:
+    tx, ty, _ = _grid(s)
+    return tx * ty
+
+
+def tile_of(s: RenderSettings, pixel: np.ndarray) -> np.ndarray:
+    """(n,) uint32 linear pixel indices -> (n,) int64 tile index (row-major tile grid).
+    Pass `index` covers tile `index % count_tiles(s)`."""
+    pixel = np.asarray(pixel, np.int64)
+    ts, tx = s.tile_size, -(-s.width // s.tile_size)
+    return (pixel // s.width // ts) * tx + (pixel % s.width) // ts
+
+
 def count_passes(s: RenderSettings) -> int:
     tx, ty, chunks = _grid(s)
     return tx * ty * chunks
@@ -74,8 +87,3 @@ def iter_passes(s: RenderSettings, start: int = 0, skip: Iterable[int] = ()) -> 
     for i in range(start, count_passes(s)):
         if i not in skip:
             yield pass_at(s, i)
-
-
-def plan_passes(s: RenderSettings) -> list[Pass]:
-    """Every pass as a list: for tests and small renders only (the render never lists them)."""
-    return list(iter_passes(s))

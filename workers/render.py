@@ -104,7 +104,10 @@ def render(scene: Scene | SceneMeta, settings: RenderSettings, *,
            proxy_dir=None,
            renderer=None) -> RenderResult:
     """Render every pass (several at once when distributed); `on_pass` sees the film after
-    each one finishes, in the order they finish."""
+    each one finishes, in the order they finish. The passes of one tile finish in pass
+    order (a renderer keeps at most one pass per tile live), so every pixel's sums are
+    added in the same order in any run, faulted or not: the film's bytes do not depend
+    on timing."""
     t0 = time.perf_counter()
     total = count_passes(settings)
     film = Film(settings.width, settings.height)
@@ -138,6 +141,11 @@ def render(scene: Scene | SceneMeta, settings: RenderSettings, *,
         if progress.count < total:
             raise RenderCanceled(f"canceled with {progress.count} of {total} passes done")
         info = dict(renderer.info())
+        if settings.mode == "proxy":  # target, prediction and the optional exact check
+            from nprt.proxies.check import accuracy_report
+
+            info["accuracy"] = accuracy_report(scene, settings, renderer.plan, film, stats,
+                                               ray_address, proxy_dir)
     finally:
         if own:
             renderer.close()

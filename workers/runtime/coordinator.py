@@ -1,22 +1,33 @@
-"""The Coordinator: drives one job's passes over a pool of K Shard actors, routing
-ObjectRefs between shards and summing each finished pass's partial films. It reads only
-manifests (ray counts per pass and target) and finished films: never a ray batch, which
-moves shard to shard through the object store.
+"""The Coordinator: admits one job's passes to a pool of K Shard actors, learns when each
+pass is complete, collects and sums its films, and re-runs passes after a shard dies. It
+is not on the ray path: shards send parcels to each other directly
+(`nprt.workers.runtime.remote.ShardActor`), and the coordinator never reads a ray batch.
 
-Pipelining (why a window of passes): a pass is a wavefront whose last bounces hold few
-rays on few shards, so one pass at a time leaves shards idle. Up to `window` pass
-attempts are in flight; the work waiting for a shard (camera rays of new passes, parcels
-of any pass), oldest pass first and up to MAX_CALL_RAYS rays, goes out together in one
-call as soon as the shard has fewer than MAX_QUEUED_CALLS calls queued, so a shard never
-idles while work for it exists, calls stay few and large, and the oldest pass (the next
-tile a user sees) is never starved by newer ones. Shard-to-shard sends were the
-alternative; they would put pass accounting and retry in every shard, while here one loop
-sees every pass end.
+Design:
+- Camera rays once: a pass is ordered from one shard, `pass.index % K` (a fixed choice,
+  so a re-run lands where the first run did and the film sums come out the same), which
+  generates its camera rays and sends each to the owner of its first instance box.
+- Completion by weight throwing: a pass starts with weight 1 (an exact Fraction), which
+  travels with its rays; a shard that sends a pass's rays on shares the weight it got
+  equally among those parcels, and hands back the weight of a pass none of whose rays
+  left. The pass is done exactly when the coordinator has weight 1 back: nothing is
+  counted, no message is ordered, and no shard waits for an acknowledgement.
+- Pipelining: up to `window` passes are live, at most one per tile (a ray's pixel then
+  names its pass on every shard, without a column on the wire). Shards merge whatever has
+  arrived into one wavefront, so steps grow with load instead of calls with K.
+- Films are collected from every shard once a pass is done, summed in shard order, and
+  handed on; `nprt.workers.render` adds them to the image per tile in pass order, so the
+  bytes of an image never depend on timing.
+- Failure: a shard that dies (a failed call) or restarted unseen (a new incarnation in a
+  poll or collect reply) may have lost rays, weight or film of any live pass. Every live
+  pass is re-run in a new epoch; parcels of the old epoch are dropped where they arrive.
 
-Failure: a shard that dies loses the partial films of every pass attempt it held, so
-all live attempts are dropped and re-run under new tokens; a shard that restarted unseen
-is caught when it hands back fewer calls for a token than were sent. A pass's film is
-added only once all K parts of one attempt are back, so no sample is counted twice.
+Rejected alternatives: the coordinator routing every parcel (the earlier design: two
+hops and a decision per parcel, calls growing much faster than K); counting parcels sent
+and received per pass instead of weights (reports race: a receiver's "consumed" can
+reach the coordinator before the sender's "produced", so zero outstanding does not mean
+done without an extra acknowledgement per hop); a barrier per wavefront bounce (idle
+shards at every bounce's tail).
 """
 
 from __future__ import annotations
@@ -28,6 +39,7 @@ import time
 from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from fractions import Fraction
 
 import numpy as np
 import ray
@@ -35,58 +47,55 @@ from ray.exceptions import ActorUnavailableError, RayActorError
 
 from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
-from nprt.workers.passes import Pass
-from nprt.workers.runtime.calltrace import TraceRecorder
+from nprt.workers.passes import Pass, count_tiles
 from nprt.workers.runtime.pool import (  # noqa: F401 (ShardStartError re-exported)
     PoolRegistry,
     ShardPool,
     ShardsLost,
     ShardStartError,
 )
-from nprt.workers.runtime.protocol import Manifest, WorkItem
+from nprt.workers.runtime.protocol import Parcel, PollReply
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats
 
 log = logging.getLogger(__name__)
 
 MAX_PASS_ATTEMPTS = 4
-MAX_QUEUED_CALLS = 2  # per shard: one running, one waiting, so it never idles
-# Rays one call takes at most (camera rays count one per path): oldest passes go first, so
-# the first tile shows early and a call's batches stay a few MB.
-MAX_CALL_RAYS = 1 << 16
-WINDOW_PER_SHARD = 3  # pass attempts in flight per shard
+WINDOW_PER_SHARD = 3  # live passes per shard
 MIN_WINDOW = 4
-CANCEL_POLL_S = 0.25
+POLL_S = 0.25  # a shard's long poll; also how often a cancel is noticed
+BEGIN_TIMEOUT_S = 60.0  # every shard answering `begin` (a restarted one included)
+BEGIN_RETRY_S = 0.5
 SHARD_LOST = (RayActorError, ActorUnavailableError)
 
 
-class ShardStateLost(RuntimeError):
-    """A shard restarted while it held part of a pass, so that part is gone."""
+class _Restarted(RuntimeError):
+    """A shard answered with a new incarnation: Ray restarted it, and its state is gone."""
 
 
 @dataclass
-class _Attempt:
-    """One try of one pass. pending: calls in flight plus parcels waiting, for this token."""
+class _Live:
+    """A pass in flight: the weight back so far, and the shards' films once collected."""
 
     pass_: Pass
-    pending: int
-    sent: np.ndarray  # (k,) int calls sent to each shard for this token
+    weight: Fraction = field(default_factory=Fraction)
+    parts: dict = field(default_factory=dict)  # shard -> (sums or None, stats dict or None)
     collecting: bool = False
-    parts: dict = field(default_factory=dict)  # shard -> (sums or None, stats dict, calls)
 
 
 class Coordinator:
     """One job on a pool of shards: a warm one from `pools`, or else a private one that it
     closes with itself. scene: a stored scene's SceneMeta (nprt.scene.store.open_scene; the
     driver then holds no geometry) or an in-memory Scene. on_progress: per-mesh proxy
-    training progress while a new pool starts (ShardPool)."""
+    training progress while a new pool starts (ShardPool). trace: keep every shard step
+    (bench/network/netmodel.py replays them)."""
 
     def __init__(self, scene: Scene | SceneMeta, settings: RenderSettings,
                  ray_address: str | None = None, proxy_dir=None,
                  shard_options: list[dict] | None = None, pools: PoolRegistry | None = None,
                  trace: bool = False, on_progress=None):
         self.scene, self.s, self.k = scene, settings, settings.shards
-        self.trace = TraceRecorder(self.k) if trace else None  # every work call, for models
+        self.trace: list[dict] | None = [] if trace else None
         self._pools, self._closed = pools, False
         if pools is not None:  # a warm pool, handed back on close
             self.pool = pools.acquire(scene, settings, ray_address=ray_address,
@@ -101,15 +110,12 @@ class Coordinator:
         self.pool.show(scene)  # a warm pool may still show another frame of its scene
         self.warm = self.pool.jobs > 1  # the pool was started for an earlier job
         self.window = max(MIN_WINDOW, WINDOW_PER_SHARD * self.k)
-        self.fetched: list[type] = []  # what this coordinator read back, for the tests
-        self.busy_s = np.zeros(self.k)
-        self.bytes_in = np.zeros(self.k, np.int64)
-        self.bytes_out = np.zeros(self.k, np.int64)
-        self.calls = np.zeros(self.k, np.int64)
-        self.wall_s = 0.0
-        self.wait_s = 0.0
-        self._tokens = itertools.count()
-        self._lock = threading.Lock()
+        self.fetched: set[type] = set()  # types this coordinator read back (never a batch)
+        self.totals: list[PollReply | None] = [None] * self.k  # shards' totals, last run
+        self._done_totals = [dict() for _ in range(self.k)]  # summed over earlier runs
+        self.wall_s = self.wait_s = self.cpu_s = 0.0
+        self.reruns = 0
+        self._epochs = itertools.count(int(time.time() * 1e3) << 16)
 
     def set_frame(self, scene: Scene) -> None:
         """Render `scene`, a frame of this job's scene, from the next pass on: the shards
@@ -140,19 +146,25 @@ class Coordinator:
     def __repr__(self) -> str:
         return f"Coordinator({self.scene.name!r}, k={self.k}, mode={self.s.mode!r})"
 
+    # -- seams: every call the coordinator makes (tests wrap them) ------------------------
+
     def _get(self, ref):
         out = ray.get(ref)
-        self.fetched.append(type(out))
+        self.fetched.add(type(out))
         return out
 
-    def _dispatch(self, shard: int, items: list[WorkItem], parcels: list):
-        """Start one work call; returns (manifest ref, (k,) output refs)."""
-        fn = self.actors[shard].work.options(num_returns=self.k + 1)
-        refs = fn.remote(self._settings_ref, items, *parcels)
-        return refs[0], refs[1:]
+    def _order(self, shard: int, passes: list[Pass], epoch: int) -> None:
+        """Have `shard` generate these passes' camera rays, each with weight 1."""
+        parcel = Parcel(epoch, {p.index: Fraction(1) for p in passes}, orders=tuple(passes))
+        self.actors[shard].deliver.remote(parcel)
 
-    def _collect(self, shard: int, tokens: list[int]):
-        return self.actors[shard].collect.remote(tokens)
+    def _poll(self, shard: int, epoch: int):
+        return self.actors[shard].poll.remote(epoch, POLL_S)
+
+    def _collect(self, shard: int, epoch: int, indices: list[int]):
+        return self.actors[shard].collect.remote(epoch, indices)
+
+    # -- the loop ----------------------------------------------------------------------
 
     def render_passes(self, passes: Iterator[Pass],
                       cancel: threading.Event | None = None
@@ -160,180 +172,211 @@ class Coordinator:
         """Yield (pass, tile sums (n_pixels, 3) float64, stats) as passes finish, in any
         order. Stops admitting passes once `cancel` is set; closing the generator drops
         the passes still in flight."""
-        k = self.k
-        self._settings_ref = ray.put(self.s)
-        live: dict[int, _Attempt] = {}
-        retry: deque[Pass] = deque()
+        t_start, c_start = time.perf_counter(), time.process_time()
+        tiles = count_tiles(self.s)
+        live: dict[int, _Live] = {}
+        waiting: deque[Pass] = deque()  # admitted in order, once their tile is free
         attempts: dict[int, int] = {}
-        # (token, rays, parcel ref or None = generate) waiting for each shard
-        inbox: list[list] = [[] for _ in range(k)]
-        queued = [0] * k  # calls in flight per shard
-        waiting: dict = {}  # ref -> ("work", shard, tokens, outs) | ("collect", shard, tokens)
         exhausted = False
-        t_start = time.perf_counter()
+        epoch = self._begin()
+        polls = {self._poll(s, epoch): s for s in range(self.k)}
+        collects: dict = {}  # ref -> shard
         try:
             while True:
                 stop = cancel is not None and cancel.is_set()
-                while not stop and len(live) < self.window:
-                    p = retry.popleft() if retry else next(passes, None)
-                    if p is None:
-                        exhausted = True
-                        break
-                    attempts[p.index] = attempts.get(p.index, 0) + 1
-                    token = next(self._tokens)
-                    live[token] = _Attempt(p, pending=k, sent=np.zeros(k, np.int64))
-                    for sid in range(k):
-                        inbox[sid].append((token, p.n_paths, None))
-                for sid in range(k):
-                    if inbox[sid] and queued[sid] < MAX_QUEUED_CALLS:
-                        inbox[sid] = self._send(sid, inbox[sid], live, waiting)
-                        queued[sid] += 1
-                if not waiting:
-                    if stop or (exhausted and not live):
-                        return
-                    raise RuntimeError("coordinator stalled: passes live but nothing in flight")
+                if not stop:
+                    exhausted = self._admit(passes, live, waiting, attempts, tiles, epoch,
+                                            exhausted)
+                if (stop or exhausted) and not live and not waiting:
+                    return
                 t0 = time.perf_counter()
-                ready, _ = ray.wait(list(waiting), num_returns=1, timeout=CANCEL_POLL_S)
+                ready, _ = ray.wait([*polls, *collects], num_returns=1, timeout=POLL_S * 2)
                 self.wait_s += time.perf_counter() - t0
                 if not ready:
                     continue
-                what = waiting.pop(ready[0])
+                ref = ready[0]
                 try:
-                    if what[0] == "work":
-                        queued[what[1]] -= 1
-                        self._on_work(ready[0], what, live, inbox)
+                    if ref in polls:
+                        shard = polls.pop(ref)
+                        self._on_poll(shard, self._get(ref), live, epoch)
+                        polls[self._poll(shard, epoch)] = shard
+                        done = [i for i, a in live.items()
+                                if a.weight == 1 and not a.collecting]
+                        for i in done:
+                            live[i].collecting = True
+                        if done:
+                            for s in range(self.k):
+                                collects[self._collect(s, epoch, done)] = s
                     else:
-                        yield from self._on_collect(ready[0], what, live, retry, attempts)
-                except SHARD_LOST as e:
-                    if not any(t in live for t in what[2]):
-                        continue  # a call of attempts already dropped for this loss
-                    lost = list(live)
+                        shard = collects.pop(ref)
+                        yield from self._on_collect(shard, self._get(ref), live)
+                except (*SHARD_LOST, _Restarted) as e:
+                    lost = sorted(live)
                     log.warning("shard %d lost (%s); re-running %d passes in flight",
-                                what[1], type(e).__name__, len(lost))
-                    for token in lost:
-                        self._requeue(live.pop(token).pass_, retry, attempts)
-                    inbox = [[] for _ in range(k)]
-                    self._abort(lost)
-                    self.pool.resync()  # a restarted shard holds its start-up frame
-                for token in [t for t, a in live.items() if a.pending == 0 and not a.collecting]:
-                    live[token].collecting = True
-                    for sid in range(k):
-                        waiting[self._collect(sid, [token])] = ("collect", sid, [token])
+                                shard, type(e).__name__, len(lost))
+                    for i in reversed(lost):  # oldest first again
+                        self._requeue(live.pop(i).pass_, waiting, attempts)
+                    self._end(epoch)
+                    self._keep_totals()
+                    self.reruns += 1
+                    epoch = self._begin()
+                    polls = {self._poll(s, epoch): s for s in range(self.k)}
+                    collects = {}
         finally:
             self.wall_s += time.perf_counter() - t_start
-            self._settings_ref = None
-            if live:  # canceled or failed: free what the shards hold for this job
-                self._abort(list(live), wait=False)
+            self.cpu_s += time.process_time() - c_start
+            self._end(epoch, wait=False)
 
-    def _send(self, sid: int, entries: list, live: dict, waiting: dict) -> list:
-        """One call to shard sid with its oldest waiting work, up to MAX_CALL_RAYS rays
-        (at least one entry) and one pass per tile; returns the entries left over."""
-        chosen, left, rays, tiles = [], [], 0, {}
-        for entry in sorted(entries, key=lambda e: e[0]):  # tokens grow with pass age
-            token, n, _ = entry
-            p = live[token].pass_
-            # A shard merges a call into one wavefront and finds a ray's pass by its
-            # pixel, so a call holds one pass per tile.
-            if tiles.setdefault((p.x0, p.y0), token) != token or \
-                    (chosen and rays + n > MAX_CALL_RAYS):
-                left.append(entry)
+    def _admit(self, passes, live, waiting, attempts, tiles, epoch, exhausted) -> bool:
+        """Admit passes up to the window, at most one live pass per tile, oldest first;
+        order their camera rays from their shards. Returns whether `passes` ran out."""
+        busy = {i % tiles for i in live}
+        orders: dict[int, list[Pass]] = {}
+        held: deque[Pass] = deque()
+        while len(live) < self.window:
+            if waiting:
+                p = waiting.popleft()
+            elif not exhausted and len(held) < self.window:
+                p = next(passes, None)
+                if p is None:
+                    exhausted = True
+                    continue
+            else:
+                break
+            tile = p.index % tiles
+            if tile in busy:  # an earlier sample chunk of this tile is still live
+                held.append(p)
                 continue
-            chosen.append(entry)
-            rays += n
-        by_token: dict[int, list] = {}
-        for token, _, ref in chosen:
-            by_token.setdefault(token, []).append(ref)
-        items, parcels = [], []
-        for token, refs in by_token.items():
-            att = live[token]
-            att.pending += 1 - len(refs)  # the entries become one call
-            att.sent[sid] += 1
-            got = [r for r in refs if r is not None]
-            items.append(WorkItem(token, att.pass_, None in refs, len(got)))
-            parcels += got
-        self.calls[sid] += 1
-        m_ref, outs = self._dispatch(sid, items, parcels)
+            busy.add(tile)
+            attempts[p.index] = attempts.get(p.index, 0) + 1
+            live[p.index] = _Live(p)
+            orders.setdefault(p.index % self.k, []).append(p)
+        waiting.extendleft(reversed(held))
+        for shard, ps in orders.items():
+            self._order(shard, ps, epoch)
+        return exhausted
+
+    def _on_poll(self, shard: int, reply: PollReply, live: dict, epoch: int) -> None:
+        self._check(shard, reply.incarnation)
+        if reply.epoch != epoch:
+            raise _Restarted(f"shard {shard} is not running this job (epoch {reply.epoch})")
+        self.totals[shard] = reply
         if self.trace is not None:
-            self.trace.on_dispatch(sid, by_token, m_ref, outs)
-        waiting[m_ref] = ("work", sid, list(by_token), outs)
-        return left
+            self.trace += reply.trace
+        for i, w in reply.returned:
+            if i in live:
+                live[i].weight += w
+                if live[i].weight > 1:
+                    raise RuntimeError(f"pass {i}: weight {live[i].weight} > 1 came back")
 
-    def _on_work(self, ref, what, live: dict, inbox: list) -> None:
-        _, sid, tokens, outs = what
-        manifest: Manifest = self._get(ref)
-        if self.trace is not None:
-            self.trace.on_return(ref, manifest)
-        self.busy_s[sid] += manifest.busy_s
-        self.bytes_in[sid] += manifest.bytes_in
-        self.bytes_out[sid] += manifest.bytes_out
-        for token in tokens:
-            att = live.get(token)
-            if att is None:  # an attempt dropped after a loss; its rays go nowhere
+    def _on_collect(self, shard: int, reply: tuple, live: dict):
+        incarnation, parts = reply
+        self._check(shard, incarnation)
+        for i, sums, stats in parts:
+            a = live.get(i)
+            if a is None:
                 continue
-            att.pending -= 1
-            for target, count in enumerate(manifest.counts.get(token, ())):
-                if count:
-                    inbox[target].append((token, count, outs[target]))
-                    att.pending += 1
-
-    def _on_collect(self, ref, what, live: dict, retry: deque, attempts: dict):
-        _, sid, tokens = what
-        parts = self._get(ref)
-        for token, sums, stats, calls in parts:
-            att = live.get(token)
-            if att is None:
+            a.parts[shard] = (sums, stats)
+            if len(a.parts) < self.k:
                 continue
-            att.parts[sid] = (sums, stats, calls)
-            if len(att.parts) < self.k:
-                continue
-            del live[token]
-            short = [s for s, (_, _, c) in att.parts.items() if c != att.sent[s]]
-            if short:
-                log.warning("pass %d: shard %s ran fewer calls than sent (it restarted); "
-                            "re-running it", att.pass_.index, short)
-                self._requeue(att.pass_, retry, attempts)
-                self.pool.resync()
-                continue
-            p = att.pass_
-            sums_all = np.zeros((p.n_pixels, 3))
+            del live[i]
+            p = a.pass_
+            total = np.zeros((p.n_pixels, 3))
             st = RenderStats()
-            for s in range(self.k):
-                part, pst, _ = att.parts[s]
+            for s in range(self.k):  # a fixed order: the sums do not depend on timing
+                part, pst = a.parts[s]
                 if part is not None:
-                    sums_all += part
-                st.merge(RenderStats.from_dict(pst))
-            yield p, sums_all, st
+                    total += part
+                    st.merge(RenderStats.from_dict(pst))
+            yield p, total, st
 
-    def _requeue(self, p: Pass, retry: deque, attempts: dict) -> None:
+    def _check(self, shard: int, incarnation: str) -> None:
+        if incarnation != self._incarnations[shard]:
+            raise _Restarted(f"shard {shard} restarted (incarnation {incarnation[:8]})")
+
+    def _requeue(self, p: Pass, waiting: deque, attempts: dict) -> None:
         if attempts.get(p.index, 0) >= MAX_PASS_ATTEMPTS:
             raise ShardsLost(f"pass {p.index} failed {MAX_PASS_ATTEMPTS} times; giving up")
-        retry.append(p)
+        waiting.appendleft(p)
 
-    def _abort(self, tokens: list[int], wait: bool = True) -> None:
-        """Drop these attempts on every shard; wait until every shard answers again (a dead
-        one is restarted by Ray and comes back empty)."""
-        for _ in range(MAX_PASS_ATTEMPTS * 20 if wait else 1):
+    def _begin(self) -> int:
+        """A new epoch on every shard; waits until each answers (a dead one is restarted
+        by Ray and comes back empty). Returns the epoch."""
+        epoch = next(self._epochs)
+        deadline = time.monotonic() + BEGIN_TIMEOUT_S
+        while True:
             try:
-                refs = [a.abort.remote(tokens) for a in self.actors]
-                if wait:
-                    ray.get(refs, timeout=30)
-                return
+                self.pool.resync()  # a restarted shard holds its start-up frame
+                refs = [a.begin.remote(epoch, self.s, self.actors, self.trace is not None)
+                        for a in self.actors]
+                self._incarnations = ray.get(refs, timeout=BEGIN_TIMEOUT_S)
+                self.totals = [None] * self.k
+                return epoch
             except SHARD_LOST:
-                time.sleep(0.5)
+                if time.monotonic() > deadline:
+                    break
+                time.sleep(BEGIN_RETRY_S)
             except ray.exceptions.GetTimeoutError:
                 break
-        raise ShardsLost(f"shards did not come back while dropping {len(tokens)} passes")
+        raise ShardsLost(f"shards did not come back within {BEGIN_TIMEOUT_S:g} s")
+
+    def _end(self, epoch: int, wait: bool = True) -> None:
+        refs = [a.end.remote(epoch) for a in self.actors]
+        if wait:
+            try:
+                ray.get(refs, timeout=BEGIN_TIMEOUT_S)
+            except (*SHARD_LOST, ray.exceptions.GetTimeoutError):
+                pass  # a dead shard holds nothing; `_begin` waits for it to come back
+
+    def _keep_totals(self) -> None:
+        """Add the shards' totals of a failed run to the job's (its CPU was spent)."""
+        for s, t in enumerate(self.totals):
+            if t is None:
+                continue
+            d = self._done_totals[s]
+            for name in ("steps", "busy_s", "cpu_s", "bytes_in", "bytes_out", "parcels_in",
+                         "parcels_out"):
+                d[name] = d.get(name, 0) + getattr(t, name)
+            for key in ("phase_s", "phase_cpu_s"):
+                for name, v in getattr(t, key).items():
+                    d.setdefault(key, {})[name] = d.get(key, {}).get(name, 0.0) + v
+        self.totals = [None] * self.k
+
+    def shard_totals(self) -> list[dict]:
+        """Per shard, summed over this job's runs: steps, busy and CPU seconds (in total
+        and per phase), bytes and parcels in and out."""
+        out = []
+        for s in range(self.k):
+            d = {k: (dict(v) if isinstance(v, dict) else v)
+                 for k, v in self._done_totals[s].items()}
+            t = self.totals[s]
+            if t is not None:
+                for name in ("steps", "busy_s", "cpu_s", "bytes_in", "bytes_out",
+                             "parcels_in", "parcels_out"):
+                    d[name] = d.get(name, 0) + getattr(t, name)
+                for key in ("phase_s", "phase_cpu_s"):
+                    for name, v in getattr(t, key).items():
+                        d.setdefault(key, {})[name] = d.get(key, {}).get(name, 0.0) + v
+            out.append(d)
+        return out
 
     def info(self) -> dict:
         wall = max(self.wall_s, 1e-9)
-        shards = [{"shard": i["shard"], "node": i.get("node"), "pid": i["pid"],
-                   "geometry_bytes": i["geometry_bytes"], "meshes": i.get("meshes"),
-                   "load_s": i.get("load_s"),
-                   "busy_s": round(float(self.busy_s[s]), 4),
-                   "busy_fraction": round(float(self.busy_s[s]) / wall, 4),
-                   "calls": int(self.calls[s]), "bytes_in": int(self.bytes_in[s]),
-                   "bytes_out": int(self.bytes_out[s])}
-                  for s, i in enumerate(self.shard_info)]
+        shards = []
+        for i, t in zip(self.shard_info, self.shard_totals(), strict=True):
+            busy, cpu = float(t.get("busy_s", 0.0)), float(t.get("cpu_s", 0.0))
+            named = sum(t.get("phase_cpu_s", {}).values())
+            shards.append({
+                "shard": i["shard"], "node": i.get("node"), "pid": i["pid"],
+                "geometry_bytes": i["geometry_bytes"], "meshes": i.get("meshes"),
+                "load_s": i.get("load_s"), "busy_s": round(busy, 4),
+                "busy_fraction": round(busy / wall, 4), "cpu_s": round(cpu, 4),
+                "cpu_named_fraction": round(named / cpu, 4) if cpu else None,
+                "phase_cpu_s": {k: round(v, 4) for k, v in
+                                sorted(t.get("phase_cpu_s", {}).items())},
+                "steps": int(t.get("steps", 0)), "calls": int(t.get("parcels_in", 0)),
+                "parcels_out": int(t.get("parcels_out", 0)),
+                "bytes_in": int(t.get("bytes_in", 0)), "bytes_out": int(t.get("bytes_out", 0))})
         return {
             "scene": self.scene.summary(),
             "renderer": "distributed",
@@ -346,6 +389,9 @@ class Coordinator:
             "warm_pool": self.warm,
             "window": self.window,
             "coordinator_wait_s": round(self.wait_s, 4),
+            "coordinator_cpu_s": round(self.cpu_s, 4),
+            "cpu_s": round(self.cpu_s + sum(x["cpu_s"] for x in shards), 4),
+            "reruns": self.reruns,
             "shard_stats": shards,
             "proxy_plan": None if self.plan is None else self.plan.to_dict(),
             "proxy_training": self.pool.training,

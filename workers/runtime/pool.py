@@ -13,7 +13,6 @@ import logging
 import threading
 import time
 from collections import OrderedDict
-from contextlib import contextmanager
 
 import numpy as np
 import ray
@@ -26,7 +25,7 @@ from nprt.scene.store import ObjectStoreSource
 from nprt.workers.runtime.placement import make_plan, plan_placement  # noqa: F401 (make_plan re-exported)
 from nprt.workers.runtime.protocol import MeshRequest, ShardConfig
 from nprt.workers.runtime.raysession import acquire_ray, release_ray
-from nprt.workers.runtime.remote import ShardActor, build_world
+from nprt.workers.runtime.remote import MAX_CONCURRENCY, ShardActor, build_world
 from nprt.workers.settings import RenderSettings
 
 log = logging.getLogger(__name__)
@@ -156,7 +155,7 @@ class ShardPool:
             # Only the proxies of meshes this shard does not hold.
             proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in held})
             opts = dict(max_restarts=MAX_SHARD_RESTARTS, max_task_retries=0,
-                        num_cpus=per_shard_cpu)
+                        num_cpus=per_shard_cpu, max_concurrency=MAX_CONCURRENCY)
             if self.pg is not None:
                 opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
                     self.pg, placement_group_bundle_index=sid)
@@ -233,15 +232,6 @@ class PoolRegistry:
         self._busy: set[str] = set()
         self._lock = threading.Lock()
         self.started = 0  # pools created, for tests and statistics
-
-    @contextmanager
-    def lease(self, scene: Scene, settings: RenderSettings, **pool_kwargs):
-        """A warm pool for (scene, placement), exclusive while the block runs."""
-        pool = self.acquire(scene, settings, **pool_kwargs)
-        try:
-            yield pool
-        finally:
-            self.release(pool)
 
     def acquire(self, scene: Scene, settings: RenderSettings, **pool_kwargs) -> ShardPool:
         """A warm pool for (scene, placement), exclusive until `release`: the registered

@@ -2,11 +2,14 @@
 
 The driver (coordinator, pool, placement) imports this module and never the shard's own
 modules, which pull in Embree, numba and ONNX Runtime: a driver that holds no geometry
-should not pay for the libraries that trace it either."""
+should not pay for the libraries that trace it either. Ray batches appear here only as
+opaque fields; the driver creates parcels that carry orders, never rays."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, field
+from fractions import Fraction
 
 from nprt.scene.model import Mesh
 from nprt.workers.passes import Pass
@@ -17,8 +20,8 @@ EVERYWHERE = -1  # owner of an instance whose mesh is replicated on every shard
 
 @dataclass(frozen=True)
 class ShardConfig:
-    """settings: those the pool was started with (placement, warm-up); each call brings
-    the settings of the job it belongs to."""
+    """settings: those the pool was started with (placement, warm-up); each job brings
+    its own settings (`ShardActor.begin`)."""
 
     shard_id: int
     k: int
@@ -37,23 +40,50 @@ class MeshRequest:
         return self.source.load_meshes(self.indices)
 
 
-@dataclass(frozen=True)
-class WorkItem:
-    """One pass's share of a call: its camera rays (generate) and/or `n_parcels` of the
-    call's parcel arguments, in order. token: the pass attempt (a re-run gets a new one)."""
+@dataclass
+class Parcel:
+    """Work for one shard: rays other shards sent it, and/or orders to generate the camera
+    rays of passes. `credits` is the termination weight (pass index -> exact fraction of
+    1) that the parcel carries for each pass it holds rays or orders of: a pass is done
+    when the coordinator has all of its weight back (weight-throwing termination).
 
-    token: int
-    pass_: Pass
-    generate: bool
-    n_parcels: int
+    epoch: the job run it belongs to (a parcel of an older run is dropped on arrival);
+    source: (shard, step) that made it, for the call trace; None for an order."""
+
+    epoch: int
+    credits: dict[int, Fraction]
+    rays: object = None  # nprt.workers.wavefront.batch.RayBatch or None
+    shadow: object = None  # nprt.workers.wavefront.batch.ShadowRayBatch or None
+    orders: tuple[Pass, ...] = ()
+    source: tuple[int, int] | None = None
+    sent_at: float = field(default_factory=time.time)  # wall clock, for transfer wait
+
+    @property
+    def nbytes(self) -> int:
+        return sum(b.nbytes for b in (self.rays, self.shadow) if b is not None)
+
+    @property
+    def n_rays(self) -> int:
+        return sum(len(b) for b in (self.rays, self.shadow) if b is not None)
 
 
 @dataclass
-class Manifest:
-    """The small part of a call's result that the coordinator reads."""
+class PollReply:
+    """What a shard tells the coordinator since its last poll: the weight of passes whose
+    rays ended there, and its running totals for the job (CPU and busy seconds, per phase
+    too). incarnation changes when Ray restarts the actor: its state is gone."""
 
     shard: int
-    counts: dict[int, list[int]]  # token -> (k,) rays + shadow rays sent to each shard
-    busy_s: float = 0.0  # wall time of the call inside the shard
-    bytes_in: int = 0  # ray bytes the call received
-    bytes_out: int = 0  # ray bytes it sent
+    incarnation: str
+    epoch: int | None
+    returned: list[tuple[int, Fraction]]  # (pass index, weight) in the order they ended
+    steps: int = 0  # wavefront steps run this job
+    busy_s: float = 0.0  # wall seconds inside steps
+    cpu_s: float = 0.0  # process CPU seconds while the job ran (every thread)
+    phase_s: dict = field(default_factory=dict)
+    phase_cpu_s: dict = field(default_factory=dict)
+    bytes_in: int = 0
+    bytes_out: int = 0
+    parcels_in: int = 0
+    parcels_out: int = 0
+    trace: list[dict] = field(default_factory=list)  # new step records (tracing jobs only)

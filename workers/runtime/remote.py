@@ -1,47 +1,198 @@
 """The shard-side code the driver starts without importing it.
 
-`ShardActor` is what the pool starts as a Ray actor: it imports `nprt.workers.wavefront.shard`
-(Embree, numba, ONNX Runtime) inside the actor's process and forwards each call to it.
+`ShardActor` is what the pool starts as a Ray actor (threaded: `max_concurrency`). It
+imports `nprt.workers.wavefront.shard` (Embree, numba, ONNX Runtime) inside the actor's
+process, and runs the shard as a mailbox:
+
+- `deliver` (called by other shards, and by the coordinator for camera-ray orders) only
+  appends a parcel to the inbox: a few microseconds, on a Ray thread;
+- one wavefront thread takes *everything* in the inbox, runs it as one `Shard.step` (any
+  passes, any senders), and sends at most one parcel per target straight to that shard's
+  actor (`deliver.remote`: the batch travels through the object store as a call
+  argument); the coordinator is not on the ray path;
+- the weight of passes whose rays ended here waits in an outbox that `poll` (a long poll
+  the coordinator keeps outstanding) hands back with the shard's CPU and phase totals.
+
+A job run is an epoch (`begin`): parcels of any other epoch are dropped on arrival, so
+after a fault the coordinator starts a new epoch and stale parcels in flight are harmless.
 `build_world` is a Ray task that builds the instance table, whose BVH is built by a
 compiled kernel, on a worker: the driver keeps only the reference to it."""
 
 from __future__ import annotations
 
+import threading
+import time
+import uuid
+
 import ray
+
+from nprt.workers.runtime.protocol import Parcel, PollReply
+
+MAX_CONCURRENCY = 8  # Ray threads per actor: deliver, poll and collect never wait on a step
 
 
 class ShardActor:
-    """Forwards to nprt.workers.wavefront.shard.Shard; tests/distributed/test_driver_imports.py
-    checks that it has every public method of Shard."""
+    """Drives nprt.workers.wavefront.shard.Shard; tests/distributed/test_driver_imports.py
+    checks that the calls the coordinator and pool make exist here."""
 
     def __init__(self, *args):
         from nprt.workers.wavefront.shard import Shard
 
         self._shard = Shard(*args)
+        self.id = self._shard.id
+        self.incarnation = uuid.uuid4().hex  # a restart by Ray makes a new one
+        self._cv = threading.Condition()
+        self._step_lock = threading.Lock()  # the Shard is run by one thread at a time
+        self._inbox: list[Parcel] = []
+        self._epoch: int | None = None
+        self._peers: list | None = None
+        self._trace = False
+        self._error: BaseException | None = None
+        self._reset_totals()
+        threading.Thread(target=self._loop, name=f"shard{self.id}-wavefront",
+                         daemon=True).start()
 
     def __repr__(self) -> str:  # Ray prefixes the actor's log lines with it
         return repr(self.__dict__.get("_shard", "Shard(not started)"))
 
-    def ready(self, *args):
-        return self._shard.ready(*args)
+    def _reset_totals(self) -> None:
+        self._returned: list = []
+        self._steps = self._bytes_in = self._bytes_out = 0
+        self._parcels_in = self._parcels_out = 0
+        self._busy_s = 0.0
+        self._phase_s: dict[str, float] = {}
+        self._phase_cpu_s: dict[str, float] = {}
+        self._records: list[dict] = []
+        self._cpu0 = time.process_time()
 
-    def warm(self, *args):
-        return self._shard.warm(*args)
+    # -- the pool ---------------------------------------------------------------------
 
-    def work(self, *args):
-        return self._shard.work(*args)
+    def ready(self) -> dict:
+        return {**self._shard.ready(), "incarnation": self.incarnation}
 
-    def collect(self, *args):
-        return self._shard.collect(*args)
+    def warm(self) -> float:
+        with self._step_lock:
+            return self._shard.warm()
 
-    def abort(self, *args):
-        return self._shard.abort(*args)
+    def set_world(self, world) -> int:
+        with self._step_lock:
+            return self._shard.set_world(world)
 
-    def set_world(self, *args):
-        return self._shard.set_world(*args)
+    # -- a job --------------------------------------------------------------------------
 
-    def configure(self, *args):
-        return self._shard.configure(*args)
+    def begin(self, epoch: int, settings, peers: list, trace: bool = False) -> str:
+        """Start job run `epoch`: its settings, the K actor handles to send to (this one
+        included), no pass state. Returns the incarnation."""
+        with self._cv:
+            self._epoch, self._peers, self._trace = epoch, peers, trace
+            self._inbox.clear()
+            self._error = None
+            self._reset_totals()
+        with self._step_lock:
+            self._shard.begin(settings)
+        return self.incarnation
+
+    def end(self, epoch: int) -> None:
+        """Drop run `epoch` (finished, canceled or failed): its parcels and pass state."""
+        with self._cv:
+            if self._epoch != epoch:
+                return
+            self._epoch = None
+            self._inbox.clear()
+        with self._step_lock:
+            self._shard.reset()
+
+    def deliver(self, parcel: Parcel) -> None:
+        with self._cv:
+            if parcel.epoch != self._epoch:
+                return  # a parcel of a dropped run
+            self._inbox.append(parcel)
+            self._cv.notify_all()
+
+    def poll(self, epoch: int, timeout_s: float) -> PollReply:
+        """Wait up to timeout_s for weight to hand back; then the totals so far."""
+        with self._cv:
+            self._cv.wait_for(lambda: self._returned or self._error is not None
+                              or self._epoch != epoch, timeout=timeout_s)
+            if self._error is not None:
+                raise RuntimeError(f"shard {self.id} failed in its wavefront") from self._error
+            returned, self._returned = self._returned, []
+            records, self._records = self._records, []
+            return PollReply(
+                self.id, self.incarnation, self._epoch, returned, steps=self._steps,
+                busy_s=self._busy_s, cpu_s=time.process_time() - self._cpu0,
+                phase_s=dict(self._phase_s), phase_cpu_s=dict(self._phase_cpu_s),
+                bytes_in=self._bytes_in, bytes_out=self._bytes_out,
+                parcels_in=self._parcels_in, parcels_out=self._parcels_out, trace=records)
+
+    def collect(self, epoch: int, indices: list[int]) -> tuple[str, list]:
+        """(incarnation, [(pass index, sums or None, stats dict or None)]) of finished
+        passes. A finished pass has no ray left anywhere, so no step touches its state."""
+        if epoch != self._epoch:
+            return self.incarnation, [(i, None, None) for i in indices]
+        return self.incarnation, self._shard.collect(indices)
+
+    # -- the wavefront thread -----------------------------------------------------------
+
+    def _loop(self) -> None:
+        while True:
+            with self._cv:
+                self._cv.wait_for(lambda: bool(self._inbox))
+                parcels, self._inbox = self._inbox, []
+                epoch, peers, trace = self._epoch, self._peers, self._trace
+            try:
+                self._run(epoch, peers, trace, parcels)
+            except BaseException as e:  # handed to the coordinator by the next poll
+                with self._cv:
+                    self._error = e
+                    self._cv.notify_all()
+
+    def _run(self, epoch: int, peers: list, trace: bool, parcels: list[Parcel]) -> None:
+        t0 = time.perf_counter()
+        start = time.time()
+        orders, credits, rays = [], {}, []
+        for p in parcels:
+            orders += p.orders
+            for i, w in p.credits.items():
+                credits[i] = credits.get(i, 0) + w
+            if p.n_rays:
+                rays.append(p)
+        with self._step_lock:
+            res = self._shard.step(orders, rays, credits)
+        with res.times.phase("send"):
+            step_id = self._steps
+            sent = []
+            for target, out in enumerate(res.parcels):
+                if out is None:
+                    continue
+                out.epoch, out.source = epoch, (self.id, step_id)
+                peers[target].deliver.remote(out)
+                sent.append((target, out.n_rays, out.nbytes))
+        with self._cv:
+            if self._epoch != epoch:
+                return  # dropped while this step ran: its weight is stale
+            self._returned += res.returned.items()
+            self._steps += 1
+            self._busy_s += time.perf_counter() - t0
+            self._bytes_in += res.bytes_in
+            self._bytes_out += sum(b for _, _, b in sent)
+            self._parcels_in += len(parcels)
+            self._parcels_out += len(sent)
+            for name, v in res.times.phase_s.items():
+                self._phase_s[name] = self._phase_s.get(name, 0.0) + v
+            for name, v in res.times.phase_cpu_s.items():
+                self._phase_cpu_s[name] = self._phase_cpu_s.get(name, 0.0) + v
+            if trace:
+                self._records.append({
+                    "shard": self.id, "step": step_id, "start": start, "end": time.time(),
+                    "cpu_s": sum(res.times.phase_cpu_s.values()),
+                    "busy_s": time.perf_counter() - t0,
+                    "orders": [p.index for p in orders], "passes": sorted(credits),
+                    "inputs": [(*p.source, p.n_rays, p.nbytes) for p in rays
+                               if p.source is not None],
+                    "outputs": sent})
+            if res.returned:
+                self._cv.notify_all()
 
 
 @ray.remote(num_cpus=0)  # a moment's work: it must not wait for CPUs the shards reserve

@@ -1,7 +1,10 @@
 """Render statistics: rays, transfers and bytes by kind, hops, time per phase.
 
 Every shard keeps one `RenderStats`; the coordinator merges them. Phase names are
-the stage names of the wavefront loop.
+the stage names of the wavefront loop. A phase records wall seconds (`phase_s`) and the
+process's CPU seconds (`phase_cpu_s`, every thread of the process: onnxruntime's pool
+included); phases nest (`proxy` runs inside `top_level`), and each records only its own
+time, without its nested phases', so the phases of a shard add up to its busy time.
 """
 
 from __future__ import annotations
@@ -22,17 +25,26 @@ class RenderStats:
         self.rays = defaultdict(int)  # kind name -> rays traced
         self.transfers = defaultdict(int)  # kind name -> rays sent shard to shard
         self.bytes = defaultdict(int)  # kind name -> bytes of those rays
-        self.phase_s = defaultdict(float)  # stage name -> seconds
+        self.phase_s = defaultdict(float)  # stage name -> wall seconds, nested phases excluded
+        self.phase_cpu_s = defaultdict(float)  # stage name -> process CPU seconds, the same way
         self.counters = defaultdict(int)  # anything else: mispredictions, fallbacks...
         self.hops = np.zeros(MAX_HOPS + 1, np.int64)  # rays finished after h transfers
+        self._open: list[list[float]] = []  # running phases: [wall, cpu] of nested ones
 
     @contextmanager
     def phase(self, name: str):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
+        self._open.append([0.0, 0.0])
         try:
             yield
         finally:
-            self.phase_s[name] += time.perf_counter() - t0
+            inner = self._open.pop()
+            dt, dc = time.perf_counter() - t0, time.process_time() - c0
+            self.phase_s[name] += dt - inner[0]
+            self.phase_cpu_s[name] += dc - inner[1]
+            if self._open:  # the enclosing phase does not count this one's time again
+                self._open[-1][0] += dt
+                self._open[-1][1] += dc
 
     def count_rays(self, kind: np.ndarray | int, n: int | None = None) -> None:
         """Count traced rays by kind: an array of kinds, or one kind and a count."""
@@ -52,6 +64,7 @@ class RenderStats:
     def merge(self, other: RenderStats) -> RenderStats:
         for mine, theirs in ((self.rays, other.rays), (self.transfers, other.transfers),
                              (self.bytes, other.bytes), (self.phase_s, other.phase_s),
+                             (self.phase_cpu_s, other.phase_cpu_s),
                              (self.counters, other.counters)):
             for k, v in theirs.items():
                 mine[k] += v
@@ -68,6 +81,7 @@ class RenderStats:
             "total_bytes": int(sum(self.bytes.values())),
             "hops_histogram": self.hops[:last].tolist(),
             "phase_s": {k: round(v, 6) for k, v in sorted(self.phase_s.items())},
+            "phase_cpu_s": {k: round(v, 6) for k, v in sorted(self.phase_cpu_s.items())},
             "counters": dict(sorted(self.counters.items())),
         }
 
@@ -77,17 +91,18 @@ class RenderStats:
         for name in ("rays", "transfers", "bytes", "counters"):
             getattr(s, name).update(d.get(name, {}))
         s.phase_s.update(d.get("phase_s", {}))
+        s.phase_cpu_s.update(d.get("phase_cpu_s", {}))
         h = d.get("hops_histogram", [])
         s.hops[:len(h)] = h
         return s
 
 
 class SplitStats:
-    """Statistics of one merged wavefront over several pass attempts. Counts go to the
-    attempt of each ray (a retried pass drops exactly its own); stage times cannot be
+    """Statistics of one merged wavefront step over several passes. Counts go to the
+    pass of each ray (a re-run pass drops exactly its own); stage times cannot be
     separated, so `finish` shares them out by rays traced.
 
-    parts : (t,) RenderStats, one per attempt; `bind(tok)` names the attempt index
+    parts : (t,) RenderStats, one per pass; `bind(tok)` names the pass's index in parts
     (n,) int of every row of the batch that the next calls count (rows index it)."""
 
     def __init__(self, parts: list[RenderStats]):
@@ -132,3 +147,5 @@ class SplitStats:
         for part, w in zip(self.parts, share, strict=True):
             for name, s in self.times.phase_s.items():
                 part.phase_s[name] += float(s * w)
+            for name, s in self.times.phase_cpu_s.items():
+                part.phase_cpu_s[name] += float(s * w)

@@ -4,16 +4,16 @@ and it runs the same stages under the same names as every shard."""
 
 from __future__ import annotations
 
-import itertools
 import threading
 import time
 from collections.abc import Iterator
+from fractions import Fraction
 
 import numpy as np
 
 from nprt.scene.model import Scene
 from nprt.workers.passes import Pass
-from nprt.workers.runtime.protocol import ShardConfig, WorkItem
+from nprt.workers.runtime.protocol import ShardConfig
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats
 from nprt.workers.wavefront.batch import KIND_NAMES
@@ -28,8 +28,9 @@ class ReferenceRenderer:
         world = ShardWorld.build(scene, np.zeros(len(scene.instance_mesh), np.int32))
         self.shard = Shard(ShardConfig(0, 1, settings), world, dict(enumerate(scene.meshes)))
         self.warm_s = self.shard.warm()
+        self.shard.begin(settings)
         self.prepare_s = time.perf_counter() - t0
-        self._tokens = itertools.count()
+        self.cpu_s = 0.0  # process CPU seconds spent in passes
 
     def set_frame(self, scene: Scene) -> None:
         """Render `scene` (a frame of this one: same meshes and instance meshes) from now on:
@@ -51,11 +52,13 @@ class ReferenceRenderer:
 
     def run_pass(self, p: Pass) -> tuple[np.ndarray, RenderStats]:
         """Trace one pass. Returns tile sums (p.n_pixels, 3) float64 and its statistics."""
-        token = next(self._tokens)
-        self.shard.work(self.s, [WorkItem(token, p, True, 0)])
-        ((_, sums, stats, _),) = self.shard.collect([token])
-        st = RenderStats.from_dict(stats)
-        return sums, st
+        c0 = time.process_time()
+        res = self.shard.step([p], [], {p.index: Fraction(1)})
+        if any(res.parcels) or res.returned != {p.index: 1}:
+            raise RuntimeError(f"pass {p.index}: one shard holding everything sent rays away")
+        ((_, sums, stats),) = self.shard.collect([p.index])
+        self.cpu_s += time.process_time() - c0
+        return sums, RenderStats.from_dict(stats)
 
     def render_passes(self, passes: Iterator[Pass], cancel: threading.Event | None = None):
         """Yield (pass, tile sums, stats) one pass after another."""
@@ -67,7 +70,8 @@ class ReferenceRenderer:
 
     def info(self) -> dict:
         return {"scene": self.scene.summary(), "renderer": "reference",
-                "ray_kinds": list(KIND_NAMES), "prepare_s": round(self.prepare_s, 4)}
+                "ray_kinds": list(KIND_NAMES), "prepare_s": round(self.prepare_s, 4),
+                "cpu_s": round(self.cpu_s, 4)}
 
     def close(self) -> None:
         pass

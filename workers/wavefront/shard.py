@@ -1,13 +1,14 @@
-"""The Shard actor: one slice of the scene's geometry in Embree, the replicated
-instance table and lights, and the traversal policy. A plain class: the pool starts
-it through `nprt.workers.runtime.remote.ShardActor`, so the driver never imports this module.
+"""The Shard: one slice of the scene's geometry in Embree, the replicated instance table
+and lights, and the traversal policy. A plain class that knows nothing of Ray: the
+single-process reference drives it in process, and `nprt.workers.runtime.remote.ShardActor`
+drives it inside a Ray actor (mailbox, direct sends), so the driver never imports it.
 
-Every call carries work of several passes (camera rays to generate, parcels that other
-shards sent here) and returns one object per target shard, so batches move shard to
-shard through the object store while the coordinator only routes references. Film and
-statistics are kept per pass attempt (a token) and handed back by `collect`, so a pass
-that fails can be dropped without counting it twice. The geometry outlives a job: a
-pool reuses the shard, and each call brings its job's settings.
+`step` is the unit of work: whatever has arrived (rays of any pass, from any sender, and
+orders to generate the camera rays of passes) runs as one wavefront as far as it goes
+here, and comes out as at most one parcel per target shard. Film contributions and
+statistics are kept per pass until `collect`; a pass's contributions are summed in an
+order fixed by their values, so its film does not depend on how its rays were grouped
+into steps (timing), and any run, faulted or not, gives the same bytes.
 """
 
 from __future__ import annotations
@@ -16,14 +17,15 @@ import logging
 import os
 import time
 from dataclasses import dataclass, field
+from fractions import Fraction
 
 import numpy as np
 
 from nprt.scene.model import Mesh
-from nprt.workers.passes import Pass
+from nprt.workers.passes import Pass, count_tiles, pass_at, tile_of
 from nprt.workers.routing.exact import DONE, nearest_unvisited, visited_bit
 from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
-from nprt.workers.runtime.protocol import EVERYWHERE, Manifest, MeshRequest, ShardConfig, WorkItem
+from nprt.workers.runtime.protocol import EVERYWHERE, MeshRequest, Parcel, ShardConfig
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats, SplitStats
 from nprt.workers.traversal.closest import resolve_closest
@@ -37,72 +39,69 @@ log = logging.getLogger(__name__)
 
 
 @dataclass
-class Parcel:
-    """Rays of one pass attempt travelling to one shard. Either part may be empty."""
+class _PassState:
+    """One pass's share of the film here: contributions are kept, not summed, until
+    `collect` (see the module docstring)."""
 
-    rays: RayBatch
-    shadow: ShadowRayBatch
-    sent_at: float = field(default_factory=time.time)  # wall clock, for transfer wait
+    pass_: Pass
+    stats: RenderStats = field(default_factory=RenderStats)
+    index: list = field(default_factory=list)  # (n,) int64 pixel index within the tile
+    rgb: list = field(default_factory=list)  # (n, 3) float64 radiance
 
-    @property
-    def nbytes(self) -> int:
-        return self.rays.nbytes + self.shadow.nbytes
-
-    def __len__(self) -> int:
-        return len(self.rays) + len(self.shadow)
+    def sums(self) -> np.ndarray:
+        """(n_pixels, 3) float64: every contribution, added in (pixel, r, g, b) order."""
+        out = np.zeros((self.pass_.n_pixels, 3))
+        if not self.index:
+            return out
+        idx, rgb = np.concatenate(self.index), np.concatenate(self.rgb)
+        keep = rgb.any(axis=1)  # adding zero changes nothing
+        idx, rgb = idx[keep], rgb[keep]
+        order = np.lexsort((rgb[:, 2], rgb[:, 1], rgb[:, 0], idx))
+        idx, rgb = idx[order], rgb[order]
+        for c in range(3):
+            out[:, c] = np.bincount(idx, weights=rgb[:, c], minlength=self.pass_.n_pixels)
+        return out
 
 
 @dataclass
-class _PassState:
-    token: int
-    sums: np.ndarray  # (n_pixels, 3) float64
-    stats: RenderStats = field(default_factory=RenderStats)
-    calls: int = 0  # calls seen for this token; fewer than sent means a restart lost state
+class StepResult:
+    """parcels: (k,) Parcel or None per target shard (epoch and source left to the
+    caller); returned: pass index -> weight of the rays that ended here; times: the
+    step's phase times (wall and CPU)."""
+
+    parcels: list
+    returned: dict[int, Fraction]
+    times: RenderStats
+    rays_in: int = 0
+    bytes_in: int = 0
 
 
-class _Call:
-    """The pass attempts of one call. A ray's pixel names its tile, and a call holds one
-    attempt per tile, so `tok` finds each ray's attempt without a column on the wire."""
+class _Step:
+    """The passes of one step. A ray's pixel names its tile, and at most one pass per tile
+    is live (the coordinator's rule), so `tok` finds each ray's pass without a column on
+    the wire."""
 
-    def __init__(self, s: RenderSettings, passes: list[Pass], states: list[_PassState]):
-        self.s, self.passes, self.states = s, passes, states
-        self.tokens = [st.token for st in states]
+    def __init__(self, s: RenderSettings, states: list[_PassState], lookup: np.ndarray):
+        self.s, self.states = s, states
+        self.lookup = lookup  # (tiles,) int64 -> index into states, -1: none in this step
         self.stats = SplitStats([st.stats for st in states])
-        self.tiles_x = -(-s.width // s.tile_size)
-        tiles = self.tiles_x * -(-s.height // s.tile_size)
-        self.lookup = np.full(tiles, -1, np.int64)  # tile -> index into states
-        for i, p in enumerate(passes):
-            tile = (p.y0 // s.tile_size) * self.tiles_x + p.x0 // s.tile_size
-            if self.lookup[tile] >= 0:
-                raise ValueError(f"passes {passes[self.lookup[tile]].index} and {p.index} "
-                                 f"share tile {tile}: one call takes one pass per tile")
-            self.lookup[tile] = i
 
     def tok(self, pixel: np.ndarray) -> np.ndarray:
-        """pixel (n,) uint32 -> (n,) int64 index of its attempt in this call."""
-        pixel = pixel.astype(np.int64)
-        ts = self.s.tile_size
-        tile = (pixel // self.s.width // ts) * self.tiles_x + (pixel % self.s.width) // ts
-        return self.lookup[tile]
-
-    def split(self, batch) -> list:
-        """(t,) the rows of batch belonging to each attempt."""
+        """pixel (n,) uint32 -> (n,) int64 index of its pass in this step."""
         if len(self.states) == 1:
-            return [batch]
-        tok = self.tok(batch.pixel)
-        return [batch.take(tok == i) for i in range(len(self.states))]
+            return np.zeros(len(pixel), np.int64)
+        return self.lookup[tile_of(self.s, pixel)]
 
     def splat(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
-        """Add rgb (n, 3) float64 to each attempt's tile film."""
+        """Keep rgb (n, 3) float64 for each pass's film."""
         if len(pixel) == 0:
             return
         tok = self.tok(pixel)
         for i in np.unique(tok):
-            st, p = self.states[i], self.passes[i]
+            st = self.states[i]
             mine = tok == i
-            idx = p.local_index(pixel[mine], self.s.width)
-            for c in range(3):
-                st.sums[:, c] += np.bincount(idx, weights=rgb[mine, c], minlength=p.n_pixels)
+            st.index.append(st.pass_.local_index(pixel[mine], self.s.width))
+            st.rgb.append(np.asarray(rgb[mine], np.float64))
 
 
 class Shard:
@@ -129,7 +128,7 @@ class Shard:
         self._proxies, self._all_meshes = proxies or {}, all_meshes
         self.s: RenderSettings | None = None
         self.configure(config.settings)
-        self.passes: dict[int, _PassState] = {}
+        self.passes: dict[int, _PassState] = {}  # pass index -> its state, until collected
         log.info("%r started in pid %d", self, os.getpid())
 
     def _place(self) -> None:
@@ -206,101 +205,111 @@ class Shard:
         loaded from numba's cache) before the first timed pass. Returns seconds taken."""
         t0 = time.perf_counter()
         s = self.config.settings
-        p = Pass(-1, 0, 0, min(4, s.width), min(4, s.height), 0, 1)
-        self.work(s, [WorkItem(-1, p, True, 0)])
-        self.passes.pop(-1, None)
+        self.begin(s)
+        p = Pass(0, 0, 0, min(4, s.width), min(4, s.height), 0, 1)
+        self.step([p], [], {0: Fraction(1)})
+        self.reset()
         return time.perf_counter() - t0
 
-    # -- calls from the coordinator -------------------------------------------------
+    # -- a job ----------------------------------------------------------------------
 
-    def work(self, settings: RenderSettings, items: list[WorkItem],
-             *parcels: dict[int, Parcel]) -> list:
-        """Run every item's rays, merged into one wavefront (batches as large as the call
-        allows), as far as they go here. Items must be on distinct tiles: a ray's pixel
-        names its pass. Returns [Manifest, out_0 .. out_{k-1}], out_t a {token: Parcel} of
-        the rays going to shard t (None if none)."""
-        t0 = time.perf_counter()
+    def begin(self, settings: RenderSettings) -> None:
+        """Start a job (or a re-run after a fault): its settings, and no pass state."""
         self.configure(settings)
-        states = [self._state(item) for item in items]
-        call = _Call(self.s, [item.pass_ for item in items], states)
-        rays, got = [], []
-        at = 0
-        for item, st in zip(items, states, strict=True):
-            if item.generate:
-                with st.stats.phase("generate"):
-                    rays.append(self._generate(item.pass_))
-            # Each argument is one shard's {token: Parcel} output; a call may get it once
-            # per token it holds.
-            got += [x[item.token] for x in parcels[at:at + item.n_parcels]]
-            at += item.n_parcels
-        bytes_in = sum(x.nbytes for x in got)
-        if got:
-            call.stats.times.phase_s["transfer_wait"] += max(
-                0.0, time.time() - min(x.sent_at for x in got))
-        out = self._run(call, RayBatch.concat(rays + [x.rays for x in got]),
-                        ShadowRayBatch.concat([x.shadow for x in got]))
-        counts = {item.token: [0] * self.k for item in items}
-        bytes_out = 0
-        for t, by_token in enumerate(out):
-            for token, parcel in by_token.items():
-                counts[token][t] = len(parcel)
-                bytes_out += parcel.nbytes
-        manifest = Manifest(self.id, counts, time.perf_counter() - t0, bytes_in, bytes_out)
-        return [manifest, *[o or None for o in out]]
+        self.reset()
 
-    def collect(self, tokens: list[int]) -> tuple:
-        """((token, film sums (n_pixels, 3) f64 or None, stats dict, calls seen), ...) for
-        finished passes; their state is dropped here."""
+    def reset(self) -> None:
+        self.passes.clear()
+
+    def collect(self, indices: list[int]) -> list[tuple]:
+        """[(pass index, film sums (n_pixels, 3) float64 or None, stats dict)] of finished
+        passes (None: this shard never saw the pass); their state is dropped here."""
         out = []
-        for token in tokens:
-            st = self.passes.pop(token, None)
+        for i in indices:
+            st = self.passes.pop(i, None)
+            out.append((i, None, None) if st is None else (i, st.sums(), st.stats.to_dict()))
+        return out
+
+    # -- the wavefront ---------------------------------------------------------------
+
+    def step(self, orders: list[Pass], parcels: list, credits: dict[int, Fraction]
+             ) -> StepResult:
+        """Run the camera rays of `orders` and the rays of `parcels` (Parcel) as one
+        wavefront. credits: pass index -> the weight that came with them. Returns the
+        parcels for other shards (weights shared out) and the weight of passes whose
+        rays all ended here."""
+        times = RenderStats()
+        with times.phase("receive"):
+            rays = [p.rays for p in parcels if p.rays is not None]
+            shadow = [p.shadow for p in parcels if p.shadow is not None]
+            bytes_in = sum(p.nbytes for p in parcels)
+            if parcels:
+                times.phase_s["transfer_wait"] += max(
+                    0.0, time.time() - min(p.sent_at for p in parcels))
+            step = self._open(sorted(credits), times)
+        out_rays = [[] for _ in range(self.k)]
+        out_shadow = [[] for _ in range(self.k)]
+        if orders:
+            with times.phase("generate"):
+                rays.append(self._generate(orders, step, out_rays))
+        rays = RayBatch.concat(rays)
+        shadow = ShadowRayBatch.concat(shadow)
+        n_in = len(rays) + len(shadow)
+        self._wavefront(step, rays, shadow, out_rays, out_shadow)
+        with times.phase("send"):
+            parcels_out, returned = self._pack(step, out_rays, out_shadow, credits)
+        with times.phase("bookkeeping"):
+            step.stats.finish()
+        return StepResult(parcels_out, returned, times, n_in, bytes_in)
+
+    def _open(self, indices: list[int], times: RenderStats) -> _Step:
+        """The step over these passes: their state (made on first sight) and the tile
+        lookup that finds a ray's pass."""
+        states = []
+        for i in indices:
+            st = self.passes.get(i)
             if st is None:
-                out.append((token, None, RenderStats().to_dict(), 0))
-            else:
-                out.append((token, st.sums, st.stats.to_dict(), st.calls))
-        return tuple(out)
+                st = self.passes[i] = _PassState(pass_at(self.s, i))
+            states.append(st)
+        tiles = count_tiles(self.s)
+        lookup = np.full(tiles, -1, np.int64)
+        for j, i in enumerate(indices):
+            lookup[i % tiles] = j
+        step = _Step(self.s, states, lookup)
+        step.stats.times = times  # the step's phases are timed in `times`
+        return step
 
-    def abort(self, tokens: list[int]) -> None:
-        """Drop the state of pass attempts that will be re-run."""
-        for token in tokens:
-            self.passes.pop(token, None)
-
-    def _generate(self, p: Pass) -> RayBatch:
-        """This shard's share of a tile's camera rays.
-
-        Every shard generates the whole tile (deterministic and cheap) and keeps the rays
-        whose first instance box it owns, so no camera ray moves just to reach its first
-        candidate; rays that enter no owned box start on the tile's shard, p.index % k."""
-        rays = self.integrator.primary(p)
-        if self.k == 1:
+    def _generate(self, orders: list[Pass], step: _Step, out_rays: list) -> RayBatch:
+        """The camera rays of each ordered pass, generated here once. Rays whose first
+        instance box is another shard's go there (into out_rays); the rest (first box
+        here, or none) start here and are returned."""
+        out = []
+        for p in orders:
+            rays = self.integrator.primary(p)
+            st = step.states[step.lookup[p.index % len(step.lookup)]]
+            st.stats.counters["camera_rays_generated"] += len(rays)
+            out.append(rays)
+        rays = RayBatch.concat(out)
+        if self.k == 1 or len(rays) == 0:
             return rays
         first = nearest_unvisited(self.world, self.owned, rays.origin, rays.direction,
                                   rays.tmax, np.zeros(len(rays), np.uint64))
-        mine = (first == self.id) | ((first == DONE) & (p.index % self.k == self.id))
-        return rays.take(mine)
+        here = (first == self.id) | (first == DONE)
+        self._send(rays, np.where(here, DONE, first), out_rays)
+        return rays.take(here)
 
-    # -- the wavefront inside one call ---------------------------------------------
-
-    def _state(self, item: WorkItem) -> _PassState:
-        st = self.passes.get(item.token)
-        if st is None:
-            st = self.passes[item.token] = _PassState(item.token,
-                                                      np.zeros((item.pass_.n_pixels, 3)))
-        st.calls += 1
-        return st
-
-    def _run(self, call: _Call, rays: RayBatch, shadow: ShadowRayBatch) -> list:
-        """The wavefront: intersect locally, route (top level, proxies), shade what ends
-        here, trace its shadow rays; repeat until every ray has ended or left. Returns
-        (k,) {token: Parcel} per target shard. With one shard this is the reference."""
-        stats = call.stats
-        out_rays = [[] for _ in range(self.k)]
-        out_shadow = [[] for _ in range(self.k)]
+    def _wavefront(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch,
+                   out_rays: list, out_shadow: list) -> None:
+        """Intersect locally, route (top level, proxies), shade what ends here, trace its
+        shadow rays; repeat until every ray has ended or left. Rays leaving go into
+        out_rays / out_shadow, (k,) lists of batches per target shard. With one shard
+        this is the reference."""
+        stats = step.stats
         while len(rays) or len(shadow):
             if len(rays):
                 settled = (rays.flags & FLAG_SHADE) != 0
                 arrived, rays = rays.take(settled), rays.take(~settled)
-                stats.bind(call.tok(rays.pixel)).count_rays(rays.kind)
+                stats.bind(step.tok(rays.pixel)).count_rays(rays.kind)
                 rays = rays.replace(visited=rays.visited | self.bit)
                 with stats.phase("local_intersect"):
                     rays = resolve_closest(rays, self.local, self.world.lights)
@@ -314,14 +323,14 @@ class Shard:
                 self._send(rays, target, out_rays)
                 done = RayBatch.concat([arrived, rays.take(target == DONE)])
                 done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
-                stats.bind(call.tok(done.pixel)).count_hops(done.hops)
+                stats.bind(step.tok(done.pixel)).count_hops(done.hops)
                 with stats.phase("shade"):
                     shaded = self.integrator.shade(done)
-                call.splat(shaded.pixel, shaded.rgb)
+                step.splat(shaded.pixel, shaded.rgb)
                 shadow = ShadowRayBatch.concat([shadow, shaded.shadow])
                 rays = shaded.secondary
             if len(shadow):
-                stats.bind(call.tok(shadow.pixel)).count_rays(np.full(len(shadow), SHADOW))
+                stats.bind(step.tok(shadow.pixel)).count_rays(np.full(len(shadow), SHADOW))
                 shadow = shadow.replace(visited=shadow.visited | self.bit)
                 with stats.phase("local_intersect"):
                     free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
@@ -330,28 +339,67 @@ class Shard:
                 shadow = shadow.take(free)
                 with stats.phase("top_level"):
                     shadow, target = self.policy.route_shadow(
-                        shadow, stats.bind(call.tok(shadow.pixel)))
+                        shadow, stats.bind(step.tok(shadow.pixel)))
                 self._send(shadow, target, out_shadow)
                 done = shadow.take(target == DONE)
-                stats.bind(call.tok(done.pixel)).count_hops(done.hops)
-                call.splat(done.pixel, done.contribution.astype(np.float64))
+                stats.bind(step.tok(done.pixel)).count_hops(done.hops)
+                step.splat(done.pixel, done.contribution.astype(np.float64))
                 shadow = ShadowRayBatch.empty()
-        out = []
+
+    def _pack(self, step: _Step, out_rays: list, out_shadow: list,
+              credits: dict[int, Fraction]) -> tuple[list, dict]:
+        """One parcel per target holding every pass's rays for it. A pass's weight is
+        shared equally by the parcels that carry its rays; a pass with no ray leaving
+        returns its whole weight."""
+        indices = [st.pass_.index for st in step.states]
+        targets = [[] for _ in indices]  # per pass: targets its rays go to
+        batches = []
         for t in range(self.k):
-            moving = (RayBatch.concat(out_rays[t]), ShadowRayBatch.concat(out_shadow[t]))
-            by_token = {}
-            for i, (r, sh) in enumerate(zip(*(call.split(b) for b in moving), strict=True)):
-                if len(r) + len(sh):
-                    st = call.states[i].stats
-                    for kind, batch in (("rays", r), ("shadow", sh)):
-                        if len(batch):
-                            self._count_transfer(st, kind, batch)
-                    by_token[call.tokens[i]] = Parcel(r, sh)
-            out.append(by_token)
-        stats.finish()
-        return out
+            r, sh = RayBatch.concat(out_rays[t]), ShadowRayBatch.concat(out_shadow[t])
+            batches.append((r, sh))
+            if len(r) + len(sh) == 0:
+                continue
+            tok = np.concatenate([step.tok(r.pixel), step.tok(sh.pixel)])
+            for j in np.unique(tok):
+                targets[j].append(t)
+            self._count_transfers(step, r, sh)
+        parcels: list = [None] * self.k
+        shares: list[dict] = [{} for _ in range(self.k)]
+        returned = {}
+        for j, i in enumerate(indices):
+            w = credits[i]
+            if not targets[j]:
+                returned[i] = w
+                continue
+            part = w / len(targets[j])
+            for t in targets[j]:
+                shares[t][i] = part
+        for t, (r, sh) in enumerate(batches):
+            if shares[t]:
+                parcels[t] = Parcel(-1, shares[t], r if len(r) else None,
+                                    sh if len(sh) else None)
+        return parcels, returned
+
+    def _count_transfers(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch) -> None:
+        """Transfers and bytes by kind, counted on each ray's pass."""
+        if len(rays):
+            per_row = rays.nbytes // len(rays)
+            tok = step.tok(rays.pixel)
+            for j, st in enumerate(step.states):
+                mine = tok == j
+                if mine.any():
+                    for kind, c in enumerate(np.bincount(rays.kind[mine], minlength=2)[:2]):
+                        if c:
+                            st.stats.count_transfer(KIND_NAMES[kind], int(c), int(c) * per_row)
+        if len(shadow):
+            per_row = shadow.nbytes // len(shadow)
+            counts = np.bincount(step.tok(shadow.pixel), minlength=len(step.states))
+            for st, c in zip(step.states, counts, strict=True):
+                if c:
+                    st.stats.count_transfer("shadow", int(c), int(c) * per_row)
 
     def _send(self, batch, target: np.ndarray, out: list) -> None:
+        """Bucket the rows of batch leaving for another shard by target, one hop more."""
         away = target != DONE
         if not away.any():
             return
@@ -360,13 +408,3 @@ class Shard:
         t = target[away]
         for dest in np.unique(t):
             out[int(dest)].append(moving.take(t == dest))
-
-    @staticmethod
-    def _count_transfer(stats: RenderStats, kind: str, batch) -> None:
-        if kind == "shadow":
-            stats.count_transfer("shadow", len(batch), batch.nbytes)
-            return
-        per_row = batch.nbytes // len(batch)
-        for k, c in enumerate(np.bincount(batch.kind, minlength=2)[:2]):
-            if c:
-                stats.count_transfer(KIND_NAMES[k], int(c), int(c) * per_row)
