@@ -9,6 +9,7 @@ from __future__ import annotations
 import inspect
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -27,8 +28,17 @@ def _public(cls) -> set[str]:
     return {n for n, f in inspect.getmembers(cls, inspect.isfunction) if not n.startswith("_")}
 
 
-def test_the_forwarder_answers_every_shard_call():
-    assert _public(ShardActor) == _public(Shard)
+def test_the_actor_answers_every_call_the_driver_and_peers_make():
+    """Every `handle.method.remote(...)` in the runtime names a method of ShardActor, and
+    every Shard method the actor forwards to exists."""
+    runtime = REPO / "workers" / "runtime"
+    called = set()
+    for name in ("coordinator.py", "pool.py", "remote.py"):
+        called |= set(re.findall(r"\.(\w+)\.remote\(", (runtime / name).read_text()))
+    called.discard("build_world")
+    assert called and called <= _public(ShardActor), called - _public(ShardActor)
+    forwarded = set(re.findall(r"self\._shard\.(\w+)\(", (runtime / "remote.py").read_text()))
+    assert forwarded and forwarded <= _public(Shard), forwarded - _public(Shard)
 
 
 _DRIVER = """

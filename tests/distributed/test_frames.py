@@ -160,16 +160,15 @@ def test_a_shard_killed_on_a_later_frame_is_shown_that_frame_again(ray_local, wi
     at = windy.at_frame(5)
     ref = reference(at, s).film.image()  # loads the stored scene whole, on frame 5
     coord = Coordinator(windy, s)
-    killed, dispatch = [], coord._dispatch
+    killed, order = [], coord._order
 
-    def kill_then_dispatch(shard, items, parcels):
-        if not killed and any(i.n_parcels for i in items) and \
-                max(i.pass_.index for i in items) >= 2:
+    def kill_then_order(shard, passes, epoch):
+        order(shard, passes, epoch)
+        if not killed and max(p.index for p in passes) >= 2:  # passes 0 and 1 are live
             killed.append(shard)
             ray.kill(coord.actors[shard], no_restart=False)
-        return dispatch(shard, items, parcels)
 
-    coord._dispatch = kill_then_dispatch
+    coord._order = kill_then_order
     try:
         coord.set_frame(at)
         result = render(at, s, renderer=coord)

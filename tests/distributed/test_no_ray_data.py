@@ -1,4 +1,4 @@
-"""The coordinator routes ObjectRefs only: it never reads a ray batch back. Checked twice,
+"""The coordinator is off the ray path: it never reads a ray batch back. Checked twice,
 through its own `fetched` record and by recording every ray.get made in its module."""
 
 from __future__ import annotations
@@ -10,9 +10,8 @@ import ray
 import nprt.workers.runtime.coordinator as coordinator_module
 from nprt.workers.render import render
 from nprt.workers.runtime.coordinator import Coordinator
-from nprt.workers.runtime.protocol import Manifest
+from nprt.workers.runtime.protocol import Parcel, PollReply
 from nprt.workers.wavefront.batch import RayBatch, ShadowRayBatch
-from nprt.workers.wavefront.shard import Parcel
 from tests.distributed.helpers import assert_matches, settings
 
 RAY_DATA = (RayBatch, ShadowRayBatch, Parcel)
@@ -60,7 +59,7 @@ def recorder(monkeypatch) -> RecordingRay:
 
 def test_recorder_sees_a_parcel_read_back(ray_local, recorder):
     """The check below can fail: a Parcel fetched through the module's ray.get is caught."""
-    parcel = Parcel(RayBatch.empty(), ShadowRayBatch.empty())
+    parcel = Parcel(0, {}, RayBatch.empty(), ShadowRayBatch.empty())
     coordinator_module.ray.get(ray.put(parcel))
     assert {Parcel, RayBatch, ShadowRayBatch} <= recorder.got
 
@@ -78,10 +77,10 @@ def test_coordinator_never_reads_ray_batches(ray_local, recorder, scenes, refere
                    references["forest"].film.image())
     assert result.stats.to_dict()["total_transfers"] > 0
     assert recorder.calls > 0
-    # Its own record: manifests and tuples of (token, film sums, stats, calls), nothing else.
+    # Its own record: poll replies (weights, totals) and collected films, nothing else.
     fetched = set(coord.fetched)
-    assert Manifest in fetched and tuple in fetched, fetched
-    assert fetched <= {Manifest, tuple}, fetched
+    assert PollReply in fetched and tuple in fetched, fetched
+    assert fetched <= {PollReply, tuple}, fetched
     # Everything any ray.get in the module returned, looked into: no ray data anywhere.
     leaked = {t for t in recorder.got if issubclass(t, RAY_DATA)}
     assert not leaked, f"the coordinator read back {sorted(t.__name__ for t in leaked)}"
