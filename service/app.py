@@ -1,10 +1,12 @@
-"""The FastAPI app: routers, error mapping, the dashboard, and a lifespan that runs the job
-manager (and optionally the gRPC server) in the same process."""
+"""The FastAPI app of one API worker: routers, error mapping, the dashboard, and a lifespan
+that opens the job store and its event feed (and optionally the gRPC server). It renders
+nothing: the scheduler process does (nprt.service.processes says who owns what)."""
 
 from __future__ import annotations
 
 import logging
 import math
+import os
 import shutil
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -18,6 +20,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException
 
 from nprt.service.auth import TokenMiddleware
+from nprt.service.bodyguard import JsonGuard
 from nprt.service.config import ServiceSettings
 from nprt.service.errors import (
     BadUpload,
@@ -25,13 +28,15 @@ from nprt.service.errors import (
     InvalidJob,
     InvalidScene,
     NotFound,
+    QueueFull,
     ServiceError,
+    StoreBusy,
     TooLarge,
     TooManyWatchers,
     UnknownScene,
     redact_paths,
 )
-from nprt.service.manager import JobManager
+from nprt.service.jobapi import JobApi
 from nprt.service.problems import describe_fields, document_problems, problem_response, type_name
 from nprt.service.routers import jobs, operations, scenes
 from nprt.service.scenes import SceneStore
@@ -40,7 +45,9 @@ log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
 _STATUS = {NotFound: 404, Conflict: 409, BadUpload: 400, TooLarge: 413, InvalidScene: 422,
-           InvalidJob: 422, UnknownScene: 422, TooManyWatchers: 503}
+           InvalidJob: 422, UnknownScene: 422, TooManyWatchers: 503, QueueFull: 429,
+           StoreBusy: 503}
+_RETRY = (QueueFull, StoreBusy)  # answered with Retry-After
 
 
 def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = None,
@@ -55,28 +62,28 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
         # Uploads a killed process left half-spooled; no request is running yet.
         shutil.rmtree(settings.tmp_dir, ignore_errors=True)
         scene_store = SceneStore(settings)
-        manager = JobManager(settings, scene_store)
-        app.state.settings, app.state.scenes, app.state.manager = settings, scene_store, manager
-        manager.start()
+        api = JobApi(settings, scene_store).start()
+        app.state.settings, app.state.scenes, app.state.api = settings, scene_store, api
         grpc_server = None
         if grpc_port is not None:
             from nprt.service.grpc_server import start_grpc_server
 
-            grpc_server, app.state.grpc_port = await start_grpc_server(manager, settings,
+            grpc_server, app.state.grpc_port = await start_grpc_server(api, settings,
                                                                        grpc_host, grpc_port)
-        log.info("nprt service up: data dir %s, %d job slot(s)", settings.data_dir,
-                 settings.max_concurrent_jobs)
+        log.info("nprt API worker %d up: data dir %s", os.getpid(), settings.data_dir)
         try:
             yield
         finally:
             if grpc_server is not None:
                 await grpc_server.stop(1.0)
-            manager.stop()
+            api.stop()
 
     app = FastAPI(title="nprt render service", version="1", lifespan=lifespan,
                   description="Distributed path tracing jobs: upload scenes, submit renders, "
                               "follow tiles over SSE, fetch PNG/EXR. gRPC: protos/nprt.proto.")
     app.state.settings = settings
+    # The last added runs first: the token is checked before the body guard reads a byte.
+    app.add_middleware(JsonGuard)
     app.add_middleware(TokenMiddleware, token=settings.api_token)
     app.include_router(scenes.router)
     app.include_router(jobs.router)
@@ -85,9 +92,11 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
     # Every error answer is RFC 9457 problem details (service/problems.py).
     @app.exception_handler(ServiceError)
     async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
+        retry = {"Retry-After": str(settings.retry_after_s)} if isinstance(exc, _RETRY) \
+            else None
         return problem_response(_STATUS.get(type(exc), 400), redact_paths(str(exc), roots),
                                 type_=type_name(type(exc)), title=_title(type(exc)),
-                                instance=request.url.path)
+                                instance=request.url.path, headers=retry)
 
     @app.exception_handler(MultiPartException)
     async def multipart_error(request: Request, exc: MultiPartException) -> JSONResponse:
@@ -129,6 +138,15 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
 
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     return app
+
+
+def app_from_env() -> FastAPI:
+    """The app of one `nprt serve --workers N` worker: settings from NPRT_* variables, the
+    gRPC address from NPRT_GRPC_HOST / NPRT_GRPC_PORT (every worker binds the same port;
+    gRPC sets SO_REUSEPORT, so the kernel spreads connections over them)."""
+    port = os.environ.get("NPRT_GRPC_PORT")
+    return create_app(ServiceSettings(), grpc_port=int(port) if port else None,
+                      grpc_host=os.environ.get("NPRT_GRPC_HOST", "127.0.0.1"))
 
 
 def _title(cls: type) -> str:

@@ -74,6 +74,24 @@ def load_checkpoint(job_dir: Path) -> ResumeState | None:
                        stats=meta.get("stats", {}), done=[int(i) for i in meta.get("done", [])])
 
 
+def read_checkpoint(job_dir: Path, tries: int = 3) -> ResumeState | None:
+    """load_checkpoint from another process than the writer: a pair named by the json can
+    be replaced between reading the json and the arrays, so a missing file means "read
+    again"."""
+    for attempt in range(tries):
+        try:
+            return load_checkpoint(job_dir)
+        except (FileNotFoundError, ValueError, EOFError):
+            if attempt == tries - 1:
+                raise
+    return None
+
+
+def frame_file(job_dir: Path, frame: int, fmt: str) -> Path:
+    """Where a frames job stores one finished frame's image."""
+    return job_dir / "frames" / f"{frame:05d}.{fmt}"
+
+
 def clear_checkpoint(job_dir: Path) -> None:
     (job_dir / CHECKPOINT).unlink(missing_ok=True)
     for old in list(job_dir.glob("sums-*.npy")) + list(job_dir.glob("samples-*.npy")):

@@ -278,7 +278,7 @@ def nprt_version() -> str:
 def log_level(args: argparse.Namespace) -> str:
     if args.log_level:
         return args.log_level
-    return "INFO" if args.verbose or args.command == "serve" else "WARNING"
+    return "INFO" if args.verbose or args.command in ("serve", "scheduler") else "WARNING"
 
 
 def _cmd_demo(a):

@@ -1,5 +1,7 @@
-"""`nprt serve` (REST + gRPC in one process) and `nprt submit` (an httpx client that
-follows a job's SSE stream with a progress bar and downloads the image)."""
+"""`nprt serve` (API workers for REST + gRPC, and a scheduler child process that renders),
+`nprt scheduler` (the scheduler alone), and `nprt submit` (an httpx client that follows a
+job's SSE stream with a progress bar and downloads the image). Which process owns what:
+nprt.service.processes."""
 
 from __future__ import annotations
 
@@ -26,17 +28,27 @@ _SETTING_FLAGS = (  # flag, RenderSettings field, type
 def add_serve_parsers(subparsers) -> None:
     """Register `serve` and `submit` on an argparse subparsers object."""
     p = subparsers.add_parser("serve", help="run the REST + gRPC render service",
-                              description="REST (and /docs, dashboard at /) plus gRPC in one "
-                                          "process; other settings come from NPRT_* variables.")
+                              description="REST (and /docs, dashboard at /) plus gRPC in API "
+                                          "worker processes, and a scheduler process that "
+                                          "renders; other settings come from NPRT_* "
+                                          "variables.")
     p.add_argument("--host", default="127.0.0.1", help="bind address (REST and gRPC)")
     p.add_argument("--port", type=int, default=8000, help="REST port")
     p.add_argument("--grpc-port", type=int, default=50051, help="gRPC port; -1 disables gRPC")
-    p.add_argument("--data-dir", type=Path, help="jobs, scenes and database (NPRT_DATA_DIR)")
-    p.add_argument("--ray-address", help="Ray cluster to render on (default: local Ray)")
-    p.add_argument("--max-jobs", type=int, help="jobs rendering at once "
-                                                "(NPRT_MAX_CONCURRENT_JOBS)")
-    add_log_flags(p)
+    p.add_argument("--workers", type=int, default=1,
+                   help="API worker processes sharing the ports and the store")
+    p.add_argument("--api-only", action="store_true",
+                   help="no scheduler: only store and serve jobs (run `nprt scheduler` once "
+                        "per data directory elsewhere)")
+    _add_service_flags(p)
     p.set_defaults(func=cmd_serve)
+
+    sch = subparsers.add_parser("scheduler", help="run the scheduler: the process that renders",
+                                description="Owns Ray, the queue, the job slots and the "
+                                            "checkpoints of one data directory, and renders "
+                                            "the jobs API workers store there.")
+    _add_service_flags(sch)
+    sch.set_defaults(func=cmd_scheduler)
 
     s = subparsers.add_parser("submit", help="submit a render job to a running service",
                               description="SCENE is a demo name (forest, city:small, "
@@ -74,26 +86,69 @@ def add_server_flags(p) -> None:
     p.add_argument("--timeout-s", type=float, default=30.0, help="HTTP request timeout, s")
 
 
+def _add_service_flags(p) -> None:
+    p.add_argument("--data-dir", type=Path, help="jobs, scenes and database (NPRT_DATA_DIR)")
+    p.add_argument("--ray-address", help="Ray cluster to render on (default: local Ray)")
+    p.add_argument("--max-jobs", type=int, help="jobs rendering at once "
+                                                "(NPRT_MAX_CONCURRENT_JOBS)")
+    add_log_flags(p)
+
+
+def _settings(args: argparse.Namespace):
+    from nprt.service.config import ServiceSettings
+
+    overrides = {k: v for k, v in (("data_dir", args.data_dir),
+                                   ("ray_address", args.ray_address),
+                                   ("max_concurrent_jobs", args.max_jobs)) if v is not None}
+    return ServiceSettings(**overrides)
+
+
+def _log_args(args: argparse.Namespace) -> list[str]:
+    """The log flags again, for a child process."""
+    out = ["--log-level", args.log_level] if getattr(args, "log_level", None) else []
+    return out + (["--log-json"] if getattr(args, "log_json", False) else [])
+
+
+def cmd_scheduler(args: argparse.Namespace) -> int:
+    from nprt.service.processes import run_scheduler
+
+    configure_logging(getattr(args, "log_level", None) or "INFO",
+                      getattr(args, "log_json", False))
+    return run_scheduler(_settings(args))
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from nprt.service.app import create_app
-    from nprt.service.config import ServiceSettings
+    from nprt.service.processes import spawn_scheduler, stop_child
 
     level = getattr(args, "log_level", None) or "INFO"
     configure_logging(level, getattr(args, "log_json", False))
-    overrides = {k: v for k, v in (("data_dir", args.data_dir),
-                                   ("ray_address", args.ray_address),
-                                   ("max_concurrent_jobs", args.max_jobs)) if v is not None}
-    settings = ServiceSettings(**overrides)
+    settings = _settings(args)
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
     grpc_port = None if args.grpc_port < 0 else args.grpc_port
-    app = create_app(settings, grpc_port=grpc_port, grpc_host=args.host)
+    scheduler = None if args.api_only else spawn_scheduler(settings, _log_args(args))
     # grpc.aio shares uvicorn's loop and supports only the standard asyncio one (not uvloop);
     # httptools parses HTTP when installed (a dependency: a fifth of the CPU per request).
     # log_config=None: uvicorn's records go through the root handler (text or JSON) too.
-    config = uvicorn.Config(app, host=args.host, port=args.port, log_level=level.lower(),
-                            log_config=None, timeout_graceful_shutdown=3, loop="asyncio")
-    uvicorn.Server(config).run()
+    options = {"host": args.host, "port": args.port, "log_level": level.lower(),
+               "log_config": None, "timeout_graceful_shutdown": 3, "loop": "asyncio"}
+    try:
+        if args.workers > 1:  # each worker builds its app from NPRT_* (app_from_env)
+            for name, value in settings.model_dump(exclude_none=True).items():
+                os.environ[f"NPRT_{name.upper()}"] = str(value)
+            os.environ["NPRT_GRPC_HOST"] = args.host
+            if grpc_port is not None:
+                os.environ["NPRT_GRPC_PORT"] = str(grpc_port)
+            uvicorn.run("nprt.service.app:app_from_env", factory=True, workers=args.workers,
+                        **options)
+        else:
+            app = create_app(settings, grpc_port=grpc_port, grpc_host=args.host)
+            uvicorn.Server(uvicorn.Config(app, **options)).run()
+    finally:
+        if scheduler is not None:
+            stop_child(scheduler)
     return 0
 
 

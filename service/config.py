@@ -31,10 +31,14 @@ class ServiceSettings(BaseSettings):
     grpc_max_message_bytes: int = Field(64 << 20, ge=1 << 20,
                                         description="gRPC message limit, bytes (tiles, images)")
     scene_cache_size: int = Field(8, ge=0, description="loaded scenes kept in memory")
-    pool_max_bytes: int = Field(8 << 30, ge=0,
-                                description="geometry bytes that idle warm shard pools may "
-                                            "hold; least recently used pools go first")
-    pool_max_count: int = Field(4, ge=1, le=64, description="warm shard pools kept at most")
+    # Unset: PoolRegistry's own defaults (nprt.workers.runtime.pool), the one definition.
+    pool_max_bytes: int | None = Field(None, ge=0,
+                                       description="geometry bytes that idle warm shard pools "
+                                                   "may hold; least recently used pools go "
+                                                   "first (unset: the pool registry's default)")
+    pool_max_count: int | None = Field(None, ge=1, le=64,
+                                       description="warm shard pools kept at most (unset: the "
+                                                   "pool registry's default)")
     checkpoint_interval_s: float = Field(
         5.0, ge=0.0, le=3600.0,
         description="seconds between film checkpoints of a running job (0 = every pass); a "
@@ -47,6 +51,12 @@ class ServiceSettings(BaseSettings):
     max_job_retries: int = Field(2, ge=0, le=100,
                                  description="times a job that lost its Ray shards (a node "
                                              "died) is re-queued from its checkpoint")
+    max_queued_jobs: int = Field(1_000, ge=1,
+                                 description="jobs waiting in the queue at most; past it a "
+                                             "submission gets 429 with Retry-After (the "
+                                             "default admits a burst of 500)")
+    retry_after_s: int = Field(2, ge=1, le=3600,
+                               description="Retry-After of a 429 or 503 answer, seconds")
     ray_start_attempts: int = Field(3, ge=1, le=20,
                                     description="tries at starting or joining Ray per job")
 

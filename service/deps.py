@@ -1,4 +1,4 @@
-"""FastAPI dependencies as Annotated aliases: settings, job manager, scene store, token."""
+"""FastAPI dependencies as Annotated aliases: settings, job API, scene store, token."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from nprt.service.auth import bearer_error
 from nprt.service.config import ServiceSettings
-from nprt.service.manager import JobManager
+from nprt.service.jobapi import JobApi
 from nprt.service.scenes import SceneStore
 
 _bearer = HTTPBearer(auto_error=False, description="NPRT_API_TOKEN, when the server sets one")
@@ -22,8 +22,8 @@ async def get_settings(request: Request) -> ServiceSettings:
     return request.app.state.settings
 
 
-async def get_manager(request: Request) -> JobManager:
-    return request.app.state.manager
+async def get_api(request: Request) -> JobApi:
+    return request.app.state.api
 
 
 async def get_scenes(request: Request) -> SceneStore:
@@ -31,7 +31,7 @@ async def get_scenes(request: Request) -> SceneStore:
 
 
 SettingsDep = Annotated[ServiceSettings, Depends(get_settings)]
-ManagerDep = Annotated[JobManager, Depends(get_manager)]
+ApiDep = Annotated[JobApi, Depends(get_api)]
 ScenesDep = Annotated[SceneStore, Depends(get_scenes)]
 
 

@@ -1,4 +1,5 @@
-"""Errors the job manager and scene store raise; REST and gRPC map them to status codes."""
+"""Errors the job API, the scheduler and the scene store raise; REST and gRPC map them to
+status codes."""
 
 
 class ServiceError(Exception):
@@ -45,6 +46,16 @@ class UnknownScene(InvalidJob):
 
 class TooManyWatchers(ServiceError):
     """More event streams open than NPRT_MAX_WATCHERS (503, RESOURCE_EXHAUSTED)."""
+
+
+class QueueFull(ServiceError):
+    """NPRT_MAX_QUEUED_JOBS jobs are queued: come back after Retry-After (429,
+    RESOURCE_EXHAUSTED)."""
+
+
+class StoreBusy(ServiceError):
+    """The job store stayed locked by another process's write (503 with Retry-After,
+    UNAVAILABLE)."""
 
 
 def redact_paths(message: str, roots: list[str]) -> str:

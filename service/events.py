@@ -1,9 +1,12 @@
-"""Per-job event fan-out from render threads to SSE streams and gRPC watchers.
+"""Per-job event fan-out from the event feed (nprt.service.feed) to SSE streams and gRPC
+watchers.
 
 Each watcher holds a Subscription: state events queue in order and are never dropped (a
-job has a handful), tiles coalesce by rectangle (a newer tile of a rect replaces the pending
-one, since it holds every sample so far) and are bounded in bytes, so a slow watcher costs
-bounded memory and gets the latest image rather than every tile.
+job has a handful); tiles queue in order too, bounded in bytes: past the bound, a tile that
+a newer pending tile of the same rectangle supersedes goes first (the newer one holds every
+sample so far), then the oldest. A watcher that keeps up gets every tile, even when the
+feed hands over a burst of them at once; a slow one costs bounded memory and gets the
+latest image rather than every tile.
 """
 
 from __future__ import annotations
@@ -28,30 +31,28 @@ def _tile_bytes(event: dict) -> int:
 
 
 class Subscription:
-    """One watcher's pending events. put() runs on render threads, drain() on the
+    """One watcher's pending events. put() runs on the feed's thread, drain() on the
     watcher's; notify() is called after every put, outside the lock."""
 
     def __init__(self, notify: Notify, max_tile_bytes: int, on_close: Callable[[], None]):
         self._lock = threading.Lock()
-        # ("state", seq) -> event keeps order; ("tile", rect) -> the latest tile of a rect.
+        # (kind, seq) -> event, in arrival order; _latest: rect -> key of its newest tile.
         self._pending: OrderedDict[tuple, dict] = OrderedDict()
+        self._latest: dict[tuple, tuple] = {}
         self._pending_tile_bytes = 0
         self._seq = itertools.count()
         self._notify = notify
         self._on_close = on_close
         self.max_tile_bytes = max_tile_bytes
-        self.coalesced_tiles = 0  # replaced by a newer tile of the same rect
-        self.dropped_tiles = 0  # evicted over max_tile_bytes
+        self.coalesced_tiles = 0  # evicted for a newer pending tile of the same rect
+        self.dropped_tiles = 0  # evicted, the newest of its rect, over max_tile_bytes
 
     def put(self, event: dict) -> None:
         with self._lock:
             if event["type"] == "tile":
-                key = ("tile", tuple(event["rect"]))
-                old = self._pending.pop(key, None)
-                if old is not None:
-                    self._pending_tile_bytes -= _tile_bytes(old)
-                    self.coalesced_tiles += 1
+                key = ("tile", next(self._seq))
                 self._pending[key] = event
+                self._latest[tuple(event["rect"])] = key
                 self._pending_tile_bytes += _tile_bytes(event)
                 self._evict_tiles(keep=key)
             else:
@@ -59,20 +60,30 @@ class Subscription:
         self._notify()
 
     def _evict_tiles(self, keep: tuple) -> None:
-        """Drop the oldest pending tiles while over the byte bound, never the newest."""
+        """While over the byte bound, drop superseded tiles (oldest first), then the
+        oldest tiles; never the newest."""
         if self._pending_tile_bytes <= self.max_tile_bytes:
             return
-        for key in [k for k in self._pending if k[0] == "tile" and k != keep]:
-            self._pending_tile_bytes -= _tile_bytes(self._pending.pop(key))
-            self.dropped_tiles += 1
-            if self._pending_tile_bytes <= self.max_tile_bytes:
-                return
+        for superseded in (True, False):
+            for key in [k for k in self._pending if k[0] == "tile" and k != keep]:
+                rect = tuple(self._pending[key]["rect"])
+                if superseded and self._latest.get(rect) == key:
+                    continue
+                self._pending_tile_bytes -= _tile_bytes(self._pending.pop(key))
+                if self._latest.get(rect) == key:
+                    del self._latest[rect]
+                    self.dropped_tiles += 1
+                else:
+                    self.coalesced_tiles += 1
+                if self._pending_tile_bytes <= self.max_tile_bytes:
+                    return
 
     def drain(self) -> list[dict]:
         """Every pending event, oldest first."""
         with self._lock:
             out = list(self._pending.values())
             self._pending.clear()
+            self._latest.clear()
             self._pending_tile_bytes = 0
         return out
 
@@ -122,12 +133,13 @@ class EventBroker:
                 self._subs.pop(job_id, None)
 
     def publish(self, job_id: str, event: dict) -> None:
+        """Hand `event` to every watcher of `job_id` (a failing one is logged, skipped)."""
         with self._lock:
             subs = list(self._subs.get(job_id, ()))
         for sub in subs:
             try:
                 sub.put(event)
-            except Exception:  # one broken watcher must not stop a render
+            except Exception:  # one broken watcher must not stop the others
                 log.exception("event subscriber for job %s failed", job_id)
 
     def subscribers(self, job_id: str) -> int:

@@ -1,7 +1,8 @@
-"""The RenderService servicer (grpc.aio): a thin adapter from gRPC onto the JobManager.
-Job records are SQLite rows that take well under a millisecond, so those calls run on the
-event loop (as in the REST routers); encoding images goes to a thread. A WatchJob stream
-waits on the event loop and holds no thread."""
+"""The RenderService servicer (grpc.aio): a thin adapter from gRPC onto the JobApi.
+Reading a job record takes well under a millisecond, so reads run on the event loop (as in
+the REST routers); writes (submit, cancel), which may wait for another process's write,
+and image encoding go to a thread. A WatchJob stream waits on the event loop and holds no
+thread."""
 
 from __future__ import annotations
 
@@ -17,13 +18,15 @@ from nprt.service.errors import (
     InvalidJob,
     InvalidScene,
     NotFound,
+    QueueFull,
     ServiceError,
+    StoreBusy,
     TooManyWatchers,
 )
 from nprt.service.events import AsyncWatch
 from nprt.service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
 from nprt.service.grpc_logs import JobLogServicer
-from nprt.service.manager import JobManager
+from nprt.service.jobapi import JobApi
 from nprt.service.store import TERMINAL
 
 DEFAULT_PAGE = 50
@@ -32,7 +35,8 @@ MAX_PAGE = 500
 _CODES = {NotFound: grpc.StatusCode.NOT_FOUND, Conflict: grpc.StatusCode.FAILED_PRECONDITION,
           InvalidJob: grpc.StatusCode.INVALID_ARGUMENT,
           InvalidScene: grpc.StatusCode.INVALID_ARGUMENT,
-          TooManyWatchers: grpc.StatusCode.RESOURCE_EXHAUSTED}
+          TooManyWatchers: grpc.StatusCode.RESOURCE_EXHAUSTED,
+          QueueFull: grpc.StatusCode.RESOURCE_EXHAUSTED, StoreBusy: grpc.StatusCode.UNAVAILABLE}
 _FORMATS = {pb.IMAGE_FORMAT_PNG: "png", pb.IMAGE_FORMAT_EXR: "exr"}
 
 
@@ -53,8 +57,8 @@ def _validation_message(e: ValidationError) -> str:
 
 
 class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
-    def __init__(self, manager: JobManager, max_message_bytes: int):
-        self.manager = manager
+    def __init__(self, api: JobApi, max_message_bytes: int):
+        self.api = api
         self.max_message_bytes = max_message_bytes
 
     async def SubmitJob(self, request, context):
@@ -67,33 +71,33 @@ class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "scene is required (got '')")
         frames = (request.frames.first, request.frames.last) \
             if request.HasField("frames") else None
-        rec, _ = await _call(context, self.manager.submit, request.scene, settings, None,
-                             frames)
+        rec, _ = await _call(context, self.api.submit, request.scene, settings, None,
+                             frames, thread=True)
         return job_to_pb(rec)
 
     async def GetJob(self, request, context):
-        return job_to_pb(await _call(context, self.manager.get, request.job_id))
+        return job_to_pb(await _call(context, self.api.get, request.job_id))
 
     async def ListJobs(self, request, context):
         limit = request.limit or DEFAULT_PAGE
         if limit > MAX_PAGE:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT,
                                 f"limit must be at most {MAX_PAGE} (got {limit})")
-        recs, total = await _call(context, self.manager.list, request.offset, limit)
+        recs, total = await _call(context, self.api.list, request.offset, limit)
         return pb.ListJobsResponse(jobs=[job_to_pb(r) for r in recs], total=total)
 
     async def CancelJob(self, request, context):
-        return job_to_pb(await _call(context, self.manager.cancel, request.job_id))
+        return job_to_pb(await _call(context, self.api.cancel, request.job_id, thread=True))
 
     async def GetImage(self, request, context):
         fmt = await self._format(request, context)
-        data, partial = await _call(context, self.manager.image, request.job_id, fmt,
+        data, partial = await _call(context, self.api.image, request.job_id, fmt,
                                     thread=True)
         return await self._image(request, context, data, partial, f"image.{fmt}")
 
     async def GetFrame(self, request, context):
         fmt = await self._format(request, context)
-        data = await _call(context, self.manager.frame_image, request.job_id, request.frame,
+        data = await _call(context, self.api.frame_image, request.job_id, request.frame,
                            fmt, thread=True)
         return await self._image(request, context, data, False,
                                  f"frames/{request.frame}.{fmt}")
@@ -106,7 +110,7 @@ class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
         return fmt
 
     async def _image(self, request, context, data: bytes, partial: bool, route: str):
-        rec = await _call(context, self.manager.get, request.job_id)
+        rec = await _call(context, self.api.get, request.job_id)
         if len(data) > self.max_message_bytes - 1024:
             await context.abort(
                 grpc.StatusCode.RESOURCE_EXHAUSTED,
@@ -119,11 +123,11 @@ class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
         job_id = request.job_id
         try:
             # Subscribe before the snapshot so no event falls between them.
-            watch = AsyncWatch(lambda notify: self.manager.watch(job_id, notify))
+            watch = AsyncWatch(lambda notify: self.api.watch(job_id, notify))
         except TooManyWatchers as e:
             await context.abort(grpc.StatusCode.RESOURCE_EXHAUSTED, str(e))
         async with watch:
-            rec = await _call(context, self.manager.get, job_id)
+            rec = await _call(context, self.api.get, job_id)
             yield pb.JobEvent(job=job_to_pb(rec))
             while rec.state not in TERMINAL:
                 for ev in await watch.next_events():

@@ -1,5 +1,5 @@
 """RenderService.StreamJobLog: a job's job.log over gRPC (a mixin of the servicer, which
-provides self.manager)."""
+provides self.api)."""
 
 from __future__ import annotations
 
@@ -21,10 +21,10 @@ class JobLogServicer:
         """An async generator on the service's event loop (grpc.aio): no thread per
         follower."""
         try:
-            self.manager.get(request.job_id)
+            self.api.get(request.job_id)
         except NotFound as e:
             await context.abort(grpc.StatusCode.NOT_FOUND, str(e))
-        path = self.manager.job_dir(request.job_id) / LOG_NAME
+        path = self.api.job_dir(request.job_id) / LOG_NAME
         if not request.follow:
             for text, end in read_lines(path, request.offset):
                 yield pb.LogLine(text=text, end_offset=end)
@@ -32,7 +32,7 @@ class JobLogServicer:
         tail = LogTail(path, request.offset)
         while not context.done():
             try:
-                rec = self.manager.get(request.job_id)
+                rec = self.api.get(request.job_id)
             except NotFound:  # deleted while followed
                 return
             lines, done = tail.poll(rec.state in TERMINAL, time.monotonic())

@@ -15,7 +15,7 @@ from nprt.service.auth import bearer_error
 from nprt.service.config import ServiceSettings
 from nprt.service.grpc_api import RenderServicer
 from nprt.service.grpc_reflection import enable_reflection
-from nprt.service.manager import JobManager
+from nprt.service.jobapi import JobApi
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +42,7 @@ class TokenInterceptor(grpc.aio.ServerInterceptor):
         return await continuation(details)
 
 
-async def start_grpc_server(manager: JobManager, settings: ServiceSettings, host: str,
+async def start_grpc_server(api: JobApi, settings: ServiceSettings, host: str,
                             port: int) -> tuple[grpc.aio.Server, int]:
     """Start serving on the running loop; returns the server and the bound port (port 0
     picks a free one). Stop it with `await server.stop(grace_s)`."""
@@ -51,7 +51,7 @@ async def start_grpc_server(manager: JobManager, settings: ServiceSettings, host
     server = grpc.aio.server(interceptors=interceptors,
                              options=[("grpc.max_send_message_length", limit),
                                       ("grpc.max_receive_message_length", limit)])
-    nprt_pb2_grpc.add_RenderServiceServicer_to_server(RenderServicer(manager, limit), server)
+    nprt_pb2_grpc.add_RenderServiceServicer_to_server(RenderServicer(api, limit), server)
     health_servicer = health.aio.HealthServicer()
     health_pb2_grpc.add_HealthServicer_to_server(health_servicer, server)
     enable_reflection(server)

@@ -135,9 +135,13 @@ _ERRORS = {
     404: "no such job or scene, or no such frame (not in the job, or not rendered yet)",
     409: "the request does not fit the job's state, or an Idempotency-Key reused for "
          "another request",
-    413: "over NPRT_MAX_UPLOAD_BYTES or NPRT_MAX_EXTRACTED_BYTES",
-    422: "invalid parameters, or a job over a service limit (the detail names the field)",
-    503: "NPRT_MAX_WATCHERS event streams are open; try again later",
+    413: "over NPRT_MAX_UPLOAD_BYTES or NPRT_MAX_EXTRACTED_BYTES, or a job body over 64 KiB",
+    422: "invalid parameters, a job over a service limit (the detail names the field), or a "
+         "body nested too deep",
+    429: "NPRT_MAX_QUEUED_JOBS jobs are queued: retry after the Retry-After header's seconds "
+         "(with the same Idempotency-Key)",
+    503: "NPRT_MAX_WATCHERS event streams are open, or the job store is busy; try again "
+         "after Retry-After when it is set",
 }
 
 

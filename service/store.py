@@ -1,5 +1,8 @@
-"""The job table in SQLite (WAL): every job is stored here before it runs, and every state
-change is a compare-and-set, so terminal states are final whatever races them."""
+"""The job table in SQLite (WAL), the truth every process shares: API workers store and read
+jobs, the scheduler moves them through their states. Every state change is a
+compare-and-set, so terminal states are final whatever races them. The events table is the
+notification channel: state snapshots and tiles appended by whoever changed the job, read
+in order by every API worker (nprt.service.feed)."""
 
 from __future__ import annotations
 
@@ -31,7 +34,16 @@ CREATE TABLE IF NOT EXISTS jobs (
     pixel_samples TEXT
 );
 CREATE INDEX IF NOT EXISTS jobs_state ON jobs(state);
+CREATE TABLE IF NOT EXISTS events (
+    seq INTEGER PRIMARY KEY AUTOINCREMENT,
+    job_id TEXT NOT NULL,
+    at REAL NOT NULL,
+    kind TEXT NOT NULL,
+    body TEXT NOT NULL,
+    rgb BLOB
+);
 """
+BUSY_TIMEOUT_S = 10.0  # a writer waits this long for another process's write, then errors
 # Columns added after the first release: a database written by an older service gains them.
 _ADDED_COLUMNS = {
     "cancel_requested": "INTEGER NOT NULL DEFAULT 0",
@@ -71,13 +83,19 @@ class JobRecord:
         return min(1.0, self.passes_done / self.passes_total) if self.passes_total else 0.0
 
 
+class QueueFull(RuntimeError):
+    """insert() found max_queued jobs queued already; the message says how many."""
+
+
 class JobStore:
-    """One connection behind a lock: writes are tiny (one row per pass) and SQLite
-    serialises writers anyway."""
+    """A writing and a reading connection, each behind its own lock: writes are tiny (one
+    row per pass) and SQLite serialises writers anyway; in WAL mode a read never waits for
+    a write, so a reader here never queues behind a writer waiting for another process."""
 
     def __init__(self, path: Path):
         path.parent.mkdir(parents=True, exist_ok=True)
-        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None)
+        self._db = sqlite3.connect(path, check_same_thread=False, isolation_level=None,
+                                   timeout=BUSY_TIMEOUT_S)
         self._db.row_factory = sqlite3.Row
         self._lock = threading.Lock()
         with self._lock:
@@ -91,28 +109,45 @@ class JobStore:
                 if name not in have:
                     self._db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {decl}")
             self._db.executescript(_INDEXES)
+        self._rdb = sqlite3.connect(path, check_same_thread=False, isolation_level=None,
+                                    timeout=BUSY_TIMEOUT_S)
+        self._rdb.row_factory = sqlite3.Row
+        self._rlock = threading.Lock()
 
     def close(self) -> None:
-        with self._lock:
+        with self._lock, self._rlock:
             self._db.close()
+            self._rdb.close()
+
+    def _read(self, sql: str, args: tuple = ()) -> list[sqlite3.Row]:
+        with self._rlock:
+            return self._rdb.execute(sql, args).fetchall()
 
     def insert(self, job_id: str, scene: str, settings: dict, passes_total: int,
                idempotency_key: str | None = None,
-               frames: list[int] | None = None) -> JobRecord:
+               frames: list[int] | None = None, max_queued: int | None = None) -> JobRecord:
         """Store a queued job. With an idempotency key that is already stored, nothing is
-        inserted and the stored job is returned (compare its id to tell)."""
+        inserted and the stored job is returned (compare its id to tell). With max_queued,
+        QueueFull when that many jobs are queued (checked in the same statement, so
+        concurrent inserts from any process never overshoot it)."""
         now = time.time()
+        depth = -1 if max_queued is None else max_queued
         with self._lock:
             cur = self._db.execute(
                 "INSERT INTO jobs (id, scene, settings, state, created_at, passes_total, "
-                "idempotency_key, frames) VALUES (?, ?, ?, 'queued', ?, ?, ?, ?) "
+                "idempotency_key, frames) SELECT ?, ?, ?, 'queued', ?, ?, ?, ? WHERE ? < 0 OR "
+                "(SELECT COUNT(*) FROM jobs WHERE state = 'queued') < ? "
                 "ON CONFLICT (idempotency_key) DO NOTHING",
                 (job_id, scene, json.dumps(settings), now, passes_total, idempotency_key,
-                 None if frames is None else json.dumps(list(frames))))
-            if cur.rowcount == 0:  # the key was stored already
-                row = self._db.execute("SELECT * FROM jobs WHERE idempotency_key = ?",
-                                       (idempotency_key,)).fetchone()
-                return _record(row)
+                 None if frames is None else json.dumps(list(frames)), depth, depth))
+            if cur.rowcount == 0:
+                row = None if idempotency_key is None else self._db.execute(
+                    "SELECT * FROM jobs WHERE idempotency_key = ?",
+                    (idempotency_key,)).fetchone()
+                if row is None:
+                    raise QueueFull(f"{max_queued} jobs are queued, the limit "
+                                    "(NPRT_MAX_QUEUED_JOBS)")
+                return _record(row)  # the key was stored already
         return JobRecord(seq=cur.lastrowid, id=job_id, scene=scene, settings=settings,
                          state="queued", created_at=now, started_at=None, finished_at=None,
                          passes_done=0, passes_total=passes_total, error=None, stats=None,
@@ -120,9 +155,8 @@ class JobStore:
                          frames=None if frames is None else list(frames))
 
     def get(self, job_id: str) -> JobRecord | None:
-        with self._lock:
-            row = self._db.execute("SELECT * FROM jobs WHERE id = ?", (job_id,)).fetchone()
-        return _record(row) if row else None
+        rows = self._read("SELECT * FROM jobs WHERE id = ?", (job_id,))
+        return _record(rows[0]) if rows else None
 
     def update(self, job_id: str, **fields) -> bool:
         """Set non-state fields of an unfinished job (progress, stats); a finished job's
@@ -196,31 +230,85 @@ class JobStore:
              ) -> tuple[list[JobRecord], int]:
         """A page of jobs, newest first, and the count of all matching jobs."""
         where, args = ("WHERE state = ?", (state,)) if state else ("", ())
-        with self._lock:
-            rows = self._db.execute(f"SELECT * FROM jobs {where} ORDER BY seq DESC "
-                                    "LIMIT ? OFFSET ?", (*args, limit, offset)).fetchall()
-            total = self._db.execute(f"SELECT COUNT(*) FROM jobs {where}", args).fetchone()[0]
+        with self._rlock:
+            rows = self._rdb.execute(f"SELECT * FROM jobs {where} ORDER BY seq DESC "
+                                     "LIMIT ? OFFSET ?", (*args, limit, offset)).fetchall()
+            total = self._rdb.execute(f"SELECT COUNT(*) FROM jobs {where}", args).fetchone()[0]
         return [_record(r) for r in rows], int(total)
 
     def counts_by_state(self) -> dict[str, int]:
         """Jobs per state; every state is a key."""
-        with self._lock:
-            rows = self._db.execute("SELECT state, COUNT(*) FROM jobs GROUP BY state").fetchall()
+        rows = self._read("SELECT state, COUNT(*) FROM jobs GROUP BY state")
         return {s: 0 for s in STATES} | {r[0]: int(r[1]) for r in rows}
 
     def active_or_finished_since(self, t: float) -> list[JobRecord]:
         """Jobs preparing or running now, and jobs that finished at or after t (unix s)."""
-        with self._lock:
-            rows = self._db.execute("SELECT * FROM jobs WHERE state IN ('preparing', 'running') "
-                                    "OR finished_at >= ?", (t,)).fetchall()
+        rows = self._read("SELECT * FROM jobs WHERE state IN ('preparing', 'running') "
+                          "OR finished_at >= ?", (t,))
         return [_record(r) for r in rows]
 
     def unfinished(self) -> list[JobRecord]:
         """Jobs a previous process left behind, oldest first (FIFO on restart)."""
-        with self._lock:
-            rows = self._db.execute(f"SELECT * FROM jobs WHERE {_UNFINISHED_SQL} "
-                                    "ORDER BY seq").fetchall()
+        rows = self._read(f"SELECT * FROM jobs WHERE {_UNFINISHED_SQL} ORDER BY seq")
         return [_record(r) for r in rows]
+
+    # ------------------------------------------------------------ scheduler's queue
+
+    def queued_after(self, seq: int) -> list[tuple[int, str]]:
+        """(seq, id) of queued jobs stored after `seq`, oldest first. Writers commit one at
+        a time in seq order, so a reader that moves past a seq never misses a lower one."""
+        rows = self._read("SELECT seq, id FROM jobs WHERE state = 'queued' AND seq > ? "
+                          "ORDER BY seq", (seq,))
+        return [(int(r[0]), r[1]) for r in rows]
+
+    def max_seq(self) -> int:
+        return int(self._read("SELECT COALESCE(MAX(seq), 0) FROM jobs")[0][0])
+
+    def cancels_among(self, job_ids: list[str]) -> set[str]:
+        """The ids among job_ids whose cancel is stored."""
+        if not job_ids:
+            return set()
+        marks = ",".join("?" * len(job_ids))
+        return {r[0] for r in self._read(
+            f"SELECT id FROM jobs WHERE cancel_requested AND id IN ({marks})", tuple(job_ids))}
+
+    # ------------------------------------------------------------ events
+
+    def state_event(self, job_id: str) -> None:
+        """Append the job's record as it is now; read and appended in one write
+        transaction, so the events of a job are in the order its states changed."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                row = self._db.execute("SELECT * FROM jobs WHERE id = ?",
+                                       (job_id,)).fetchone()
+                if row is not None:
+                    self._db.execute("INSERT INTO events (job_id, at, kind, body) "
+                                     "VALUES (?, ?, 'state', ?)",
+                                     (job_id, time.time(), json.dumps(dict(row))))
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+
+    def tile_event(self, job_id: str, tile: dict, rgb: bytes) -> None:
+        """Append one finished pass: tile is the TileEvent fields, rgb the tile's pixels
+        as float32 bytes."""
+        self._execute("INSERT INTO events (job_id, at, kind, body, rgb) "
+                      "VALUES (?, ?, 'tile', ?, ?)", (job_id, time.time(), json.dumps(tile), rgb))
+
+    def events_after(self, seq: int, limit: int = 1000) -> list[tuple]:
+        """(seq, job_id, kind, body, rgb) of events after `seq`, oldest first."""
+        return [tuple(r) for r in self._read(
+            "SELECT seq, job_id, kind, body, rgb FROM events WHERE seq > ? ORDER BY seq "
+            "LIMIT ?", (seq, limit))]
+
+    def max_event_seq(self) -> int:
+        return int(self._read("SELECT COALESCE(MAX(seq), 0) FROM events")[0][0])
+
+    def prune_events(self, before: float) -> None:
+        """Forget events appended before `before` (unix s): watchers read within a second."""
+        self._execute("DELETE FROM events WHERE at < ?", (before,))
 
     def _execute(self, sql: str, args: tuple) -> bool:
         with self._lock:
@@ -245,3 +333,8 @@ def _record(row: sqlite3.Row) -> JobRecord:
         d[k] = json.loads(d[k]) if d[k] is not None else None
     d["cancel_requested"] = bool(d["cancel_requested"])
     return JobRecord(**d)
+
+
+def record_from_json(text: str) -> JobRecord:
+    """The JobRecord of a state event's body (a jobs row as JSON)."""
+    return _record(json.loads(text))

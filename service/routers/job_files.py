@@ -11,7 +11,7 @@ from fastapi import APIRouter, Path, Response, status
 from fastapi.concurrency import run_in_threadpool
 
 from nprt.service import images
-from nprt.service.deps import ManagerDep, TokenDep
+from nprt.service.deps import ApiDep, TokenDep
 from nprt.service.schemas import MAX_FRAME, error_responses
 from nprt.workers.film import read_exr
 
@@ -19,15 +19,15 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 @router.delete("/{job_id}", status_code=status.HTTP_204_NO_CONTENT, dependencies=[TokenDep],
                responses=error_responses(401, 404, 409))
-async def delete_job(job_id: str, manager: ManagerDep) -> Response:
+async def delete_job(job_id: str, api: ApiDep) -> Response:
     """Forget a finished, failed or canceled job: its record, image, checkpoint and log."""
-    await run_in_threadpool(manager.delete, job_id)
+    await run_in_threadpool(api.delete, job_id)
     return Response(status_code=status.HTTP_204_NO_CONTENT)
 
 
-def linear_pixels(manager, job_id: str):
+def linear_pixels(api, job_id: str):
     """((h, w, 3) float32 linear, partial): the job's image as EXR decoded."""
-    data, partial = manager.image(job_id, "exr")
+    data, partial = api.image(job_id, "exr")
     with tempfile.TemporaryDirectory(prefix="nprt-px-") as d:
         path = FilePath(d) / "image.exr"
         path.write_bytes(data)
@@ -39,8 +39,8 @@ def linear_pixels(manager, job_id: str):
     "description": "linear RGB, row-major (h, w, 3) little-endian float16; headers "
                    "X-Nprt-Width, X-Nprt-Height, X-Nprt-Partial. 404 before the first pass."}}
             | error_responses(404))
-async def get_pixels(job_id: str, manager: ManagerDep) -> Response:
-    img, partial = await run_in_threadpool(linear_pixels, manager, job_id)
+async def get_pixels(job_id: str, api: ApiDep) -> Response:
+    img, partial = await run_in_threadpool(linear_pixels, api, job_id)
     h, w = img.shape[:2]
     return Response(images.f16_bytes(img), media_type="application/octet-stream",
                     headers={"X-Nprt-Width": str(w), "X-Nprt-Height": str(h),
@@ -52,21 +52,21 @@ async def get_pixels(job_id: str, manager: ManagerDep) -> Response:
 FrameDep = Annotated[int, Path(ge=0, le=MAX_FRAME, description="frame number")]
 
 
-async def _frame(manager, job_id: str, frame: int, fmt: str, media: str) -> Response:
-    data = await run_in_threadpool(manager.frame_image, job_id, frame, fmt)
+async def _frame(api, job_id: str, frame: int, fmt: str, media: str) -> Response:
+    data = await run_in_threadpool(api.frame_image, job_id, frame, fmt)
     return Response(data, media_type=media, headers={"Cache-Control": "no-store"})
 
 
 @router.get("/{job_id}/frames/{frame}.png", response_class=Response,
             responses={200: {"content": {"image/png": {}}, "description": "sRGB PNG of one "
                              "finished frame of a frames job"}} | error_responses(404))
-async def get_frame_png(job_id: str, frame: FrameDep, manager: ManagerDep) -> Response:
-    return await _frame(manager, job_id, frame, "png", "image/png")
+async def get_frame_png(job_id: str, frame: FrameDep, api: ApiDep) -> Response:
+    return await _frame(api, job_id, frame, "png", "image/png")
 
 
 @router.get("/{job_id}/frames/{frame}.exr", response_class=Response,
             responses={200: {"content": {"image/x-exr": {}}, "description": "linear float32 "
                              "OpenEXR of one finished frame of a frames job"}}
             | error_responses(404))
-async def get_frame_exr(job_id: str, frame: FrameDep, manager: ManagerDep) -> Response:
-    return await _frame(manager, job_id, frame, "exr", "image/x-exr")
+async def get_frame_exr(job_id: str, frame: FrameDep, api: ApiDep) -> Response:
+    return await _frame(api, job_id, frame, "exr", "image/x-exr")

@@ -12,7 +12,7 @@ from fastapi.exceptions import RequestValidationError
 from sse_starlette.sse import EventSourceResponse
 
 from nprt.service import images
-from nprt.service.deps import ManagerDep, TokenDep
+from nprt.service.deps import ApiDep, TokenDep
 from nprt.service.errors import InvalidJob, TooManyWatchers
 from nprt.service.events import AsyncWatch
 from nprt.service.schemas import (
@@ -29,25 +29,28 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 _MEDIA = {"png": "image/png", "exr": "image/x-exr"}
 SSE_PING_S = 15
-# Job records are SQLite rows read or written in well under a millisecond: those calls run
-# on the event loop. A hop to a worker thread would cost more, and would wait behind the
-# render threads for the GIL under load. Image encoding does go to a thread.
+# Reads are SQLite rows on the store's reading connection (WAL: a read never waits for a
+# writer), well under a millisecond: they run on the event loop, where a thread hop would
+# cost more. Writes (submit, cancel) can wait for another process's write, so they go to
+# a thread; so does image encoding. No render runs in this process.
 MAX_OFFSET = (1 << 31) - 1  # SQLite takes 64-bit offsets; nobody pages past 2^31 jobs
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep],
-             responses=error_responses(400, 401, 409))
-async def create_job(body: JobCreate, manager: ManagerDep, response: Response,
+             responses=error_responses(400, 401, 409, 413, 429, 503))
+async def create_job(body: JobCreate, api: ApiDep, response: Response,
                      idempotency_key: Annotated[str | None, Header(
                          min_length=1, max_length=200,
                          description="a retried request with the same key returns the job "
                                      "the first one created (header Idempotent-Replayed)")
                      ] = None) -> JobPublic:
-    """Store the job and queue it; rendering starts when a slot is free."""
+    """Store the job and queue it; rendering starts when a slot is free. Past
+    NPRT_MAX_QUEUED_JOBS queued jobs: 429 with Retry-After (retry with the same
+    Idempotency-Key)."""
     try:
         frames = None if body.frames is None else (body.frames.first, body.frames.last)
-        rec, created = manager.submit(body.scene, body.render_settings(), idempotency_key,
-                                      frames)
+        rec, created = await run_in_threadpool(api.submit, body.scene, body.render_settings(),
+                                               idempotency_key, frames)
     except InvalidJob as e:
         # Same answer as FastAPI's own validation errors, so clients see the field.
         raise RequestValidationError([
@@ -60,32 +63,32 @@ async def create_job(body: JobCreate, manager: ManagerDep, response: Response,
 
 
 @router.get("")
-async def list_jobs(manager: ManagerDep,
+async def list_jobs(api: ApiDep,
                     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
                     limit: Annotated[int, Query(ge=1, le=500)] = 50,
                     state: JobState | None = None) -> JobsPublic:
     """Jobs, newest first."""
-    recs, count = manager.list(offset, limit, state)
+    recs, count = api.list(offset, limit, state)
     return JobsPublic(data=[JobPublic.from_record(r) for r in recs], count=count,
                       offset=offset, limit=limit)
 
 
 @router.get("/{job_id}", responses=error_responses(404))
-async def get_job(job_id: str, manager: ManagerDep) -> JobPublic:
-    return JobPublic.from_record(manager.get(job_id))
+async def get_job(job_id: str, api: ApiDep) -> JobPublic:
+    return JobPublic.from_record(api.get(job_id))
 
 
 @router.post("/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep],
              responses=error_responses(401, 404, 409))
-async def cancel_job(job_id: str, manager: ManagerDep) -> JobPublic:
+async def cancel_job(job_id: str, api: ApiDep) -> JobPublic:
     """The cancel is stored first (it survives a restart): a queued job is canceled at
     once, a running one stops at its next pass boundary and ends canceled (409 if the job
     already finished)."""
-    return JobPublic.from_record(manager.cancel(job_id))
+    return JobPublic.from_record(await run_in_threadpool(api.cancel, job_id))
 
 
-async def _image(manager, job_id: str, fmt: str) -> Response:
-    data, partial = await run_in_threadpool(manager.image, job_id, fmt)
+async def _image(api, job_id: str, fmt: str) -> Response:
+    data, partial = await run_in_threadpool(api.image, job_id, fmt)
     return Response(data, media_type=_MEDIA[fmt],
                     headers={"X-Nprt-Partial": str(partial).lower(),
                              "Cache-Control": "no-store"})
@@ -95,16 +98,16 @@ async def _image(manager, job_id: str, fmt: str) -> Response:
             responses={200: {"content": {"image/png": {}},
                              "description": "sRGB PNG; partial while running "
                                             "(header X-Nprt-Partial)"}} | error_responses(404))
-async def get_image_png(job_id: str, manager: ManagerDep) -> Response:
-    return await _image(manager, job_id, "png")
+async def get_image_png(job_id: str, api: ApiDep) -> Response:
+    return await _image(api, job_id, "png")
 
 
 @router.get("/{job_id}/image.exr", response_class=Response,
             responses={200: {"content": {"image/x-exr": {}},
                              "description": "linear float32 OpenEXR; partial while running"}}
             | error_responses(404))
-async def get_image_exr(job_id: str, manager: ManagerDep) -> Response:
-    return await _image(manager, job_id, "exr")
+async def get_image_exr(job_id: str, api: ApiDep) -> Response:
+    return await _image(api, job_id, "exr")
 
 
 @router.get("/{job_id}/events", response_class=EventSourceResponse,
@@ -113,24 +116,24 @@ async def get_image_exr(job_id: str, manager: ManagerDep) -> Response:
                              "`tile` events (TileEvent JSON) per finished pass, then `end`; "
                              "a slow reader gets the latest tile of each rectangle"}}
             | error_responses(404, 503))
-async def job_events(job_id: str, manager: ManagerDep,
+async def job_events(job_id: str, api: ApiDep,
                      pixels: Annotated[Literal["none", "f16"], Query(
                          description="f16: tile events carry the tile's pixels")] = "none"
                      ) -> EventSourceResponse:
-    manager.get(job_id)  # 404 before the stream starts
-    manager.broker.check_capacity()  # 503 likewise
-    return EventSourceResponse(_events(manager, job_id, pixels == "f16"), ping=SSE_PING_S)
+    api.get(job_id)  # 404 before the stream starts
+    api.broker.check_capacity()  # 503 likewise
+    return EventSourceResponse(_events(api, job_id, pixels == "f16"), ping=SSE_PING_S)
 
 
-async def _events(manager, job_id: str, with_pixels: bool = False):
+async def _events(api, job_id: str, with_pixels: bool = False):
     try:
         # Subscribe before the snapshot so nothing falls between them (duplicates are harmless).
-        watch = AsyncWatch(lambda notify: manager.watch(job_id, notify))
+        watch = AsyncWatch(lambda notify: api.watch(job_id, notify))
     except TooManyWatchers as e:  # the limit filled up since the check
         yield {"event": "error", "data": str(e)}
         return
     async with watch:
-        rec = manager.get(job_id)
+        rec = api.get(job_id)
         yield _state(rec)
         while rec.state not in TERMINAL:
             for ev in await watch.next_events():

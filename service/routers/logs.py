@@ -11,7 +11,7 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import PlainTextResponse
 from sse_starlette.sse import EventSourceResponse
 
-from nprt.service.deps import ManagerDep
+from nprt.service.deps import ApiDep
 from nprt.service.errors import NotFound
 from nprt.service.joblog import LOG_NAME, LogTail, read_lines
 from nprt.service.schemas import error_responses
@@ -29,13 +29,13 @@ SSE_PING_S = 15
                    "X-Nprt-Log-Offset is where to read next). follow=1: SSE `log` events, one "
                    "line each, `id` the byte offset after it (reconnects resume there), then "
                    "`end` with the job's final state."}} | error_responses(404))
-async def job_logs(job_id: str, manager: ManagerDep,
+async def job_logs(job_id: str, api: ApiDep,
                    follow: bool = False,
                    offset: Annotated[int, Query(ge=0, description="byte offset")] = 0,
                    last_event_id: Annotated[str | None, Header()] = None):
     """The records the job's render thread logged (INFO and above), as written to job.log."""
-    await run_in_threadpool(manager.get, job_id)  # 404 before anything else
-    path = manager.job_dir(job_id) / LOG_NAME
+    await run_in_threadpool(api.get, job_id)  # 404 before anything else
+    path = api.job_dir(job_id) / LOG_NAME
     if not follow:
         lines = await run_in_threadpool(read_lines, path, offset)
         end = lines[-1][1] if lines else offset
@@ -44,14 +44,14 @@ async def job_logs(job_id: str, manager: ManagerDep,
                                           "Cache-Control": "no-store"})
     if last_event_id and last_event_id.isdigit():
         offset = int(last_event_id)
-    return EventSourceResponse(_follow(manager, job_id, LogTail(path, offset)),
+    return EventSourceResponse(_follow(api, job_id, LogTail(path, offset)),
                                ping=SSE_PING_S)
 
 
-async def _follow(manager, job_id: str, tail: LogTail):
+async def _follow(api, job_id: str, tail: LogTail):
     while True:
         try:
-            rec = await run_in_threadpool(manager.get, job_id)
+            rec = await run_in_threadpool(api.get, job_id)
         except NotFound:  # deleted while followed
             yield {"event": "end", "data": "deleted"}
             return

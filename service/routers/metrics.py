@@ -21,7 +21,7 @@ def _registry(request: Request) -> CollectorRegistry:
     state = request.app.state
     if getattr(state, "metrics_registry", None) is None:
         registry = CollectorRegistry()
-        registry.register(JobMetrics(state.manager.store, since_s=LOADED_AT_S))
+        registry.register(JobMetrics(state.api.store, since_s=LOADED_AT_S))
         ProcessCollector(registry=registry)
         state.metrics_registry = registry
     return state.metrics_registry

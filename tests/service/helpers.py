@@ -1,4 +1,5 @@
-"""Shared test helpers: a real uvicorn server on a loopback port, scene files, SSE parsing."""
+"""Shared test helpers: a real uvicorn server on a loopback port with a scheduler beside it,
+scene files, SSE parsing."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from PIL import Image
 
 from nprt.service.app import create_app
 from nprt.service.config import ServiceSettings
+from nprt.service.scheduler import Scheduler
 
 TINY = {"width": 32, "height": 32, "spp": 4, "bounces": 2, "shadow_rays": 1,
         "tile_size": 16, "spp_per_pass": 2}
@@ -25,11 +27,15 @@ STOP_TIMEOUT_S = 120.0
 
 
 class LiveServer:
-    """The app under uvicorn in a thread, on a socket bound here (no free-port race)."""
+    """The app under uvicorn in a thread, on a socket bound here (no free-port race), and
+    (unless scheduler=False) a Scheduler on the same data directory. They share nothing
+    but the store and the job folders, as the API and scheduler processes of `nprt
+    serve` do; tests/service/test_processes.py runs them as separate processes."""
 
-    def __init__(self, settings: ServiceSettings, grpc: bool = False):
+    def __init__(self, settings: ServiceSettings, grpc: bool = False, scheduler: bool = True):
         self.settings = settings
         self.app = create_app(settings, grpc_port=0 if grpc else None)
+        self.scheduler = Scheduler(settings) if scheduler else None
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.sock.bind(("127.0.0.1", 0))
@@ -44,6 +50,8 @@ class LiveServer:
         return f"127.0.0.1:{self.app.state.grpc_port}"
 
     def __enter__(self) -> LiveServer:
+        if self.scheduler is not None:
+            self.scheduler.start()
         self.thread.start()
         deadline = time.monotonic() + START_TIMEOUT_S
         while not self.server.started:
@@ -54,10 +62,12 @@ class LiveServer:
 
     def __exit__(self, *exc) -> None:
         self.server.should_exit = True
-        # The lifespan stops the job manager (and a Ray it started): a server still
-        # shutting down behind the next test would pull Ray from under it.
         self.thread.join(STOP_TIMEOUT_S)
         self.sock.close()
+        # Stops a Ray the scheduler started: one still stopping behind the next test
+        # would pull Ray from under it.
+        if self.scheduler is not None:
+            self.scheduler.stop()
         if self.thread.is_alive():
             raise RuntimeError(f"the service did not stop within {STOP_TIMEOUT_S} s")
 
@@ -135,13 +145,14 @@ class HeldSlots:
 
 
 def stored_queued_job(server: LiveServer, settings: dict | None = None) -> str:
-    """A job stored as queued but never handed to a worker: it stays queued, and watchers
-    stay open on it, until the test cancels it. Costs no rendering."""
+    """A job stored as queued on a server without a scheduler: it stays queued, and
+    watchers stay open on it, until the test cancels it. Costs no rendering."""
     import uuid
 
+    assert server.scheduler is None, "a scheduler would render the job"
     job_id = uuid.uuid4().hex
-    manager = server.app.state.manager
-    manager.store.insert(job_id, "forest:tiny", {**TINY, **(settings or {})}, passes_total=8)
+    server.app.state.api.store.insert(job_id, "forest:tiny", {**TINY, **(settings or {})},
+                                      passes_total=8)
     return job_id
 
 

@@ -1,5 +1,6 @@
-"""Subscriber queues: state events are never dropped, tiles coalesce by rectangle and are
-bounded in bytes, and the number of open watchers is capped."""
+"""Subscriber queues: state events are never dropped, tiles are bounded in bytes (past the
+bound superseded tiles of a rectangle go first), and the number of open watchers is
+capped."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ def _state(name: str) -> dict:
 
 
 def test_slow_watcher_gets_every_state_and_the_latest_tile_of_each_rect():
-    broker = EventBroker()
+    tile_bytes = 16 * 16 * 3 * 4
+    broker = EventBroker(max_tile_bytes=2 * tile_bytes)
     sub = broker.subscribe("j", lambda: None)
     broker.publish("j", _state("running"))
     rects = [(0, 0, 16, 16), (16, 0, 32, 16)]
@@ -38,6 +40,15 @@ def test_slow_watcher_gets_every_state_and_the_latest_tile_of_each_rect():
     assert latest == {rects[0]: 49.0, rects[1]: 49.0}
     assert sub.coalesced_tiles == 98 and sub.dropped_tiles == 0
     assert sub.drain() == []
+
+
+def test_watcher_under_the_bound_gets_every_tile_of_a_burst_in_order():
+    broker = EventBroker()
+    sub = broker.subscribe("j", lambda: None)
+    for sample in range(3):  # one feed poll hands over three passes of one rect at once
+        broker.publish("j", _tile((0, 0, 16, 16), sample))
+    assert [e["pass_index"] for e in sub.drain()] == [0, 1, 2]
+    assert sub.coalesced_tiles == sub.dropped_tiles == 0
 
 
 def test_pending_tiles_are_bounded_in_bytes_and_states_are_never_dropped():

@@ -15,8 +15,9 @@ from nprt.scene.demos import make_demo
 from nprt.scene.meta import SceneMeta
 from nprt.service import images
 from nprt.service.cli import main
-from nprt.service.manager import JobManager
+from nprt.service.jobapi import JobApi
 from nprt.service.scenes import SceneStore
+from nprt.service.scheduler import Scheduler
 from nprt.service.store import TERMINAL, JobStore
 from nprt.workers.passes import count_passes
 from nprt.workers.render import render
@@ -131,8 +132,8 @@ def test_a_frames_job_resumed_after_a_restart_skips_the_frames_it_stored(tmp_pat
     marker = b"frame 1, stored before the restart"
     (stored / "00001.png").write_bytes(marker)
     (stored / "00001.exr").write_bytes(marker)
-    m = JobManager(settings, SceneStore(settings))
-    m.start()
+    m = JobApi(settings, SceneStore(settings)).start()
+    scheduler = Scheduler(settings).start()
     try:
         rec = wait_for(lambda: (r := m.get("resumed")).state in TERMINAL and r, 60,
                        what="the resumed job")
@@ -143,6 +144,7 @@ def test_a_frames_job_resumed_after_a_restart_skips_the_frames_it_stored(tmp_pat
         assert png_pixels(m.frame_image("resumed", 2, "png")).shape == (32, 32, 3)
         assert sorted(rec.stats["frames"]["frame_wall_s"]) == ["2", "3"]
     finally:
+        scheduler.stop()
         m.stop()
 
 
@@ -177,15 +179,15 @@ def test_a_sharded_frames_job_renders_the_stored_scene_on_one_pool(tmp_path):
     pytest.importorskip("ray")
     with LiveServer(settings_for(tmp_path, max_concurrent_jobs=1)) as server, \
             httpx.Client(base_url=server.url, timeout=30.0) as client:
-        manager = server.app.state.manager
-        assert isinstance(manager.scenes.load("windy:tiny"), SceneMeta)
+        scheduler = server.scheduler
+        assert isinstance(scheduler.scenes.load("windy:tiny"), SceneMeta)
         jobs = {k: client.post("/v1/jobs", json={"scene": "windy:tiny", **TINY, "shards": k,
                                                  "frames": {"first": 0, "last": 2}}
                                ).json()["id"] for k in (0, 2)}
         done = {k: _finished(client, j) for k, j in jobs.items()}
         assert [d["state"] for d in done.values()] == ["succeeded"] * 2, done
         assert done[2]["stats"]["renderer"] == "distributed"
-        assert manager.pools.started == 1  # one pool for the three frames
+        assert scheduler.pools.started == 1  # one pool for the three frames
         got = {}
         for f in range(3):
             ref, img = (png_pixels(client.get(f"/v1/jobs/{jobs[k]}/frames/{f}.png").content)

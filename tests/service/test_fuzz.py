@@ -30,7 +30,6 @@ from schemathesis.checks import (  # noqa: E402
     status_code_conformance,
 )
 
-from nprt.service.manager import JobManager  # noqa: E402
 from nprt.service.problems import PROBLEM_MEDIA_TYPE, Problem  # noqa: E402
 from tests.service.helpers import LiveServer, settings_for  # noqa: E402
 
@@ -59,10 +58,8 @@ def fuzzed(tmp_path_factory):
     root = tmp_path_factory.mktemp("fuzz")
     settings = settings_for(root, max_upload_bytes=MAX_UPLOAD_BYTES,
                             max_extracted_bytes=MAX_EXTRACTED_BYTES)
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(JobManager, "_run", lambda self, job_id: False)
-        with LiveServer(settings) as server:
-            yield server
+    with LiveServer(settings, scheduler=False) as server:
+        yield server
 
 
 def _server_paths(server) -> list[str]:

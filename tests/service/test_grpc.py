@@ -135,9 +135,15 @@ STREAMS = 40
 ANSWER_DEADLINE_S = 1.0
 
 
-def test_open_watch_streams_do_not_starve_health_or_get_job(live, channel, stub):
+def test_open_watch_streams_do_not_starve_health_or_get_job(tmp_path):
     """Each WatchJob stream once held one of 32 server threads: 40 of them starved every
     other rpc. Now they wait on the event loop."""
+    with LiveServer(settings_for(tmp_path), grpc=True, scheduler=False) as live, \
+            grpc.insecure_channel(live.grpc_target) as channel:
+        _watch_many(live, channel, nprt_pb2_grpc.RenderServiceStub(channel))
+
+
+def _watch_many(live, channel, stub) -> None:
     job_id = stored_queued_job(live)
     streams = [stub.WatchJob(pb.WatchJobRequest(job_id=job_id), timeout=60)
                for _ in range(STREAMS)]
@@ -150,14 +156,15 @@ def test_open_watch_streams_do_not_starve_health_or_get_job(live, channel, stub)
         assert reply.status == health_pb2.HealthCheckResponse.SERVING
         assert stub.GetJob(pb.GetJobRequest(job_id=job_id),
                            timeout=ANSWER_DEADLINE_S).state == pb.JOB_STATE_QUEUED
-    assert live.app.state.manager.broker.subscribers(job_id) == STREAMS
+    assert live.app.state.api.broker.subscribers(job_id) == STREAMS
     stub.CancelJob(pb.CancelJobRequest(job_id=job_id), timeout=10)
     for s in streams:  # each ends with the terminal state
         assert [e.job.state for e in s] == [pb.JOB_STATE_CANCELED]
 
 
 def test_watch_streams_over_the_limit_get_resource_exhausted(tmp_path):
-    with LiveServer(settings_for(tmp_path, max_watchers=2), grpc=True) as server, \
+    with LiveServer(settings_for(tmp_path, max_watchers=2), grpc=True,
+                    scheduler=False) as server, \
             grpc.insecure_channel(server.grpc_target) as ch:
         stub = nprt_pb2_grpc.RenderServiceStub(ch)
         job_id = stored_queued_job(server)
@@ -173,4 +180,4 @@ def test_watch_streams_over_the_limit_get_resource_exhausted(tmp_path):
         stub.CancelJob(pb.CancelJobRequest(job_id=job_id), timeout=10)
         for s in streams:
             assert [ev.job.state for ev in s] == [pb.JOB_STATE_CANCELED]
-        assert server.app.state.manager.broker.subscribers(job_id) == 0
+        assert server.app.state.api.broker.subscribers(job_id) == 0

@@ -44,7 +44,7 @@ def test_job_log_holds_the_render_threads_records_only(client, done_job):
     r = client.get(f"/v1/jobs/{done_job['id']}/logs")
     assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
     assert f"job {done_job['id']}: preparing scene 'forest:tiny'" in r.text
-    assert "nprt.scene.demos" in r.text or "nprt.service.manager" in r.text
+    assert "nprt.scene.demos" in r.text or "nprt.service.runjob" in r.text
     assert "uvicorn" not in r.text and "GET /v1" not in r.text  # no access log lines
     assert int(r.headers["x-nprt-log-offset"]) == len(r.content)
     rest = client.get(f"/v1/jobs/{done_job['id']}/logs",

@@ -39,7 +39,7 @@ def test_second_job_on_a_scene_reuses_its_warm_shard_pool(tmp_path):
     pytest.importorskip("ray")
     with LiveServer(settings_for(tmp_path, max_concurrent_jobs=1)) as server, \
             httpx.Client(base_url=server.url, timeout=30.0) as client:
-        manager = server.app.state.manager
+        manager = server.scheduler
         done = []
         for seed in (1, 2):  # a different job (seed) on the same scene and placement
             job_id = client.post("/v1/jobs", json={"scene": "forest:tiny", **TINY, "shards": 2,

@@ -1,5 +1,6 @@
-"""The job manager without HTTP: cancel racing completion, retries after a lost Ray node,
-renderers always closed, cancel while preparing, Ray start retries, stored cancels."""
+"""The job API and the scheduler without HTTP: cancel racing completion, retries after a
+lost Ray node, renderers always closed, cancel while preparing, Ray start retries, stored
+cancels."""
 
 from __future__ import annotations
 
@@ -12,12 +13,14 @@ import pytest
 
 import nprt.workers.runtime.coordinator as coordinator
 import nprt.workers.runtime.raysession as raysession
-from nprt.service import manager as manager_module
+from nprt.service import raystart, runjob
 from nprt.service.errors import Conflict
-from nprt.service.manager import JobManager, RayUnavailable
+from nprt.service.jobapi import JobApi
+from nprt.service.raystart import RayStarter, RayUnavailable
 from nprt.service.scenes import SceneStore
+from nprt.service.scheduler import Scheduler
 from nprt.service.store import TERMINAL
-from nprt.workers.passes import count_passes, plan_passes
+from nprt.workers.passes import count_passes, iter_passes
 from nprt.workers.render import render as real_render
 from nprt.workers.settings import RenderSettings
 from tests.service.helpers import settings_for, wait_for
@@ -27,11 +30,23 @@ FAST = {"width": 8, "height": 8, "spp": 1, "bounces": 1, "shadow_rays": 1, "tile
 SHARDED = {**FAST, "width": 16, "height": 16, "spp": 2, "shards": 2}  # 8 passes
 
 
-def _manager(tmp_path, **overrides) -> JobManager:
-    settings = settings_for(tmp_path, **overrides)
-    m = JobManager(settings, SceneStore(settings))
-    m.start()
-    return m
+class _Service:
+    """A JobApi and a Scheduler on one data directory: they share only the store."""
+
+    def __init__(self, settings):
+        self.api = JobApi(settings, SceneStore(settings)).start()
+        self.scheduler = Scheduler(settings).start()
+
+    def __getattr__(self, name):
+        return getattr(self.api, name)
+
+    def stop(self) -> None:
+        self.scheduler.stop()
+        self.api.stop()
+
+
+def _manager(tmp_path, **overrides) -> _Service:
+    return _Service(settings_for(tmp_path, **overrides))
 
 
 @pytest.fixture
@@ -41,7 +56,7 @@ def manager(tmp_path):
     m.stop()
 
 
-def _done(m: JobManager, job_id: str, timeout_s: float = 60.0):
+def _done(m: _Service, job_id: str, timeout_s: float = 60.0):
     return wait_for(lambda: (r := m.get(job_id)).state in TERMINAL and r, timeout_s,
                     what=f"job {job_id} finished")
 
@@ -50,7 +65,7 @@ def _done(m: JobManager, job_id: str, timeout_s: float = 60.0):
                                                 (64, 64, 16, 64, 4), (33, 65, 5, 16, 5)])
 def test_count_passes_equals_the_length_of_the_plan(w, h, spp, tile, chunk):
     s = RenderSettings(width=w, height=h, spp=spp, tile_size=tile, spp_per_pass=chunk)
-    assert count_passes(s) == len(list(plan_passes(s)))
+    assert count_passes(s) == len(list(iter_passes(s)))
 
 
 def test_cancel_racing_completion_in_the_manager_never_leaves_a_terminal_state(manager):
@@ -74,7 +89,12 @@ def test_cancel_racing_completion_in_the_manager_never_leaves_a_terminal_state(m
         final = _done(manager, job_id)
         outcomes.add(final.state)
         assert final.state == ("canceled" if accepted else "succeeded"), final
-        states = [e["job"].state for e in sub.drain() if e["type"] == "state"]
+        events = []
+        # The feed hands the watcher the terminal state within a poll of the store.
+        wait_for(lambda s=sub, ev=events: ev.extend(s.drain()) or any(
+            e["type"] == "state" and e["job"].state in TERMINAL for e in ev), 10,
+            what="the terminal state event")
+        states = [e["job"].state for e in events if e["type"] == "state"]
         first_terminal = next(i for i, s in enumerate(states) if s in TERMINAL)
         assert states[first_terminal:] == [final.state] * (len(states) - first_terminal)
         assert manager.get(job_id).state == final.state
@@ -98,8 +118,8 @@ class _FakeShards:
 @pytest.fixture
 def fake_shards(monkeypatch):
     _FakeShards.made = []
-    monkeypatch.setattr(manager_module, "make_renderer", _FakeShards)
-    monkeypatch.setattr(JobManager, "_ensure_ray", lambda self: None)
+    monkeypatch.setattr(runjob, "make_renderer", _FakeShards)
+    monkeypatch.setattr(RayStarter, "ensure", lambda self: None)
     return _FakeShards
 
 
@@ -125,7 +145,7 @@ def _losing_render(lose_times: int, calls: list):
 def _sharded_job_losing_nodes(tmp_path, monkeypatch, lose_times: int):
     """(manager, final job record, resume points of each attempt) with 2 retries allowed."""
     calls = []
-    monkeypatch.setattr(manager_module, "render", _losing_render(lose_times, calls))
+    monkeypatch.setattr(runjob, "render", _losing_render(lose_times, calls))
     m = _manager(tmp_path, max_job_retries=2)
     try:
         rec, _ = m.submit("forest:tiny", RenderSettings(**SHARDED))
@@ -160,8 +180,8 @@ def test_renderer_that_fails_to_start_fails_the_job_with_the_reason(manager, mon
     def broken(*args, **kwargs):
         raise coordinator.ShardStartError("shard 1 did not start: MemoryError in __init__")
 
-    monkeypatch.setattr(manager_module, "make_renderer", broken)
-    monkeypatch.setattr(JobManager, "_ensure_ray", lambda self: None)
+    monkeypatch.setattr(runjob, "make_renderer", broken)
+    monkeypatch.setattr(RayStarter, "ensure", lambda self: None)
     rec, _ = manager.submit("forest:tiny", RenderSettings(**SHARDED))
     final = _done(manager, rec.id)
     assert (final.state, final.retries) == ("failed", 0)
@@ -182,9 +202,9 @@ def test_cancel_while_preparing_stops_before_rendering_and_closes_the_renderer(
     def must_not_render(*args, **kwargs):
         raise AssertionError("rendered after a cancel")
 
-    monkeypatch.setattr(manager_module, "make_renderer", SlowStart)
-    monkeypatch.setattr(manager_module, "render", must_not_render)
-    monkeypatch.setattr(JobManager, "_ensure_ray", lambda self: None)
+    monkeypatch.setattr(runjob, "make_renderer", SlowStart)
+    monkeypatch.setattr(runjob, "render", must_not_render)
+    monkeypatch.setattr(RayStarter, "ensure", lambda self: None)
     rec, _ = manager.submit("forest:tiny", RenderSettings(**SHARDED))
     assert starting.wait(30)
     assert manager.get(rec.id).state == "preparing"
@@ -205,10 +225,9 @@ def test_ray_start_is_retried_then_fails_naming_the_address(tmp_path, monkeypatc
         return False
 
     monkeypatch.setattr(raysession, "ensure_ray", flaky)
-    monkeypatch.setattr(manager_module, "RAY_RETRY_S", 0.0)
-    m = JobManager(settings_for(tmp_path, ray_address="10.255.0.1:6379",
-                                ray_start_attempts=3), SceneStore(settings_for(tmp_path)))
-    m._ensure_ray()
+    monkeypatch.setattr(raystart, "RAY_RETRY_S", 0.0)
+    starter = RayStarter("10.255.0.1:6379", attempts=3)
+    starter.ensure()
     assert tries == ["10.255.0.1:6379"] * 3
 
     def down(address):
@@ -216,20 +235,19 @@ def test_ray_start_is_retried_then_fails_naming_the_address(tmp_path, monkeypatc
 
     monkeypatch.setattr(raysession, "ensure_ray", down)
     with pytest.raises(RayUnavailable) as e:
-        m._ensure_ray()
+        starter.ensure()
     assert str(e.value) == ("could not join the Ray cluster at 10.255.0.1:6379 in 3 attempts: "
                             "ConnectionError: GCS did not answer")
-    m.store.close()
 
 
 def test_stored_cancel_of_a_running_job_is_honoured_on_restart(tmp_path):
     """As if the process died after storing the cancel and before the renderer saw it."""
     settings = settings_for(tmp_path)
-    first = JobManager(settings, SceneStore(settings))  # not started: nothing renders
+    first = JobApi(settings, SceneStore(settings))  # no scheduler: nothing renders
     rec, _ = first.submit("forest:tiny", RenderSettings(**FAST))
     assert first.store.transition(rec.id, "running", ("queued",))
     assert first.store.request_cancel(rec.id)
-    first.store.close()
+    first.stop()
     second = _manager(tmp_path)
     try:
         final = second.get(rec.id)
