@@ -5,10 +5,15 @@ from __future__ import annotations
 
 import json
 import sys
+import time
+import uuid
 from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
+
+RETRY_STATUSES = (429, 503)  # sent with Retry-After when the service is full or busy
+MAX_RETRY_WAIT_S = 600.0  # a submission keeps retrying this long in all
 
 _UPLOAD_TYPES = {".glb": "model/gltf-binary", ".gltf": "model/gltf+json",
                  ".zip": "application/zip", ".json": "application/json"}
@@ -27,9 +32,11 @@ class ApiError(RuntimeError):
 
 
 class Client:
-    def __init__(self, base_url: str, token: str | None = None, timeout_s: float = 30.0):
+    def __init__(self, base_url: str, token: str | None = None, timeout_s: float = 30.0,
+                 max_retry_wait_s: float = MAX_RETRY_WAIT_S):
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         self.http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout_s)
+        self.max_retry_wait_s = max_retry_wait_s
 
     def __enter__(self) -> Client:
         return self
@@ -49,8 +56,22 @@ class Client:
                                    path.suffix.lower(), "application/octet-stream")})
         return self._ok(r).json()
 
-    def submit(self, scene: str, settings: dict) -> dict:
-        return self._ok(self.http.post("/v1/jobs", json={"scene": scene, **settings})).json()
+    def submit(self, scene: str, settings: dict, idempotency_key: str | None = None) -> dict:
+        """Submit a job. A 429 or 503 with Retry-After (the queue is full, the store busy)
+        is retried after that many seconds, up to max_retry_wait_s in all, with one
+        Idempotency-Key: however often it is sent, one job is made."""
+        key = idempotency_key or uuid.uuid4().hex
+        waited = 0.0
+        while True:
+            r = self.http.post("/v1/jobs", json={"scene": scene, **settings},
+                               headers={"Idempotency-Key": key})
+            after = _retry_after_s(r)
+            if after is None or waited + after > self.max_retry_wait_s:
+                return self._ok(r).json()
+            print(f"the service answered {r.status_code}; retrying in {after:g} s",
+                  file=sys.stderr)
+            time.sleep(after)
+            waited += after
 
     def job(self, job_id: str) -> dict:
         return self._ok(self.http.get(f"/v1/jobs/{job_id}")).json()
@@ -122,3 +143,13 @@ class Client:
                 bar.refresh()
         return self.job(job_id) if job is None or job["state"] not in (
             "succeeded", "failed", "canceled") else job
+
+
+def _retry_after_s(r: httpx.Response) -> float | None:
+    """Seconds to wait before retrying r, when it is a 429 or 503 that says so."""
+    if r.status_code not in RETRY_STATUSES:
+        return None
+    try:
+        return max(0.0, float(r.headers["retry-after"]))
+    except (KeyError, ValueError):  # no header, or an HTTP date: not a retry we can time
+        return None

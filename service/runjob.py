@@ -171,6 +171,10 @@ class JobRunner:
         publish_tile(self.store, job_id, p, base, total)
 
     def _finish(self, job_id: str, job_dir: Path, result, live: LiveJob) -> None:
+        if self.store.get(job_id).cancel_requested:  # canceled during the last pass
+            self.states.end(job_id, "canceled", finished_at=time.time())
+            log.info("job %s canceled during its last pass; no image stored", job_id)
+            return
         film = result.film
         img = film.image()
         (job_dir / "image.png").write_bytes(images.png_bytes(img))

@@ -69,6 +69,13 @@ def test_create_job_rejects_zero_spp(client):
     assert err["loc"] == ["body", "spp"] and err["input"] == 0
 
 
+@pytest.mark.parametrize("depth", [9, 10_000])
+def test_job_body_nested_past_the_limit_is_422_before_parsing(client, depth):
+    body = b'{"scene": "forest:tiny", "x": ' + b"[" * (depth - 1) + b"]" * (depth - 1) + b"}"
+    r = client.post("/v1/jobs", content=body, headers={"Content-Type": "application/json"})
+    assert r.status_code == 422 and problem_detail(r) == "the body nests deeper than 8 levels"
+
+
 def test_create_job_rejects_unknown_field(client):
     r = client.post("/v1/jobs", json={"scene": "forest:tiny", "spp_typo": 3})
     assert r.status_code == 422

@@ -1,5 +1,6 @@
-"""kill -9 mid-job, restart on the same data dir: the job resumes from its checkpoint and
-its image equals an uninterrupted render."""
+"""kill -9 mid-job: with the scheduler killed the API keeps answering, and when a scheduler
+is back on the same data dir the job resumes from its checkpoint and its image equals an
+uninterrupted render; a cancel stored before `nprt serve` is killed is kept."""
 
 from __future__ import annotations
 
@@ -34,16 +35,22 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _start(data_dir: Path, log_path: Path) -> tuple[subprocess.Popen, str]:
-    port = _free_port()
+def _popen(args: list[str], data_dir: Path, log_path: Path) -> subprocess.Popen:
     # Checkpoint after every pass: the kill below lands between two of them.
     env = {**os.environ, "PYTHONPATH": str(REPO), "NPRT_MAX_CONCURRENT_JOBS": "1",
            "NPRT_CHECKPOINT_INTERVAL_S": "0"}
     env.pop("NPRT_API_TOKEN", None)
     log = log_path.open("ab")
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--data-dir",
-                             str(data_dir), "--port", str(port), "--grpc-port", "-1"],
-                            cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
+    return subprocess.Popen([sys.executable, "-m", "service", *args, "--data-dir",
+                             str(data_dir)], cwd=REPO, env=env, stdout=log,
+                            stderr=subprocess.STDOUT)
+
+
+def _start(data_dir: Path, log_path: Path, *flags: str) -> tuple[subprocess.Popen, str]:
+    """`serve` with flags; returns it and its URL once /healthz answers."""
+    port = _free_port()
+    proc = _popen(["serve", "--port", str(port), "--grpc-port", "-1", *flags], data_dir,
+                  log_path)
     url = f"http://127.0.0.1:{port}"
 
     def ready():
@@ -57,34 +64,41 @@ def _start(data_dir: Path, log_path: Path) -> tuple[subprocess.Popen, str]:
     return proc, url
 
 
-def test_killed_service_resumes_job_from_checkpoint(tmp_path):
+def _finished(url: str, job_id: str) -> dict:
+    return wait_for(lambda: (j := httpx.get(f"{url}/v1/jobs/{job_id}").json())
+                    ["state"] in ("succeeded", "failed") and j, 120, what=f"job {job_id}")
+
+
+def test_killed_scheduler_leaves_the_api_answering_and_the_job_resumes(tmp_path):
     data = tmp_path / "data"
     log_path = tmp_path / "service.log"
-    proc, url = _start(data, log_path)
+    api, url = _start(data, log_path, "--api-only")
+    scheduler = _popen(["scheduler"], data, tmp_path / "scheduler.log")
     try:
         job = httpx.post(f"{url}/v1/jobs", json=JOB, timeout=10).json()
         job_id = job["id"]
         assert job["passes_total"] == PASSES
         wait_for(lambda: httpx.get(f"{url}/v1/jobs/{job_id}").json()["passes_done"] >= 3,
                  30, interval_s=0.01, what="three finished passes")
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(10)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert (data / "jobs" / job_id / "checkpoint.json").exists(), "no checkpoint after kill"
+        scheduler.send_signal(signal.SIGKILL)
+        scheduler.wait(10)
+        assert (data / "jobs" / job_id / "checkpoint.json").exists(), "no checkpoint"
+        # No scheduler: the API still reads, stores and serves the partial image.
+        assert httpx.get(f"{url}/v1/jobs/{job_id}").json()["state"] == "running"
+        later = httpx.post(f"{url}/v1/jobs", json={**JOB, "spp": 1}, timeout=10)
+        assert later.status_code == 202 and later.json()["state"] == "queued"
+        partial = httpx.get(f"{url}/v1/jobs/{job_id}/image.png")
+        assert partial.status_code == 200 and partial.headers["x-nprt-partial"] == "true"
 
-    proc, url = _start(data, log_path)
-    try:
-        listed = httpx.get(f"{url}/v1/jobs").json()
-        assert [j["id"] for j in listed["data"]] == [job_id]
-        final = wait_for(lambda: (j := httpx.get(f"{url}/v1/jobs/{job_id}").json())
-                         ["state"] in ("succeeded", "failed") and j, 120, what="job done")
+        scheduler = _popen(["scheduler"], data, tmp_path / "scheduler.log")
+        final = _finished(url, job_id)
         assert final["state"] == "succeeded", final["error"]
+        assert _finished(url, later.json()["id"])["state"] == "succeeded"
         png = httpx.get(f"{url}/v1/jobs/{job_id}/image.png").content
     finally:
-        proc.terminate()
-        proc.wait(15)
+        for proc in (scheduler, api):
+            proc.terminate()
+            proc.wait(30)
 
     job_log = (data / "jobs" / job_id / "job.log").read_text()
     resumed = [int(n) for n in re.findall(r"resuming at pass (\d+)", job_log)]
