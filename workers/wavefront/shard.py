@@ -239,26 +239,28 @@ class Shard:
         parcels for other shards (weights shared out) and the weight of passes whose
         rays all ended here."""
         times = RenderStats()
-        with times.phase("receive"):
-            rays = [p.rays for p in parcels if p.rays is not None]
-            shadow = [p.shadow for p in parcels if p.shadow is not None]
-            bytes_in = sum(p.nbytes for p in parcels)
-            if parcels:
-                times.phase_s["transfer_wait"] += max(
-                    0.0, time.time() - min(p.sent_at for p in parcels))
-            step = self._open(sorted(credits), times)
-        out_rays = [[] for _ in range(self.k)]
-        out_shadow = [[] for _ in range(self.k)]
-        if orders:
-            with times.phase("generate"):
-                rays.append(self._generate(orders, step, out_rays))
-        rays = RayBatch.concat(rays)
-        shadow = ShadowRayBatch.concat(shadow)
-        n_in = len(rays) + len(shadow)
-        self._wavefront(step, rays, shadow, out_rays, out_shadow)
-        with times.phase("send"):
-            parcels_out, returned = self._pack(step, out_rays, out_shadow, credits)
+        # "bookkeeping" is the batch glue between the named stages (take, concat, replace,
+        # counters): every second of a step is in some phase.
         with times.phase("bookkeeping"):
+            with times.phase("receive"):
+                rays = [p.rays for p in parcels if p.rays is not None]
+                shadow = [p.shadow for p in parcels if p.shadow is not None]
+                bytes_in = sum(p.nbytes for p in parcels)
+                if parcels:
+                    times.phase_s["transfer_wait"] += max(
+                        0.0, time.time() - min(p.sent_at for p in parcels))
+                step = self._open(sorted(credits), times)
+            out_rays = [[] for _ in range(self.k)]
+            out_shadow = [[] for _ in range(self.k)]
+            if orders:
+                with times.phase("generate"):
+                    rays.append(self._generate(orders, step, out_rays))
+            rays = RayBatch.concat(rays)
+            shadow = ShadowRayBatch.concat(shadow)
+            n_in = len(rays) + len(shadow)
+            self._wavefront(step, rays, shadow, out_rays, out_shadow)
+            with times.phase("send"):
+                parcels_out, returned = self._pack(step, out_rays, out_shadow, credits)
             step.stats.finish()
         return StepResult(parcels_out, returned, times, n_in, bytes_in)
 

@@ -1,0 +1,184 @@
+"""Strong scaling: one image, more shards. The 1-core single-process reference against
+exact and proxy mode at K = 1, 2, 4, 8, ... (up to the machine's cores minus two), side by
+side in one run, on whatever cores this machine has.
+
+Per row: render wall (the pool already started; its start is `prepare_s`), CPU seconds per
+shard and in total (process CPU of every shard plus the coordinator's), coordinator CPU,
+busy fraction, the share of shard CPU in named phases, wavefront steps, parcels, ray bytes,
+and PSNR of proxy against exact at the same K.
+
+    python -m bench.render.bench_strong_scaling                      # forest, city; 640x360 16 spp
+    python -m bench.render.bench_strong_scaling --scenes forest --ks 1 2 --width 320 --spp 4
+    python -m bench.render.bench_strong_scaling --smoke              # CI: tiny, no README
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import numpy as np
+
+from bench.common import add_output_flags, finish, machine, quality, smoke
+from nprt.scene.store import open_scene
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
+
+TARGETS = {"proxy_k8_wall": 0.3, "exact_k8_wall": 0.5, "proxy_cpu": 2.0, "exact_cpu": 3.0,
+           "coordinator_cpu_share": 0.05, "exact_k2_wall_2core": 0.8, "proxy_k2_wall_2core": 0.65}
+
+
+def cpu_model() -> str:
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def run_one(scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
+    """Prepare a renderer (pool start or reference set-up), then one timed render."""
+    from nprt.workers.render import make_renderer
+
+    t0 = time.perf_counter()
+    renderer = make_renderer(scene, s)
+    prepare = time.perf_counter() - t0
+    try:
+        t0 = time.perf_counter()
+        result = render(scene, s, renderer=renderer)
+        wall = time.perf_counter() - t0
+        info = renderer.info()
+    finally:
+        renderer.close()
+    st = result.stats.to_dict()
+    shards = info.get("shard_stats", [])
+    row = {"mode": s.mode if s.shards else "reference", "k": s.shards,
+           "prepare_s": round(prepare, 3), "render_s": round(wall, 3),
+           "cpu_s": info.get("cpu_s"),
+           "coordinator_cpu_s": info.get("coordinator_cpu_s", 0.0),
+           "shard_cpu_s": [x["cpu_s"] for x in shards],
+           "busy_fraction": [x["busy_fraction"] for x in shards],
+           "named_cpu_fraction": [x["cpu_named_fraction"] for x in shards],
+           "steps": sum(x["steps"] for x in shards), "parcels": sum(x["calls"] for x in shards),
+           "ray_bytes": st["total_bytes"], "transfers": st["total_transfers"],
+           "phase_cpu_s": st["phase_cpu_s"]}
+    return row, result.film.image()
+
+
+def bench(args) -> dict:
+    rows = []
+    for name in args.scenes:
+        scene = open_scene(name if args.size == "default" else f"{name}:{args.size}")
+        base = dict(width=args.width, height=args.height, spp=args.spp, seed=0,
+                    spp_per_pass=args.spp_per_pass)
+        ref, ref_img = run_one(scene.load(), RenderSettings(**base, shards=0))
+        ref.update(scene=name, wall_ratio=1.0, cpu_ratio=1.0)
+        rows.append(ref)
+        print(_line(ref), flush=True)
+        for k in args.ks:
+            exact_img = None
+            for mode in args.modes:
+                row, img = run_one(scene, RenderSettings(**base, shards=k, mode=mode))
+                row.update(scene=name, wall_ratio=round(row["render_s"] / ref["render_s"], 3),
+                           cpu_ratio=round(row["cpu_s"] / ref["cpu_s"], 3),
+                           coordinator_share=round(row["coordinator_cpu_s"] / row["cpu_s"], 4))
+                if mode == "exact":
+                    exact_img = img
+                    row["psnr_vs_reference_db"] = quality(ref_img, img)["psnr_db"]
+                elif exact_img is not None:
+                    row["psnr_vs_exact_db"] = quality(exact_img, img)["psnr_db"]
+                rows.append(row)
+                print(_line(row), flush=True)
+    return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count(),
+                        "cpu_model": cpu_model()},
+            "settings": vars(args) | {"out": str(args.out)}, "targets": TARGETS, "rows": rows}
+
+
+def _line(r: dict) -> str:
+    return (f"{r['scene'] if 'scene' in r else ''} {r['mode']:9s} K={r['k']:2d} "
+            f"render {r['render_s']:7.2f} s  cpu {r['cpu_s']:7.2f} s  "
+            f"coord {r['coordinator_cpu_s']:.2f} s  bytes {r['ray_bytes'] / 1e6:.1f} MB")
+
+
+def markdown(res: dict) -> str:
+    m = res["machine"]
+    out = [f"Machine: {m['nproc']} cores ({m['cpu_model']}), Ray {m['ray']}.", "",
+           "| scene | renderer | K | render s | vs reference | CPU s (all) | CPU vs ref | "
+           "coordinator CPU s (share) | shard CPU s | busy | named CPU | steps | parcels | "
+           "ray MB | PSNR dB |",
+           "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|"]
+    for r in res["rows"]:
+        named = [x for x in r["named_cpu_fraction"] if x is not None]
+        psnr = r.get("psnr_vs_exact_db", r.get("psnr_vs_reference_db", ""))
+        out.append(
+            f"| {r['scene']} | {r['mode']} | {r['k']} | {r['render_s']:.2f} | "
+            f"{r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x | "
+            f"{r['coordinator_cpu_s']:.2f} ({100 * r.get('coordinator_share', 0):.1f} %) | "
+            f"{', '.join(f'{c:.1f}' for c in r['shard_cpu_s'])} | "
+            f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | "
+            f"{min(named) if named else 1.0:.3f} | {r['steps']} | {r['parcels']} | "
+            f"{r['ray_bytes'] / 1e6:.1f} | {psnr if psnr != '' else ''} |")
+    return "\n".join(out)
+
+
+def plot(res: dict, png) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = sorted({r["scene"] for r in res["rows"]})
+    fig, axes = plt.subplots(2, len(scenes), figsize=(5 * len(scenes), 7), squeeze=False)
+    for j, name in enumerate(scenes):
+        rows = [r for r in res["rows"] if r["scene"] == name]
+        for mode, style in (("exact", "o-"), ("proxy", "s-")):
+            rs = [r for r in rows if r["mode"] == mode]
+            if rs:
+                ks = [r["k"] for r in rs]
+                axes[0, j].plot(ks, [r["wall_ratio"] for r in rs], style, label=mode)
+                axes[1, j].plot(ks, [r["cpu_ratio"] for r in rs], style, label=mode)
+        for i, what in enumerate(("render wall / 1-core reference",
+                                  "total CPU / reference CPU")):
+            ax = axes[i, j]
+            ax.axhline(1.0, color="gray", lw=1, ls="--", label="reference")
+            ax.set_xscale("log", base=2)
+            ax.set_xlabel("shards K")
+            ax.set_ylabel(what)
+            ax.set_title(f"{name}, {res['machine']['nproc']} cores")
+            ax.legend()
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench.render.bench_strong_scaling",
+                                 description=__doc__)
+    ap.add_argument("--scenes", nargs="+", default=["forest", "city"])
+    ap.add_argument("--size", default="default")
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--height", type=int, default=360)
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--spp-per-pass", type=int, default=4)
+    ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
+    cores = os.cpu_count() or 2
+    default_ks = [k for k in (1, 2, 4, 8, 12, 14) if k <= max(2, cores - 2)]
+    ap.add_argument("--ks", type=int, nargs="+", default=default_ks)
+    ap.add_argument("--tag", default=None, help="results file suffix (default: <nproc>core)")
+    add_output_flags(ap)
+    args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
+                 spp=1, spp_per_pass=1, ks=[2])
+    res = bench(args)
+    tag = args.tag or f"{os.cpu_count()}core"
+    finish(res, args.out / f"strong_scaling_{tag}.json", plot=plot, markdown=markdown,
+           section=f"bench_strong_scaling_{tag}", update_readme=not args.no_readme,
+           intro=f"`python -m bench.render.bench_strong_scaling` on {tag} "
+                 "(`{json}`):\n\n![]({png})\n\n")
+
+
+if __name__ == "__main__":
+    main()
