@@ -11,6 +11,7 @@ import pytest
 import trimesh
 
 from nprt.workers.kernels import bvh as kernels
+from nprt.workers.kernels import pairs as pair_kernels
 from nprt.workers.traversal.toplevel import BVH_MIN_INSTANCES, InstanceTable
 from tests.workers.helpers import Instance, Scene, mesh_from_trimesh, plane_mesh, trs
 
@@ -343,7 +344,7 @@ def test_to_local_sums_in_a_fixed_order():
                        atol=1e-6)
 
 
-def test_closest_candidates_equals_lexsort_of_all_hits():
+def test_fold_closest_equals_lexsort_of_all_hits():
     # The oracle is how LocalGeometry picked hits before: sort all (ray, t, inst), take
     # each ray's first. Many exact ties in t, so the lowest-instance rule is exercised.
     rng = np.random.default_rng(8)
@@ -357,9 +358,10 @@ def test_closest_candidates_equals_lexsort_of_all_hits():
     u, v = rng.random(len(ray)).astype(np.float32), rng.random(len(ray)).astype(np.float32)
     state = (np.full(n, np.inf, np.float32), np.full(n, -1, np.int32),
              np.full(n, -1, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32))
+    tmax, cut = np.full(n, np.inf, np.float32), np.full(n, np.inf, np.float32)
     for part in np.array_split(np.arange(len(ray)), 5):  # folded in per mesh
-        kernels.closest_candidates(ray[part], t[part], inst[part], prim[part], u[part],
-                                   v[part], *state)
+        pair_kernels.fold_closest(ray[part], inst[part], t[part], prim[part], u[part],
+                                  v[part], tmax, *state, cut)
     order = np.lexsort((inst, t, ray))
     first = order[np.r_[True, ray[order][1:] != ray[order][:-1]]]
     r = ray[first]
@@ -367,3 +369,4 @@ def test_closest_candidates_equals_lexsort_of_all_hits():
     for name, got, want in zip(("t", "inst", "prim", "u", "v"), state,
                                (t, inst, prim, u, v), strict=True):
         assert np.array_equal(got[r], want[first]), f"{name} differs from the lexsort pick"
+    assert np.array_equal(cut[r], t[first]), "the cut does not follow the closest hit"

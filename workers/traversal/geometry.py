@@ -30,10 +30,6 @@ class MeshGeometry:
     def __repr__(self) -> str:
         return f"MeshGeometry({self.mesh.name!r}, {len(self.mesh.faces)} triangles)"
 
-    def bounds(self) -> np.ndarray:
-        """(2, 3) float64 local AABB."""
-        return self.mesh.bounds
-
     def intersect_closest(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray):
         """Closest hit within (0, tmax).
 
@@ -44,25 +40,30 @@ class MeshGeometry:
         if len(origin) == 0:
             z = np.zeros(0, np.float32)
             return z, np.zeros(0, np.int32), z, z
-        r = self._scene.run(
-            np.ascontiguousarray(origin, dtype=EMBREE_DTYPE),
-            np.ascontiguousarray(direction, dtype=EMBREE_DTYPE),
-            # A copy: embreex writes each hit's tfar back into `dists` in place.
-            dists=np.array(tmax, dtype=EMBREE_DTYPE),
-            output=1,
-        )
-        prim = r["primID"].astype(np.int32)
-        t = np.where(prim >= 0, r["tfar"], _NO_HIT_T).astype(np.float32)
-        return t, prim, r["u"].astype(np.float32), r["v"].astype(np.float32)
+        # A copy: embreex writes each hit's tfar back into `dists` in place.
+        t, prim, u, v = self.closest_into(np.ascontiguousarray(origin, dtype=EMBREE_DTYPE),
+                                          np.ascontiguousarray(direction, dtype=EMBREE_DTYPE),
+                                          np.array(tmax, dtype=EMBREE_DTYPE))
+        return np.where(prim >= 0, t, _NO_HIT_T).astype(np.float32), prim, u, v
+
+    def closest_into(self, origin: np.ndarray, direction: np.ndarray, tfar: np.ndarray):
+        """`intersect_closest` without copies, for the traversal's own buffers: origin,
+        direction (n, 3) float32 C-contiguous; tfar (n,) float32, overwritten with each
+        hit's t (unchanged where prim is -1). Returns tfar, prim, u, v as Embree wrote them."""
+        r = self._scene.run(origin, direction, dists=tfar, output=1)
+        return r["tfar"], r["primID"], r["u"], r["v"]
 
     def intersect_occluded(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray):
         """Any hit within (0, tmax). Shapes as intersect_closest; returns (n,) bool."""
         if len(origin) == 0:
             return np.zeros(0, bool)
-        r = self._scene.run(
-            np.ascontiguousarray(origin, dtype=EMBREE_DTYPE),
-            np.ascontiguousarray(direction, dtype=EMBREE_DTYPE),
-            dists=np.array(tmax, dtype=EMBREE_DTYPE),  # copy: embreex writes tfar in place
-            query="OCCLUDED",
-        )
-        return np.asarray(r) >= 0
+        return self.occluded_into(np.ascontiguousarray(origin, dtype=EMBREE_DTYPE),
+                                  np.ascontiguousarray(direction, dtype=EMBREE_DTYPE),
+                                  np.array(tmax, dtype=EMBREE_DTYPE))
+
+    def occluded_into(self, origin: np.ndarray, direction: np.ndarray,
+                      tmax: np.ndarray) -> np.ndarray:
+        """`intersect_occluded` without copies: tmax (n,) float32 is the caller's to lose
+        (embreex may write it)."""
+        return np.asarray(self._scene.run(origin, direction, dists=tmax,
+                                          query="OCCLUDED")) >= 0

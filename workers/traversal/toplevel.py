@@ -7,6 +7,7 @@ import numpy as np
 
 from nprt.scene.model import Scene
 from nprt.workers.kernels import bvh as kernels
+from nprt.workers.kernels import pairs as pair_kernels
 
 # Boxes are padded so flat geometry (a ground quad) never yields a zero-width slab.
 BOX_PAD_REL = 1e-5
@@ -54,6 +55,16 @@ class InstanceTable:
         self._world_to_local = np.array(self.world_to_local, np.float64, order="C")
 
     @property
+    def n_mesh(self) -> int:
+        """One more than the largest base mesh index of any instance (0 for none)."""
+        return int(self._mesh.max()) + 1 if len(self._mesh) else 0
+
+    def kernel_arrays(self) -> tuple[np.ndarray, int, np.ndarray]:
+        """What the pair kernels (`nprt.workers.kernels.pairs`) read: mesh of each instance
+        (m,) int32, the mesh count, world_to_local (m, 3, 4) float64; owned and writable."""
+        return self._mesh, self.n_mesh, self._world_to_local
+
+    @property
     def bvh(self) -> tuple | None:
         """`kernels.bvh_build(world_bounds)`'s arrays, or None (no boxes, or non-finite)."""
         return None if self._bvh is None else self._bvh[1:]
@@ -81,7 +92,7 @@ class InstanceTable:
         returns origin, direction : (n, 3) float32 local (direction not renormalised,
         so t is the same in both spaces)
         """
-        return kernels.to_local(np.asarray(inst, np.int32), self._world_to_local,
+        return pair_kernels.to_local(np.asarray(inst, np.int32), self._world_to_local,
                                 np.array(origin, np.float64, order="C"),
                                 np.array(direction, np.float64, order="C"))
 
@@ -94,9 +105,8 @@ class InstanceTable:
         are start[g]:start[g + 1], each in the order given), local origin, direction
         (p, 3) float32
         """
-        n_mesh = int(self._mesh.max()) + 1 if len(self._mesh) else 0
-        return kernels.pairs_by_mesh(
-            np.asarray(ray, np.int64), np.asarray(inst, np.int32), self._mesh, n_mesh,
+        return pair_kernels.pairs_by_mesh(
+            np.asarray(ray, np.int64), np.asarray(inst, np.int32), self._mesh, self.n_mesh,
             self._world_to_local, np.array(origin, np.float64, order="C"),
             np.array(direction, np.float64, order="C"))
 
