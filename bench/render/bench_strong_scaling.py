@@ -15,6 +15,7 @@ and PSNR of proxy against exact at the same K.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import time
@@ -93,9 +94,16 @@ def bench(args) -> dict:
                     row["psnr_vs_exact_db"] = quality(exact_img, img)["psnr_db"]
                 rows.append(row)
                 print(_line(row), flush=True)
+                _partial(args, rows)
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count(),
                         "cpu_model": cpu_model()},
             "settings": vars(args) | {"out": str(args.out)}, "targets": TARGETS, "rows": rows}
+
+
+def _partial(args, rows: list[dict]) -> None:
+    """Rows so far, so a run cut short by a time limit still leaves them."""
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "strong_scaling_partial.json").write_text(json.dumps(rows, indent=1))
 
 
 def _line(r: dict) -> str:
