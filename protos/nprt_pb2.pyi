@@ -44,20 +44,28 @@ IMAGE_FORMAT_PNG: ImageFormat
 IMAGE_FORMAT_EXR: ImageFormat
 
 class ProxySettings(_message.Message):
-    __slots__ = ("threshold", "band", "accuracy_target", "shadow_band", "width", "steps")
+    __slots__ = ("threshold", "band", "accuracy_target", "shadow_band", "width", "steps", "accuracy", "check", "internal_margin", "internal_ambiguous")
     THRESHOLD_FIELD_NUMBER: _ClassVar[int]
     BAND_FIELD_NUMBER: _ClassVar[int]
     ACCURACY_TARGET_FIELD_NUMBER: _ClassVar[int]
     SHADOW_BAND_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     STEPS_FIELD_NUMBER: _ClassVar[int]
+    ACCURACY_FIELD_NUMBER: _ClassVar[int]
+    CHECK_FIELD_NUMBER: _ClassVar[int]
+    INTERNAL_MARGIN_FIELD_NUMBER: _ClassVar[int]
+    INTERNAL_AMBIGUOUS_FIELD_NUMBER: _ClassVar[int]
     threshold: float
     band: float
     accuracy_target: float
     shadow_band: float
     width: int
     steps: int
-    def __init__(self, threshold: _Optional[float] = ..., band: _Optional[float] = ..., accuracy_target: _Optional[float] = ..., shadow_band: _Optional[float] = ..., width: _Optional[int] = ..., steps: _Optional[int] = ...) -> None: ...
+    accuracy: str
+    check: bool
+    internal_margin: float
+    internal_ambiguous: str
+    def __init__(self, threshold: _Optional[float] = ..., band: _Optional[float] = ..., accuracy_target: _Optional[float] = ..., shadow_band: _Optional[float] = ..., width: _Optional[int] = ..., steps: _Optional[int] = ..., accuracy: _Optional[str] = ..., check: _Optional[bool] = ..., internal_margin: _Optional[float] = ..., internal_ambiguous: _Optional[str] = ...) -> None: ...
 
 class RenderSettings(_message.Message):
     __slots__ = ("width", "height", "spp", "bounces", "shadow_rays", "seed", "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass", "proxy")

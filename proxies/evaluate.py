@@ -57,6 +57,30 @@ def confidence_curve(proxy: Proxy, samples: RaySamples, threshold: float,
     return out
 
 
+# Bands at which a proxy's held-out error curve is recorded (its report's "curve"): the
+# accuracy target picks, per mesh and ray kind, the narrowest of these that meets it.
+CURVE_BANDS = (0.0, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 1.0)
+
+
+def error_curve(proxy: Proxy, samples: RaySamples, threshold: float,
+                bands=CURVE_BANDS) -> dict:
+    """What trusting the proxy outside each band costs, as rates over all held-out queries:
+    share (answered by the proxy: |visibility - threshold| >= band), fp (answered "hit"
+    where the ray passes: a shadow ray darkened), fn (answered "miss" where it hits: a
+    surface skipped by a secondary ray, a shadow ray lit). Lists of floats, one per band."""
+    vis, _ = proxy.query(samples.points, samples.directions, min_visibility=np.inf)
+    pred, hit = vis >= threshold, samples.hit
+    margin = np.abs(vis - threshold)
+    out = {"band": [], "share": [], "fp": [], "fn": []}
+    for band in bands:
+        conf = margin >= band
+        out["band"].append(float(band))
+        out["share"].append(round(float(conf.mean()), 6))
+        out["fp"].append(round(float((conf & pred & ~hit).mean()), 6))
+        out["fn"].append(round(float((conf & ~pred & hit).mean()), 6))
+    return out
+
+
 def internal_metrics(proxy: Proxy, mesh: Mesh, n: int, seed: int, threshold: float,
                      geometry=None) -> dict:
     """The paper's internal-ray rule (exit point, reversed direction; a hit iff visible and
@@ -103,9 +127,12 @@ def throughput(proxy: Proxy, n: int = BENCH_BATCH, threads: int = BENCH_THREADS,
 
 def evaluate(proxy: Proxy, mesh: Mesh, n: int, seed: int, grid: int = 128,
              geometry=None, threshold: float | None = None, speed: bool = True) -> dict:
-    """Held-out report: query metrics, internal-ray metrics, size and queries/s."""
+    """Held-out report: query metrics, the error curve, internal-ray metrics, size and
+    queries/s."""
     thr = proxy.meta["threshold"] if threshold is None else threshold
-    report = query_metrics(proxy, sample_rays(mesh, n, seed, grid, geometry), thr)
+    samples = sample_rays(mesh, n, seed, grid, geometry)
+    report = query_metrics(proxy, samples, thr)
+    report["curve"] = error_curve(proxy, samples, thr)
     report.update(internal_metrics(proxy, mesh, max(1, n // 4), seed + 1, thr, geometry))
     report["eval_rays"] = int(n)
     report["threshold"] = float(thr)

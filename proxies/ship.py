@@ -23,6 +23,10 @@ TARGET_ACCURACY = 0.97  # the render path's default in plan_proxies
 # `bench.proxy.bench_proxy_family` render, with every width the policy tries: the test forces
 # width 16, and the benchmark's policy run (--proxy-width 0) needs the rest. No training.
 FAMILY_SIZE, FAMILY_WIDTHS = "small", DEFAULT_WIDTHS
+# The foliage scene (family.build_foliage) at the size bench_proxy_accuracy renders, and at
+# the size tests/distributed/test_accuracy_target.py renders with width 16 and TEST_STEPS.
+FOLIAGE_SIZE = "default"
+TEST_SIZE, TEST_STEPS = "tiny", 3000
 
 
 def _open(name: str, size: str):
@@ -43,6 +47,35 @@ def _open(name: str, size: str):
                                         names={i: m.name for i, m in enumerate(meta.meshes)})
 
 
+def add_curves(cache: ProxyCache, scene, widths=DEFAULT_WIDTHS,
+               config: ProxyConfig | None = None) -> int:
+    """Record the held-out error curve (nprt.proxies.evaluate.error_curve, on the report's own
+    held-out rays) in cached proxies of `scene` trained before it was part of the report;
+    the nets are untouched. Returns how many files were rewritten."""
+    from nprt.proxies.config import EVAL_SEED_OFFSET
+    from nprt.proxies.evaluate import error_curve
+    from nprt.proxies.inference import Proxy
+    from nprt.proxies.sampling import sample_rays
+
+    config = config or ProxyConfig()
+    done = 0
+    for mesh in scene.meshes:
+        for w in widths:
+            cfg = config.with_width(w)
+            proxy = cache.get(mesh, cfg)
+            if proxy is None or "curve" in proxy.meta.get("report", {}):
+                continue
+            samples = sample_rays(mesh, cfg.eval_samples, cfg.seed + EVAL_SEED_OFFSET, cfg.grid)
+            meta = dict(proxy.meta)
+            meta["report"] = {**meta["report"],
+                              "curve": error_curve(proxy, samples, meta["threshold"])}
+            fresh = Proxy(meta, proxy.models)
+            fresh.timing = proxy.timing
+            cache.put(mesh, cfg, fresh)
+            done += 1
+    return done
+
+
 def main(argv=None) -> int:
     from nprt.scene.demos import DEMO_SIZES, DEMOS, family
     from nprt.scene.partition import partition
@@ -59,6 +92,9 @@ def main(argv=None) -> int:
                     help=f"also the test family scene ({FAMILY_SIZE}, widths {FAMILY_WIDTHS})")
     ap.add_argument("--prune", action="store_true",
                     help="delete files in --out that no demo mesh uses any more")
+    ap.add_argument("--curves-only", action="store_true",
+                    help="train nothing: add the held-out error curve to cached proxies "
+                         "whose report lacks it")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     cache = ProxyCache(args.out, shipped_dir=None)
@@ -68,15 +104,26 @@ def main(argv=None) -> int:
             if size in DEMO_SIZES[name]]
     if args.family:
         jobs.append(("family", FAMILY_SIZE, FAMILY_WIDTHS))
+        jobs.append(("foliage", FOLIAGE_SIZE, DEFAULT_WIDTHS))
+        jobs.append(("foliage-test", TEST_SIZE, (16,)))
     for name, size, widths in jobs:
-        scene, trainer = (family.build(size), None) if name == "family" else _open(name, size)
+        if name in ("family", "foliage", "foliage-test"):
+            build = family.build if name == "family" else family.build_foliage
+            scene, trainer = build(size), None
+        else:
+            scene, trainer = _open(name, size)
+        cfg = ProxyConfig(steps=TEST_STEPS) if name == "foliage-test" else config
+        if args.curves_only:
+            print(f"{name} {size}: {add_curves(cache, scene, widths, cfg)} curves added",
+                  flush=True)
+            continue
         plan = plan_proxies(scene, partition(scene, SHARDS), TARGET_ACCURACY, cache,
-                            train=True, config=config, widths=widths,
+                            train=True, config=cfg, widths=widths,
                             progress=sys.stderr.isatty(),
                             trainer=trainer and trainer(cache.dir))
         for d in plan.decisions:
             mesh = scene.meshes[d.mesh]
-            keep.update(file_name(mesh, config.with_width(w)) for w in d.tried)
+            keep.update(file_name(mesh, cfg.with_width(w)) for w in d.tried)
             print(f"{name:9s} {size:7s} {d.name:10s} {d.decision:9s} w={d.width} "
                   f"acc={d.accuracy} bytes={d.proxy_bytes} {d.reason}", flush=True)
     files = sorted(cache.dir.glob(f"*{SUFFIX}"))

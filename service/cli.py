@@ -67,10 +67,19 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
                    help="samples per pixel that one pass renders")
     p.add_argument("--threshold", type=float, default=None,
                    help="proxy visibility threshold (default: each proxy's calibrated one)")
-    p.add_argument("--band", type=float, default=ProxySettings().band,
-                   help="proxy confidence band for secondary rays (wider: more exact fallback)")
-    p.add_argument("--shadow-band", type=float, default=ProxySettings().shadow_band,
-                   help="proxy confidence band for shadow rays (0: shadow rays never move)")
+    p.add_argument("--accuracy", default=None,
+                   help="what the image needs against exact: a PSNR ('40dB') or 'exact'; "
+                        "nprt picks each proxy's bands to meet it (default: "
+                        f"{ProxySettings().accuracy:g}dB)")
+    p.add_argument("--check", action="store_true",
+                   help="proxy mode: afterwards, render 1/64 of the pixels exactly and report "
+                        "the measured PSNR beside the accuracy target")
+    p.add_argument("--band", type=float, default=None,
+                   help="hand-set proxy confidence band for secondary rays, instead of "
+                        f"--accuracy (wider: more exact fallback; {ProxySettings().band:g})")
+    p.add_argument("--shadow-band", type=float, default=None,
+                   help="hand-set band for shadow rays, instead of --accuracy (0: shadow "
+                        f"rays never move; {ProxySettings().shadow_band:g})")
     p.add_argument("--proxy-width", type=int, default=None, choices=(16, 32, 64, 128, 256),
                    help="one proxy width for every mesh (default: narrowest meeting 97%%)")
     p.add_argument("--proxy-steps", type=int, default=ProxyConfig.steps,
@@ -90,8 +99,10 @@ def settings_from_args(a: argparse.Namespace):
         shadow_rays=a.shadow_rays, seed=a.seed, russian_roulette=a.russian_roulette,
         shards=a.shards, mode=a.mode, tile_size=a.tile_size,
         spp_per_pass=min(a.spp_per_pass, max(a.spp, 1)),  # a bad --spp: one error
-        proxy=ProxySettings(threshold=a.threshold, band=a.band, shadow_band=a.shadow_band,
-                            width=a.proxy_width, steps=a.proxy_steps))
+        proxy=ProxySettings(threshold=a.threshold, width=a.proxy_width, steps=a.proxy_steps,
+                            check=a.check, **{k: v for k, v in (
+                                ("accuracy", a.accuracy), ("band", a.band),
+                                ("shadow_band", a.shadow_band)) if v is not None}))
 
 
 def render_with_progress(scene, settings, ray_address=None, label="render"):
@@ -156,6 +167,11 @@ def cmd_render(a: argparse.Namespace) -> int:
     out = res.film.save(a.output)
     print(f"wrote {out} ({settings.width}x{settings.height}, {settings.spp} spp) "
           f"in {res.info['wall_s']:.2f} s")
+    if "accuracy" in res.info:
+        from nprt.proxies.check import summary_lines
+
+        for line in summary_lines(res.info["accuracy"]):
+            print(line)
     if a.stats:
         Path(a.stats).parent.mkdir(parents=True, exist_ok=True)  # as the image's is
         Path(a.stats).write_text(json.dumps(res.stats_dict(), indent=2))

@@ -17,7 +17,8 @@ STATE_TO_PB = {
 }
 _SETTINGS_FIELDS = ("width", "height", "spp", "bounces", "shadow_rays", "seed",
                     "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass")
-_PROXY_FIELDS = ("threshold", "band", "accuracy_target", "shadow_band", "width", "steps")
+_PROXY_FIELDS = ("threshold", "band", "accuracy_target", "shadow_band", "width", "steps",
+                 "accuracy", "check", "internal_margin", "internal_ambiguous")
 
 
 def settings_from_pb(msg: pb.RenderSettings) -> RenderSettings:
@@ -32,7 +33,9 @@ def settings_to_pb(s: dict) -> pb.RenderSettings:
     rs = RenderSettings.model_validate(s)
     proxy: ProxySettings = rs.proxy
     return pb.RenderSettings(**{f: getattr(rs, f) for f in _SETTINGS_FIELDS},
-                             proxy=pb.ProxySettings(**proxy.model_dump(exclude_none=True)))
+                             proxy=pb.ProxySettings(**{
+                                 k: str(v) if k == "accuracy" else v
+                                 for k, v in proxy.model_dump(exclude_none=True).items()}))
 
 
 def job_to_pb(r: JobRecord) -> pb.Job:

@@ -141,14 +141,21 @@ def render(scene: Scene | SceneMeta, settings: RenderSettings, *,
         if progress.count < total:
             raise RenderCanceled(f"canceled with {progress.count} of {total} passes done")
         info = dict(renderer.info())
-        if settings.mode == "proxy":  # target, prediction and the optional exact check
+        if settings.mode == "proxy":  # the accuracy target and the predicted error
             from nprt.proxies.check import accuracy_report
 
-            info["accuracy"] = accuracy_report(scene, settings, renderer.plan, film, stats,
-                                               ray_address, proxy_dir)
+            info["accuracy"] = accuracy_report(scene, settings, renderer.plan, stats)
     finally:
         if own:
             renderer.close()
+    if settings.mode == "proxy" and settings.proxy.check:
+        # On a pool of its own once this one is closed; a caller that passed its renderer
+        # runs nprt.proxies.check.run_check itself after closing it.
+        from nprt.proxies.check import run_check
+
+        info["accuracy"] = run_check(scene, settings, film, info["accuracy"], ray_address,
+                                     proxy_dir) if own else {**info["accuracy"],
+                                                             "check": "deferred"}
     info["wall_s"] = round(time.perf_counter() - t0, 4)
     info["passes"] = total
     info["settings"] = settings.model_dump()

@@ -4,17 +4,28 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from nprt.proxies.accuracy import parse_accuracy
 from nprt.proxies.config import ProxyConfig
 
 Mode = Literal["exact", "proxy", "oracle"]
 
 
 class ProxySettings(BaseModel):
-    """The speed/accuracy knobs of the proxy traversal (DESIGN.md, "Traversal policies")."""
+    """The speed/accuracy knobs of the proxy traversal (DESIGN.md, "Traversal policies").
+
+    `accuracy` (a PSNR against exact, or "exact") picks each proxy's bands from its own
+    held-out error curve (nprt.proxies.accuracy); giving `band` or `shadow_band` instead
+    sets them by hand for every proxy (accuracy then defaults to None)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+    accuracy: float | Literal["exact"] | None = Field(
+        40.0, description="what the job needs: a PSNR in dB against exact ('40dB' or 40), "
+                          "or 'exact'; null: the hand-set band and shadow_band")
+    check: bool = Field(False, description="after the render, render 1/64 of the pixels (8x8 "
+                                           "blocks) exactly and report the measured PSNR "
+                                           "with its 95 % interval beside the target")
     threshold: float | None = Field(
         None, ge=0.0, le=1.0,
         description="visibility at or above this is a hit; unset: each proxy's own threshold, "
@@ -39,6 +50,29 @@ class ProxySettings(BaseModel):
                        description="training budget per proxy (both nets), optimiser steps; "
                                    "the same steps give the same proxy bytes, and the shipped "
                                    "proxies are trained at the default")
+    # Internal case, secondary rays: the depth net cannot tell on which side of the origin a
+    # surface lies when it is predicted within this fraction of the proxy's held-out
+    # 90th-percentile depth error of it (bench/README.md, "The unsure zone around the origin").
+    internal_margin: float = Field(0.5, ge=0.0, le=10.0,
+                                   description="unsure zone of an internal answer around the "
+                                               "origin, in the proxy's p90 depth errors")
+    internal_ambiguous: Literal["exact", "trust"] = Field(
+        "exact", description="a ray that also confidently hits a box it starts inside, other "
+                             "than the chosen one: forward exactly, or trust the prediction")
+
+    @field_validator("accuracy", mode="before")
+    @classmethod
+    def _parse_accuracy(cls, v):
+        return parse_accuracy(v)
+
+    @model_validator(mode="before")
+    @classmethod
+    def _bands_or_accuracy(cls, data):
+        """Hand-set bands without an accuracy mean the bands are wanted as given."""
+        if isinstance(data, dict) and "accuracy" not in data and (
+                data.get("band") is not None or data.get("shadow_band") is not None):
+            data = {**data, "accuracy": None}
+        return data
 
 
 class RenderSettings(BaseModel):

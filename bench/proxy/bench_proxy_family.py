@@ -18,9 +18,9 @@ import argparse
 import json
 import logging
 import os
-from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+from bench.common import RESULTS, smoke
+
 COUNTERS = ("proxy_targeted", "proxy_internal_targeted", "proxy_internal_ambiguous",
             "proxy_mispredictions", "proxy_internal_mispredictions", "proxy_uncertain",
             "proxy_settled")
@@ -45,17 +45,14 @@ def main(argv=None) -> int:
     ap.add_argument("--internal", choices=("exact", "trust"), default="exact")
     ap.add_argument("--internal-margin", type=float, default=None,
                     help="unsure zone of internal answers around the origin, in p90 depth "
-                         "errors (default: nprt.workers.routing.proxy_query.INTERNAL_MARGIN)")
+                         "errors (default: ProxySettings.internal_margin)")
     ap.add_argument("--band", type=float, default=ProxySettings().band,
                     help="confidence band of secondary rays (default: the render default)")
     ap.add_argument("--shadow-band", type=float, default=ProxySettings().shadow_band,
                     help="confidence band of shadow rays (default: the render default)")
-    args = ap.parse_args(argv)
-    # Read by nprt.workers.routing.proxy_query at import, in the shard actors started
-    # after ray.init.
-    os.environ["NPRT_PROXY_INTERNAL_AMBIGUOUS"] = args.internal
-    if args.internal_margin is not None:
-        os.environ["NPRT_PROXY_INTERNAL_MARGIN"] = str(args.internal_margin)
+    ap.add_argument("--smoke", action="store_true", help="tiny scene, for the CI smoke test")
+    # smoke: "small", whose width-16 proxies are shipped (tiny ones would be trained)
+    args = smoke(ap.parse_args(argv), size="small", shards=2, width=16, spp=1)
     scene = family.build(args.size)
     base = RenderSettings(width=args.width, height=args.width * 3 // 4, spp=args.spp,
                           spp_per_pass=args.spp, bounces=5, seed=0, shards=args.shards)
@@ -63,8 +60,11 @@ def main(argv=None) -> int:
              logging_level=logging.WARNING)
     try:
         ex_row, ex_img, _ = timed_render(scene, base)
+        margin = {} if args.internal_margin is None else {
+            "internal_margin": args.internal_margin}
         knobs = ProxySettings(width=args.proxy_width or None, band=args.band,
-                              shadow_band=args.shadow_band)
+                              shadow_band=args.shadow_band, internal_ambiguous=args.internal,
+                              **margin)
         s = base.model_copy(update={"mode": "proxy", "proxy": knobs})
         px_row, px_img, info = timed_render(scene, s)
     finally:

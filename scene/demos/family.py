@@ -3,6 +3,9 @@ instance boxes overlap heavily: foliage clusters (random leaf quads around a tru
 shells, meshes with holes and interpenetrating parts. Deterministic from a seed.
 
 Not a demo (DEMOS lists those); `build` gives the scene, `family_meshes` the meshes alone.
+`build_foliage` is a second scene kept out of every default's tuning: leaf clouds of thousands
+of small quads, each mesh heavier than the widest proxy (so the policy cannot replicate it),
+in interpenetrating instances, with finely tessellated rocks under a sun and sky.
 """
 
 from __future__ import annotations
@@ -110,16 +113,19 @@ def build(size: str = "small", seed: int = 0) -> Scene:
     s = rng.uniform(0.8, 1.3, size=n)
     xf = placement(rng.uniform(0, 2 * np.pi, n), np.repeat(s[:, None], 3, 1), pos)
     half = cfg["half"]
-    return Scene(
-        meshes=tuple(meshes),
-        instances=Instances(np.r_[0, kinds], np.concatenate([np.eye(4)[None], xf])),
-        materials=materials,
-        quad_lights=(sun_panel((0.3 * half, 0.2 * half), 40.0, 10.0, 3.0),),
-        environment=sky(0.9),
-        camera=Camera(eye=(0.0, 4.0 + 0.3 * half, half + 8.0), target=(0.0, 1.5, 0.0),
-                      fov_deg=50.0),
-        name=f"family-{size}",
-    )
+    return _on_ground(meshes, kinds, xf, materials,
+                      sun_panel((0.3 * half, 0.2 * half), 40.0, 10.0, 3.0), sky(0.9),
+                      Camera(eye=(0.0, 4.0 + 0.3 * half, half + 8.0), target=(0.0, 1.5, 0.0),
+                             fov_deg=50.0), f"family-{size}")
+
+
+def _on_ground(meshes, kinds, xf, materials, sun, environment, camera, name) -> Scene:
+    """meshes[0] is the ground, instance 0 (identity); kinds (n,) the meshes of the others,
+    placed by xf (n, 4, 4)."""
+    return Scene(meshes=tuple(meshes),
+                 instances=Instances(np.r_[0, kinds], np.concatenate([np.eye(4)[None], xf])),
+                 materials=materials, quad_lights=(sun,), environment=environment,
+                 camera=camera, name=name)
 
 
 def overlap_fraction(scene: Scene) -> float:
@@ -129,3 +135,53 @@ def overlap_fraction(scene: Scene) -> float:
     inter = np.all((lo[:, None] < hi[None]) & (lo[None] < hi[:, None]), axis=2)
     np.fill_diagonal(inter, False)
     return float(inter.any(axis=1).mean())
+
+
+# Per size: leaves of the two tree meshes (72 bytes a leaf: every mesh but "tiny"'s outweighs
+# a width-64 proxy, about 163 kB), rock subdivisions, trees and rocks, half extent of the
+# patch. "tiny" is for tests, with width 16 forced (a 22 kB proxy).
+FOLIAGE_SIZES = {
+    "default": dict(leaves=(8000, 5000), subdiv=5, trees=14, rocks=5, half=5.0),
+    "small": dict(leaves=(3000, 2500), subdiv=5, trees=8, rocks=3, half=3.5),
+    "tiny": dict(leaves=(800, 500), subdiv=3, trees=4, rocks=2, half=2.0),
+}
+FOLIAGE_MESHES = ("leafy", "leafy_sparse", "rock")
+
+
+def _rock(rng, subdiv: int) -> Mesh:
+    """A finely tessellated icosphere, squashed and displaced by a few random waves."""
+    s = trimesh.creation.icosphere(subdivisions=subdiv)
+    v = np.asarray(s.vertices, np.float64)
+    k = rng.normal(size=(6, 3)) * 2.5
+    bump = 0.08 * np.sin(v @ k.T + rng.uniform(0, 2 * np.pi, 6)).sum(axis=1)
+    v = v * (1.0 + bump)[:, None] * np.array([0.9, 0.55, 0.8])
+    return make_mesh("rock", v + np.array([0.0, 0.3, 0.0]), s.faces, material=2)
+
+
+def foliage_meshes(size: str = "small", seed: int = 0) -> list[Mesh]:
+    """The foliage scene's meshes in FOLIAGE_MESHES order, deterministic in (size, seed)."""
+    cfg = FOLIAGE_SIZES[size]
+    rng = np.random.default_rng([seed, 21])
+    dense, sparse = cfg["leaves"]
+    return [_foliage(rng, dense, "leafy", 0.05), _foliage(rng, sparse, "leafy_sparse", 0.06),
+            _rock(rng, cfg["subdiv"])]
+
+
+def build_foliage(size: str = "small", seed: int = 0) -> Scene:
+    """Trees of two leaf-cloud meshes whose crowns interpenetrate, rocks among them, a ground,
+    sun and sky; instance 0 is the ground."""
+    cfg = FOLIAGE_SIZES[size]
+    rng = np.random.default_rng([seed, 22])
+    half = cfg["half"]
+    materials = (Material("dirt", (0.30, 0.24, 0.16)), Material("leaf", (0.20, 0.42, 0.10)),
+                 Material("stone", (0.50, 0.48, 0.45)))
+    meshes = [ground(half + 10.0, material=0), *foliage_meshes(size, seed)]
+    kinds = np.r_[np.arange(cfg["trees"]) % 2 + 1, np.full(cfg["rocks"], 3)]
+    n = len(kinds)
+    pos = np.column_stack([rng.uniform(-half, half, n), np.zeros(n), rng.uniform(-half, half, n)])
+    s = np.where(kinds == 3, rng.uniform(0.5, 0.9, n), rng.uniform(0.9, 1.4, n))
+    xf = placement(rng.uniform(0, 2 * np.pi, n), np.repeat(s[:, None], 3, 1), pos)
+    return _on_ground(meshes, kinds, xf, materials,
+                      sun_panel((0.4 * half, 0.3 * half), 30.0, 8.0, 3.0), sky(0.8),
+                      Camera(eye=(0.0, 3.0 + 0.3 * half, half + 7.0), target=(0.0, 1.6, 0.0),
+                             fov_deg=50.0), f"foliage-{size}")

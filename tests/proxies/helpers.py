@@ -75,3 +75,40 @@ def scene_of(*meshes: Mesh, copies: int = 1):
             t[0, 3] = 4.0 * (i * copies + c)
             insts.append(Instance(i, t))
     return Scene(tuple(meshes), tuple(insts), name="proxy-test")
+
+
+def constant_net(value: float, n_in: int) -> bytes:
+    """ONNX x (n, n_in) -> y (n, 1) = value, through a real MatMul so the batch axis flows."""
+    from onnx import numpy_helper
+
+    zeros = numpy_helper.from_array(np.zeros((n_in, 1), np.float32), "w")
+    const = numpy_helper.from_array(np.array([value], np.float32), "c")
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["x", "w"], ["z"]), helper.make_node("Add", ["z", "c"], ["y"])],
+        "constant", [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", n_in])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", 1])], [zeros, const])
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    return model.SerializeToString()
+
+
+def lying_proxy(mesh: Mesh, config, visibility: float = 1.0) -> Proxy:
+    """A proxy wrong on purpose: one visibility everywhere (1: "occluded" through any box),
+    whose report claims a perfect held-out error curve, so the accuracy target trusts it."""
+    from nprt.proxies.encoding import N_INPUTS
+    from nprt.proxies.evaluate import CURVE_BANDS
+
+    box_ = proxy_box(mesh.bounds)
+    zeros = [0.0] * len(CURVE_BANDS)
+    meta = {
+        "content_hash": mesh.content_hash, "mesh_name": mesh.name, "width": config.width,
+        "blocks": config.blocks, "encoding": "line", "bounds": mesh.bounds.tolist(),
+        "box": box_.tolist(), "diag": float(np.linalg.norm(box_[1] - box_[0])),
+        "threshold": 0.5, "config": config.to_dict(), "config_key": config.key,
+        "report": {"accuracy": 1.0, "curve": {"band": list(CURVE_BANDS),
+                                              "share": [1.0] * len(CURVE_BANDS),
+                                              "fp": zeros, "fn": zeros}},
+    }
+    n_in = N_INPUTS["line"]  # Fourier features, where a net has them, are inside it
+    return Proxy(meta, {"visibility": constant_net(visibility, n_in),
+                        "depth": constant_net(0.0, n_in)})

@@ -10,27 +10,14 @@ import trimesh
 
 from nprt.proxies.inference import Proxy
 from nprt.scene.model import Camera, Instance, Scene
-from nprt.workers.routing.proxy_query import predict
+from nprt.workers.routing.proxy_query import QueryKnobs, predict
 from nprt.workers.wavefront.world import ShardWorld
 from tests.workers.helpers import mesh_from_trimesh, trs
 
 onnx = pytest.importorskip("onnx", reason="building the fixed nets needs onnx")
-from onnx import TensorProto, helper, numpy_helper  # noqa: E402
+from tests.proxies.helpers import constant_net  # noqa: E402
 
 BAND = 0.4
-
-
-def _constant_net(value: float, n_in: int = 6) -> bytes:
-    """x (n, n_in) -> y (n, 1) = value, through a real MatMul so the batch axis flows."""
-    zeros = numpy_helper.from_array(np.zeros((n_in, 1), np.float32), "w")
-    const = numpy_helper.from_array(np.array([value], np.float32), "c")
-    graph = helper.make_graph(
-        [helper.make_node("MatMul", ["x", "w"], ["z"]), helper.make_node("Add", ["z", "c"], ["y"])],
-        "constant", [helper.make_tensor_value_info("x", TensorProto.FLOAT, ["n", n_in])],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["n", 1])], [zeros, const])
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    return model.SerializeToString()
 
 
 def _proxy(visibility: float) -> Proxy:
@@ -38,7 +25,7 @@ def _proxy(visibility: float) -> Proxy:
     at the line's closest point to the box centre (half a unit in, along +x)."""
     box = [[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]
     meta = {"box": box, "diag": 3 ** 0.5, "encoding": "line", "threshold": 0.5}
-    return Proxy(meta, {"visibility": _constant_net(visibility), "depth": _constant_net(0.0)})
+    return Proxy(meta, {"visibility": constant_net(visibility, 6), "depth": constant_net(0.0, 6)})
 
 
 @pytest.fixture(scope="module")
@@ -50,13 +37,17 @@ def world():
     return ShardWorld.build(scene, np.array([1, 2], np.int32))
 
 
-def _ask(world, proxies: dict, visited: int | None = None):
+def _knobs(margin: float = 0.0, band=(BAND, BAND)) -> QueryKnobs:
+    return QueryKnobs(None, np.asarray(band, np.float64), margin)
+
+
+def _ask(world, proxies: dict, visited: int | None = None, band=(BAND, BAND)):
     origin = np.zeros((1, 3), np.float32)
     direction = np.array([[1.0, 0.0, 0.0]], np.float32)
     tmax = np.full(1, np.inf, np.float32)
     seen = None if visited is None else np.array([visited], np.uint64)
     return predict(world, proxies, np.array([0, 1], np.int32), origin, direction, tmax,
-                   threshold=None, band=BAND, visited=seen)
+                   _knobs(band=band), visited=seen)
 
 
 def test_an_unsure_box_beyond_the_closest_confident_hit_does_not_matter(world):
@@ -98,8 +89,7 @@ def _ask_from(world, x: float, proxies: dict, margin: float):
     origin = np.array([[x, 0.0, 0.0]], np.float32)
     direction = np.array([[1.0, 0.0, 0.0]], np.float32)
     return predict(world, proxies, np.array([0, 1], np.int32), origin, direction,
-                   np.full(1, np.inf, np.float32), threshold=None, band=BAND,
-                   internal_margin=margin)
+                   np.full(1, np.inf, np.float32), _knobs(margin))
 
 
 def test_an_internal_hit_within_the_depth_error_of_the_origin_is_settled_not_trusted(world):
@@ -117,3 +107,14 @@ def test_an_internal_hit_within_the_depth_error_of_the_origin_is_settled_not_tru
         assert near.uncertain[0] and near.first_open[0] == 0 and near.inst[0] == -1
         paper = _ask_from(world, x, proxies, 0.0)  # the paper's rule trusts the depth net
         assert not paper.uncertain[0] and paper.inst[0] == (0 if x < 5 else -1)
+
+
+def test_bands_are_per_mesh_and_every_asked_box_is_counted(world):
+    """A at visibility 0.7 is trusted under A's band 0.1 and settled under 0.4, whatever B's
+    band; both boxes the ray crosses are counted as asked, per mesh."""
+    proxies = {0: _proxy(0.7), 1: _proxy(0.99)}
+    narrow = _ask(world, proxies, band=(0.1, 0.4))
+    assert narrow.inst[0] == 0 and not narrow.uncertain[0]
+    wide = _ask(world, proxies, band=(0.4, 0.1))
+    assert wide.uncertain[0] and wide.first_open[0] == 0 and wide.inst[0] == 1
+    assert sorted(narrow.asked_mesh.tolist()) == [0, 1] and set(narrow.asked_ray) == {0}

@@ -18,6 +18,20 @@ def visited_bit(shard: int) -> np.uint64:
     return np.uint64(1) << np.uint64(shard)
 
 
+def first_of_runs(key: np.ndarray) -> np.ndarray:
+    """(n,) bool: the first row of each run of equal `key` (n,) in a sorted array; after a
+    lexsort whose last key is the ray, the best candidate of each ray."""
+    first = np.ones(len(key), bool)
+    first[1:] = key[1:] != key[:-1]
+    return first
+
+
+def hit_owner(world: ShardWorld, inst: np.ndarray) -> np.ndarray:
+    """(n,) int32 shard owning each hit instance (n,) int32; EVERYWHERE for a replicated mesh
+    and for no hit (-1)."""
+    return np.where(inst >= 0, world.owner[np.maximum(inst, 0)], EVERYWHERE).astype(np.int32)
+
+
 def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, tmax,
                       visited: np.ndarray) -> np.ndarray:
     """Wald-style step: the owner of the nearest box entry, among instances on shards
@@ -39,8 +53,7 @@ def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, 
     ray, owner, t_enter = ray[fresh], owner[fresh], t_enter[fresh]
     order = np.lexsort((owner, t_enter, ray))
     ray, owner = ray[order], owner[order]
-    first = np.ones(len(ray), bool)
-    first[1:] = ray[1:] != ray[:-1]
+    first = first_of_runs(ray)
     target[ray[first]] = owner[first]
     return target
 
@@ -51,8 +64,7 @@ def route_exact(world: ShardWorld, shard: int, remote: np.ndarray, rays: RayBatc
     target = nearest_unvisited(world, remote, rays.origin, rays.direction, rays.tmax,
                                rays.visited)
     done = target == DONE
-    hit = rays.hit_inst
-    owner = np.where(hit >= 0, world.owner[np.maximum(hit, 0)], EVERYWHERE)
+    owner = hit_owner(world, rays.hit_inst)
     elsewhere = done & (owner != EVERYWHERE) & (owner != shard)
     target[elsewhere] = owner[elsewhere]
     return target

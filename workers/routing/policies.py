@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from nprt.workers.routing.exact import DONE, route_exact, route_shadow_exact
-from nprt.workers.routing.proxy_query import INTERNAL_MARGIN, predict
+from nprt.proxies.accuracy import counter_name, mesh_bands
+from nprt.workers.routing.exact import DONE, hit_owner, route_exact, route_shadow_exact
+from nprt.workers.routing.proxy_query import QueryKnobs, predict
 from nprt.workers.runtime.protocol import EVERYWHERE
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import SplitStats
@@ -41,7 +42,7 @@ class ExactPolicy:
 
     def _owner_of(self, inst: np.ndarray) -> np.ndarray:
         """Shard owning each hit instance, DONE when it is here (or none)."""
-        owner = np.where(inst >= 0, self.world.owner[np.maximum(inst, 0)], EVERYWHERE)
+        owner = hit_owner(self.world, inst)
         return np.where((owner == EVERYWHERE) | (owner == self.shard), DONE, owner)
 
 
@@ -54,15 +55,31 @@ class ProxyPolicy(ExactPolicy):
     hit is final if real (a miss there falls back to exact forwarding). A ray that first
     enters a box no proxy answers with confidence goes to that box's owner instead, which
     intersects it exactly and asks the proxies again about the shards not visited yet: at
-    band 1 this is exact forwarding, step for step."""
+    band 1 this is exact forwarding, step for step.
+
+    Bands are per mesh and kind: from the job's accuracy target and each proxy's held-out
+    error curve (nprt.proxies.accuracy), or the hand-set band / shadow_band for all."""
 
     def __init__(self, world, shard, remote, proxies: dict, settings: RenderSettings,
                  known: LocalGeometry):
         super().__init__(world, shard, remote)
         self.modeled = remote[~np.isin(remote, known.instances)]
         self.known, self.proxies = known, proxies
-        knobs = settings.proxy
-        self.threshold, self.band, self.shadow_band = knobs.threshold, knobs.band, knobs.shadow_band
+        k = settings.proxy
+        if k.accuracy is None:
+            chosen = {m: (k.band, k.shadow_band) for m in proxies}
+        else:
+            chosen = mesh_bands(proxies, k.accuracy)
+        # (2, meshes) secondary and shadow band by mesh index; 1 where no proxy answers.
+        band = np.ones((2, max(int(world.table.mesh.max(initial=-1)),
+                               max(proxies, default=-1)) + 1))
+        for m, (b_sec, b_sh) in chosen.items():
+            band[:, m] = b_sec, b_sh
+        self.bands = chosen
+        self.secondary = QueryKnobs(k.threshold, band[0], k.internal_margin,
+                                    k.internal_ambiguous == "exact")
+        # Shadow rays keep the paper's internal rule (margin 0).
+        self.shadow = QueryKnobs(k.threshold, band[1], 0.0, k.internal_ambiguous == "exact")
 
     def route_rays(self, rays, stats):
         target = np.full(len(rays), DONE, np.int32)
@@ -81,9 +98,10 @@ class ProxyPolicy(ExactPolicy):
             f = np.flatnonzero(fresh)
             with stats.phase("proxy"):
                 pred = predict(self.world, self.proxies, self.modeled, rays.origin[f],
-                               rays.direction[f], rays.tmax[f], self.threshold, self.band,
-                               self.known, rays.visited[f], INTERNAL_MARGIN)
+                               rays.direction[f], rays.tmax[f], self.secondary, self.known,
+                               rays.visited[f])
             stats.count("proxy_queries", f)
+            _count_asked(stats, "secondary", pred, f)
             stats.count("proxy_uncertain", f[pred.uncertain])
             stats.count("proxy_internal_ambiguous", f[pred.ambiguous])
             # An uncertain ray visits the owner of the first box it cannot trust, where that
@@ -116,10 +134,13 @@ class ProxyPolicy(ExactPolicy):
         if not len(shadow):
             return shadow, np.zeros(0, np.int32)
         with stats.phase("proxy"):
+            # A shadow ray forwarded here (shadow band) was intersected exactly on the
+            # shards it visited: their boxes are not asked about again.
             pred = predict(self.world, self.proxies, self.modeled, shadow.origin,
-                           shadow.direction, shadow.tmax, self.threshold, self.shadow_band,
-                           self.known)
+                           shadow.direction, shadow.tmax, self.shadow, self.known,
+                           shadow.visited)
         stats.count("proxy_queries")
+        _count_asked(stats, "shadow", pred, np.arange(len(shadow)))
         occluded = pred.inst >= 0
         stats.count("proxy_shadow_occluded", occluded)
         stats.count_hops(shadow.hops, occluded)  # they finish here
@@ -130,6 +151,13 @@ class ProxyPolicy(ExactPolicy):
         if unknown.any():
             target[unknown] = route_shadow_exact(self.world, self.remote, shadow.take(unknown))
         return shadow, target
+
+
+def _count_asked(stats: SplitStats, kind: str, pred, rows: np.ndarray) -> None:
+    """Box queries per mesh (what the accuracy prediction weighs each proxy's error by);
+    rows (n,) maps the prediction's rays to the bound batch."""
+    for m in np.unique(pred.asked_mesh):
+        stats.count(counter_name(kind, m), rows[pred.asked_ray[pred.asked_mesh == m]])
 
 
 class OraclePolicy(ExactPolicy):

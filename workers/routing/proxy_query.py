@@ -4,12 +4,12 @@ the external / internal cases of section 5.2."""
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass
 
 import numpy as np
 
 from nprt.workers.kernels.sampling import normalize
+from nprt.workers.routing.exact import first_of_runs
 from nprt.workers.wavefront.world import ShardWorld
 
 
@@ -24,8 +24,9 @@ class Prediction:
     chosen one: its first surface there may come before the chosen hit), first_open (n,)
     int32 (of the boxes that make a ray uncertain, the one it enters first; -1: none, or
     uncertain only for ambiguity; visiting its owner settles it exactly). A prediction
-    inside the band, or an internal one within INTERNAL_MARGIN of the origin, is never a
-    hit."""
+    inside the band, or an internal one within the internal margin of the origin, is never
+    a hit. Per (ray, box) pair a proxy was asked about: asked_ray (p,) int64 row,
+    asked_mesh (p,) int64 base mesh (what the accuracy prediction counts)."""
 
     t: np.ndarray
     inst: np.ndarray
@@ -33,102 +34,149 @@ class Prediction:
     internal: np.ndarray
     ambiguous: np.ndarray
     first_open: np.ndarray
+    asked_ray: np.ndarray
+    asked_mesh: np.ndarray
 
 
-# The internal case's ambiguity (Prediction.ambiguous) goes to exact forwarding unless
-# NPRT_PROXY_INTERNAL_AMBIGUOUS=trust (read at import: for benchmarking the rule only).
-EXACT_IF_AMBIGUOUS = os.environ.get("NPRT_PROXY_INTERNAL_AMBIGUOUS", "exact") != "trust"
-# Internal case, secondary rays: the depth net cannot tell on which side of the origin a
-# surface lies when it is predicted within this fraction of the proxy's held-out
-# 90th-percentile depth error of it; such an answer is unsure, like one in the band
-# (bench/README.md, "The unsure zone around the origin"). NPRT_PROXY_INTERNAL_MARGIN
-# overrides it, read at import: for benchmarking only.
-INTERNAL_MARGIN = float(os.environ.get("NPRT_PROXY_INTERNAL_MARGIN", "0.5"))
+@dataclass(frozen=True)
+class QueryKnobs:
+    """How one ray kind trusts the proxies. threshold None: each proxy's own (calibrated at
+    training); band : (meshes,) float64 confidence band per base mesh; internal_margin: a
+    confident internal answer whose surface lies within this fraction of the proxy's held-out
+    p90 depth error of the origin is unsure (0 keeps the paper's rule); exact_if_ambiguous:
+    Prediction.ambiguous rays are uncertain."""
+
+    threshold: float | None
+    band: np.ndarray
+    internal_margin: float = 0.0
+    exact_if_ambiguous: bool = True
 
 
 def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.ndarray,
-            direction: np.ndarray, tmax: np.ndarray, threshold: float | None,
-            band: float, known=None, visited: np.ndarray | None = None,
-            internal_margin: float = 0.0) -> Prediction:
+            direction: np.ndarray, tmax: np.ndarray, knobs: QueryKnobs, known=None,
+            visited: np.ndarray | None = None) -> Prediction:
     """origin, direction (n, 3) float32 world; tmax (n,) float32; remote (m,) int32: the
-    instances to ask proxies about; threshold None: each proxy's own (calibrated at
-    training); known: LocalGeometry of other remote instances, intersected exactly;
-    visited: (n,) uint64 shard bitmask of each ray, whose shards' boxes are not asked about
-    (their geometry was intersected exactly, and the ray carries what it found);
-    internal_margin: a confident internal answer whose surface lies within this fraction
-    of the proxy's held-out p90 depth error of the origin is unsure (INTERNAL_MARGIN for
-    secondary rays; 0 keeps the paper's rule)."""
+    instances to ask proxies about; known: LocalGeometry of other remote instances,
+    intersected exactly; visited: (n,) uint64 shard bitmask of each ray, whose shards' boxes
+    are not asked about (their geometry was intersected exactly, and the ray carries what it
+    found)."""
+    n = len(origin)
+    best_t, best_i = _known_hits(known, origin, direction, tmax)
+    ray, inst = _asked_boxes(world, remote, origin, direction, tmax, visited)
+    none = np.zeros(0, np.int64)
+    if len(ray) == 0:
+        return Prediction(best_t, best_i, np.zeros(n, bool), np.zeros(n, bool),
+                          np.zeros(n, bool), np.full(n, -1, np.int32), none, none)
+    # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
+    q = _box_queries(world.table, inst, origin[ray], direction[ray], tmax[ray])
+    mesh = world.table.mesh[inst].astype(np.int64)
+    a = _answers(proxies, q, mesh, knobs)
+    internal, inner_hits = _closest_confident(ray, inst, q, a, best_t, best_i)
+    uncertain, first_open = _open_boxes(n, ray, inst, q, a, best_t)
+    # An internal t is the surface nearest the box exit; the ray's first surface in that box
+    # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
+    ambiguous = inner_hits - internal > 0
+    if knobs.exact_if_ambiguous:
+        uncertain |= ambiguous
+    asked = a.has_proxy
+    return Prediction(best_t, best_i, uncertain, internal, ambiguous, first_open,
+                      ray[asked].astype(np.int64), mesh[asked])
+
+
+def _known_hits(known, origin, direction, tmax):
+    """(n,) float32 t and (n,) int32 instance of the closest exact hit among `known`."""
     n = len(origin)
     best_t = np.full(n, np.inf, np.float32)
     best_i = np.full(n, -1, np.int32)
-    uncertain = np.zeros(n, bool)
-    internal = np.zeros(n, bool)
-    ambiguous = np.zeros(n, bool)
-    first_open = np.full(n, -1, np.int32)
     if known is not None and len(known.instances) and n:
         t, inst, _, _, _ = known.intersect_closest(origin, direction, tmax)
         hit = inst >= 0
         best_t[hit], best_i[hit] = t[hit], inst[hit]
-    table = world.table
-    ray, inst, _, _ = table.box_entries(origin, direction, tmax, remote)
+    return best_t, best_i
+
+
+def _asked_boxes(world, remote, origin, direction, tmax, visited):
+    """(p,) ray rows and (p,) instances: the remote boxes each ray crosses before tmax, less
+    those on shards it visited."""
+    ray, inst, _, _ = world.table.box_entries(origin, direction, tmax, remote)
     if visited is not None and len(ray):
         owner = world.owner[inst].astype(np.uint64)  # remote instances have one owner
         keep = (visited[ray] >> owner) & np.uint64(1) == 0
         ray, inst = ray[keep], inst[keep]
-    if len(ray) == 0:
-        return Prediction(best_t, best_i, uncertain, internal, ambiguous, first_open)
-    # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
-    q = _box_queries(table, inst, origin[ray], direction[ray], tmax[ray])
-    mesh = table.mesh[inst]
-    vis = np.zeros(len(ray), np.float32)
-    t_proxy = np.full(len(ray), np.inf)
-    thr = np.zeros(len(ray), np.float32)
-    margin = np.zeros(len(ray))  # world-t half-width of the internal case's unsure zone
+    return ray, inst
+
+
+@dataclass(frozen=True)
+class _Answers:
+    """Per (ray, box) pair: has_proxy (p,) bool (crossed, and its mesh has a proxy); unsure
+    (p,) bool (in the band, or internal and near the origin); hit (p,) bool (a confident hit
+    before tmax); t (p,) float32 world t of the predicted surface."""
+
+    has_proxy: np.ndarray
+    unsure: np.ndarray
+    hit: np.ndarray
+    t: np.ndarray
+
+
+def _answers(proxies: dict, q, mesh: np.ndarray, knobs: QueryKnobs) -> _Answers:
+    """Run each mesh's nets on its pairs and apply the external / internal rules."""
+    p = len(mesh)
+    vis = np.zeros(p, np.float32)
+    t_proxy = np.full(p, np.inf)
+    thr = np.zeros(p, np.float32)
+    margin = np.zeros(p)  # world-t half-width of the internal case's unsure zone
     for m in np.unique(mesh[q.crosses]):
-        rows = np.flatnonzero(q.crosses & (mesh == m))
         proxy = proxies.get(int(m))
         if proxy is None:  # no proxy for this mesh: only exact forwarding can tell
             continue
-        thr[rows] = proxy.meta["threshold"] if threshold is None else threshold
+        rows = np.flatnonzero(q.crosses & (mesh == m))
+        thr[rows] = proxy.meta["threshold"] if knobs.threshold is None else knobs.threshold
         v, tp = proxy.query(q.point[rows], q.qdir[rows], min_visibility=float(thr[rows[0]]))
         vis[rows], t_proxy[rows] = v, tp / q.length[rows]
         p90 = proxy.meta.get("report", {}).get("depth_err_rel_p90", 0.0)
-        margin[rows] = internal_margin * p90 * float(proxy.diag) / q.length[rows]
+        margin[rows] = knobs.internal_margin * p90 * float(proxy.diag) / q.length[rows]
     has_proxy = q.crosses & np.isin(mesh, np.fromiter(proxies, np.int64, len(proxies)))
     near_origin = q.internal & (vis >= thr) & (np.abs(t_proxy - q.t_box) < margin)
-    unsure = has_proxy & ((np.abs(vis - thr) < band) | near_origin)
+    unsure = has_proxy & ((np.abs(vis - thr) < knobs.band[mesh]) | near_origin)
     hit = has_proxy & ~unsure & (vis >= thr)
     hit &= ~q.internal | (t_proxy <= q.t_box)  # internal: the surface lies behind the origin
     t = np.where(q.internal, q.t_box - t_proxy, q.t_box + t_proxy).astype(np.float32)
-    hit &= t < tmax[ray]
-    r, t, i, inner = ray[hit], t[hit], inst[hit], q.internal[hit]
-    inner_hits = np.bincount(r[inner], minlength=n)  # confident internal hits per ray
-    # Closest per ray; ties go to the lowest instance.
+    return _Answers(has_proxy, unsure, hit & (t < q.tmax), t)
+
+
+def _closest_confident(ray, inst, q, a: _Answers, best_t, best_i):
+    """Lower best_t / best_i (in place) to each ray's closest confident hit; ties go to the
+    lowest instance. Returns internal (n,) bool (the winner is an internal answer) and
+    inner_hits (n,) int64 (confident internal hits per ray)."""
+    n = len(best_t)
+    r, t, i, inner = ray[a.hit], a.t[a.hit], inst[a.hit], q.internal[a.hit]
+    inner_hits = np.bincount(r[inner], minlength=n)
     order = np.lexsort((i, t, r))
     r, t, i, inner = r[order], t[order], i[order], inner[order]
-    first = np.ones(len(r), bool)
-    first[1:] = r[1:] != r[:-1]
+    first = first_of_runs(r)
     r, t, i, inner = r[first], t[first], i[first], inner[first]
     better = t < best_t[r]
     best_t[r[better]], best_i[r[better]] = t[better], i[better]
+    internal = np.zeros(n, bool)
     internal[r[better]] = inner[better]
-    # A box no proxy answers with confidence (in the band, or without a proxy) matters only
-    # if the ray enters it before its closest confident hit: only then can it hide a nearer
-    # surface. (Shadow rays use `uncertain` only where nothing occludes: best_t is inf.)
+    return internal, inner_hits
+
+
+def _open_boxes(n, ray, inst, q, a: _Answers, best_t):
+    """A box no proxy answers with confidence (in the band, or without a proxy) matters only
+    if the ray enters it before its closest confident hit: only then can it hide a nearer
+    surface. (Shadow rays use `uncertain` only where nothing occludes: best_t is inf.)
+    Returns uncertain (n,) bool and first_open (n,) int32 (the open box entered first)."""
+    uncertain = np.zeros(n, bool)
+    first_open = np.full(n, -1, np.int32)
     t_enter = np.where(q.internal, 0.0, q.t_box)
-    open_ = (unsure | (q.crosses & ~has_proxy)) & (t_enter < best_t[ray])
+    open_ = (a.unsure | (q.crosses & ~a.has_proxy)) & (t_enter < best_t[ray])
     uncertain[ray[open_]] = True
     o = np.flatnonzero(open_)
     o = o[np.lexsort((inst[o], t_enter[o], ray[o]))]  # per ray, nearest entry first
-    lead = np.ones(len(o), bool)
-    lead[1:] = ray[o[1:]] != ray[o[:-1]]
+    lead = first_of_runs(ray[o])
     first_open[ray[o[lead]]] = inst[o[lead]]
-    # An internal t is the surface nearest the box exit; the ray's first surface in that box
-    # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
-    ambiguous = inner_hits - internal > 0
-    if EXACT_IF_AMBIGUOUS:
-        uncertain |= ambiguous
-    return Prediction(best_t, best_i, uncertain, internal, ambiguous, first_open)
+    return uncertain, first_open
 
 
 @dataclass(frozen=True)
@@ -144,6 +192,7 @@ class _BoxQueries:
     point: np.ndarray
     qdir: np.ndarray
     length: np.ndarray
+    tmax: np.ndarray
 
 
 def _box_queries(table, inst, origin, direction, tmax) -> _BoxQueries:
@@ -164,4 +213,4 @@ def _box_queries(table, inst, origin, direction, tmax) -> _BoxQueries:
     unit = normalize(d)
     point = (o + t_box[:, None] * d).astype(np.float32)
     qdir = np.where(internal[:, None], -unit, unit).astype(np.float32)
-    return _BoxQueries(crosses, internal, t_box, point, qdir, np.linalg.norm(d, axis=1))
+    return _BoxQueries(crosses, internal, t_box, point, qdir, np.linalg.norm(d, axis=1), tmax)

@@ -96,7 +96,12 @@ $("#submit-form").addEventListener("submit", async (ev) => {
   for (const k of ["width", "height", "spp", "bounces", "shadow_rays", "shards", "tile_size", "spp_per_pass", "seed"]) {
     body[k] = Number(f.get(k));
   }
-  if (body.mode === "proxy") body.proxy = { band: Number(f.get("band")), shadow_band: Number(f.get("shadow_band")) };
+  if (body.mode === "proxy") {
+    // Hand-set bands, where given, replace the accuracy target (workers/settings.py).
+    body.proxy = { check: f.get("check") === "on" };
+    if (f.get("accuracy")) body.proxy.accuracy = f.get("accuracy");
+    for (const k of ["band", "shadow_band"]) if (f.get(k) !== "") body.proxy[k] = Number(f.get(k));
+  }
   // A frame range when either end is given (one end alone: that frame); the server
   // checks it against the scene's frame count.
   const first = f.get("frame_first"), last = f.get("frame_last");
