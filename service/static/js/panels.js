@@ -27,7 +27,8 @@ export function showSettings(job) {
   if (PROXY_MODES.has(s.mode) && s.proxy) {  // proxy knobs mean nothing in exact mode
     const p = s.proxy;
     rows.push(["proxy threshold", p.threshold ?? "each proxy's calibrated one"],
-      ["proxy band", `${p.band} (shadow rays: ${p.shadow_band})`],
+      ["accuracy target", p.accuracy === null || p.accuracy === undefined ? "hand-set bands" : (p.accuracy === "exact" ? "exact" : `${p.accuracy} dB${p.check ? ", checked" : ""}`)],
+      ["proxy band", p.accuracy === null || p.accuracy === undefined ? `${p.band} (shadow rays: ${p.shadow_band})` : "per proxy, from its error curve"],
       ["proxy width", p.width ?? `narrowest meeting ${p.accuracy_target}`],
       ["proxy budget", `${p.steps} optimiser steps per proxy`]);
   }
@@ -47,6 +48,12 @@ export function showTimes(job) {
     [TERMINAL.has(job.state) ? "duration" : "running for", fmtSeconds(durationS(job))],
   ];
   if (st.wall_s !== undefined) rows.push(["render wall time", fmtSeconds(st.wall_s)]);
+  if (st.accuracy) {  // target, prediction and check of a proxy-mode job
+    const a = st.accuracy, c = a.check, db = (x) => (x === null || x === undefined ? "∞" : `${x} dB`);
+    rows.push(["predicted PSNR", db(a.predicted_db)]);
+    if (c && typeof c === "object") rows.push(["checked PSNR", `${db(c.psnr_db)} (95 %: ${db(c.interval_db[0])} to ${db(c.interval_db[1])})`]);
+    if (a.warning) rows.push(["⚠ accuracy", a.warning]);
+  }
   if (st.prepare_s !== undefined) rows.push(["preparation", `${fmtSeconds(st.prepare_s)}${st.warm_pool ? " (warm pool: none)" : ""}`]);
   kvRows($("#times-table"), rows);
 }
