@@ -11,13 +11,13 @@ import trimesh
 
 from nprt.scene.model import Instance, Scene
 from nprt.scene.transform import similarity
-from nprt.workers.kernels import shade as shade_kernels
-from nprt.workers.kernels.sampling import frame, normalize
+from nprt.workers.kernels.sampling import normalize
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.local import LocalGeometry
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.surface import SurfaceTables
 from tests.workers.helpers import mesh_from_trimesh, plane_mesh, trs
+from tests.workers.oracles import frame, offset_rows
 
 N_RAYS = 6000
 SHAPES = {
@@ -77,7 +77,7 @@ def test_rays_leaving_a_flat_or_convex_surface_never_hit_it_again(shape, scale, 
          + (sin * np.sin(phi))[:, None] * t)
     d32 = d.astype(np.float32)
     keep = (d32.astype(np.float64) * sf.ng).sum(axis=1) > 0  # still above after rounding
-    origin = shade_kernels.offset_rows(sf.p, sf.p_err, sf.ng)
+    origin = offset_rows(sf.p, sf.p_err, sf.ng)
     inf = np.full(n, np.inf, np.float32)
     _, inst, _, _, _ = geo.intersect_closest(origin[keep], d32[keep], inf[keep])
     occluded = geo.intersect_occluded(origin[keep], d32[keep], inf[keep])

@@ -7,7 +7,8 @@ import pytest
 from scipy import stats
 
 from nprt.workers.kernels.rng import uniform
-from nprt.workers.kernels.sampling import cosine_hemisphere, frame
+from tests.workers import oracles
+from tests.workers.oracles import cosine_hemisphere, frame
 
 N = 200_000
 THETA_BINS, PHI_BINS = 10, 16
@@ -98,3 +99,17 @@ def test_counter_rng_is_uniform_and_independent_across_keys():
         assert abs(r) < 0.02, f"streams differing in {name} correlate: r = {r:.3f}"
     again = uniform(0, pixel, zero, 0, 0)
     assert np.array_equal(base, again), "the RNG is not a pure function of its keys"
+
+
+def test_compiled_rng_equals_numpy_splitmix_oracle():
+    rng = np.random.default_rng(4)
+    n = 5000
+    pixel = rng.integers(0, 2**32, n, dtype=np.uint64).astype(np.uint32)
+    sample = rng.integers(0, 2**32, n, dtype=np.uint64).astype(np.uint32)
+    bounce = rng.integers(0, 256, n).astype(np.uint8)
+    dim = rng.integers(0, 200, n)
+    for seed in (0, 7, (1 << 63) - 1):
+        assert np.array_equal(uniform(seed, pixel, sample, bounce, dim),
+                              oracles.uniform(seed, pixel, sample, bounce, dim))
+        assert np.array_equal(uniform(seed, pixel, sample, 255, 3),
+                              oracles.uniform(seed, pixel, sample, 255, 3))

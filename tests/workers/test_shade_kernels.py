@@ -11,13 +11,26 @@ import pytest
 
 from nprt.scene.demos import make_demo
 from nprt.workers.kernels import shade as shade_kernels
-from nprt.workers.kernels.offset import offset_ray_origin
-from nprt.workers.kernels.rng import DIM_BSDF_U, DIM_BSDF_V, DIM_LIGHT_BASE, DIM_RR, uniform
-from nprt.workers.kernels.sampling import cosine_hemisphere, normalize
+from nprt.workers.kernels.rng import (
+    DIM_BSDF_U,
+    DIM_BSDF_V,
+    DIM_LIGHT_BASE,
+    DIM_RR,
+    uniform_rows,
+)
+from nprt.workers.kernels.sampling import normalize
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.integrator import RR_START_DEPTH, SHADOW_TMAX_SCALE, PathIntegrator
 from nprt.workers.wavefront.lights import FAR_T, LightSet
-from nprt.workers.wavefront.surface import SurfaceTables, surface_at
+from nprt.workers.wavefront.surface import SurfaceTables
+from tests.workers.oracles import (
+    cosine_hemisphere,
+    offset_ray_origin,
+    offset_rows,
+    sample_lights,
+    surface_at,
+    uniform,
+)
 
 
 def _lights(rng, quads=2, points=2, dirs=1) -> LightSet:
@@ -57,7 +70,7 @@ def _next_event_numpy(seed, S, lights, h, go):
         return uniform(seed, pix, smp, dep, dim + k)
 
     p = h.p[idx]
-    wi, dist, value, pdf_l = lights.sample(rnd(0), rnd(1), rnd(2), p)
+    wi, dist, value, pdf_l = sample_lights(lights, rnd(0), rnd(1), rnd(2), p)
     ns, ng = h.ns[idx], h.ng[idx]
     cos_s = np.einsum("ij,ij->i", wi, ns)
     cos_g = np.einsum("ij,ij->i", wi, ng)
@@ -76,8 +89,7 @@ def test_uniform_rows_matches_counter_rng():
     h = _hits(rng, 5000)
     for seed, dim in ((0, 0), (12345, 7), ((1 << 63) - 1, 200)):
         want = uniform(seed, h.pixel, h.sample, h.depth, dim)
-        got = shade_kernels.uniform_rows(seed, np.arange(5000), h.pixel, h.sample, h.depth,
-                                         dim)
+        got = uniform_rows(seed, np.arange(5000), h.pixel, h.sample, h.depth, dim)
         assert np.array_equal(want, got)
 
 
@@ -121,7 +133,7 @@ def _continue_numpy(seed, rr_on, h, go):
     t = h.thr[g] * h.albedo[g]
     keep = np.einsum("ij,ij->i", d, h.ng[g]) > 0
     if rr_on:
-        q = np.clip(1.0 - t.max(axis=1), 0.0, 0.95)
+        q = np.clip(1.0 - t.max(axis=1), 0.0, shade_kernels.RR_MAX_KILL)
         rr = dep + 1 >= RR_START_DEPTH
         survive = uniform(seed, pix, smp, dep, DIM_RR) >= q
         keep &= ~rr | survive
@@ -141,7 +153,7 @@ def test_continue_kernel_matches_numpy_bit_for_bit(rr_on):
     go = rng.random(4000) > 0.2
     want = _continue_numpy(5, rr_on, h, go)
     g = np.flatnonzero(go)
-    phi = 2.0 * np.pi * shade_kernels.uniform_rows(5, g, h.pixel, h.sample, h.depth, DIM_BSDF_V)
+    phi = 2.0 * np.pi * uniform_rows(5, g, h.pixel, h.sample, h.depth, DIM_BSDF_V)
     c, k, origin, d, t, pdf = shade_kernels.bsdf_continue(
         5, g, np.arange(4000), h.pixel, h.sample, h.depth, np.cos(phi), np.sin(phi), h.p,
         h.p_err, h.ng, h.ns, h.albedo, h.thr, rr_on, RR_START_DEPTH)
@@ -211,5 +223,5 @@ def test_offset_kernel_matches_offset_ray_origin_bit_for_bit():
     nrm[400:500] = np.array([-0.0, 0.0, 1.0])
     with np.errstate(invalid="ignore", over="ignore"):
         want = offset_ray_origin(p, err, nrm)
-    got = shade_kernels.offset_rows(p, err, nrm)
+    got = offset_rows(p, err, nrm)
     assert np.array_equal(want.view(np.int64), got.view(np.int64))

@@ -1,8 +1,9 @@
 """Spawned-ray origins: the hit point pushed off its surface by a bound on its own rounding
 error, as pbrt-v4 does (Pharr, Jakob, Humphreys, "Physically Based Rendering", 4th ed.,
-section 6.8). embreex fixes tnear at 0, so every shadow and bounce ray starts here. These
-are the numpy formulas; `nprt.workers.kernels.shade` runs the same operations, in the same
-order, per row.
+section 6.8). embreex fixes tnear at 0, so every shadow and bounce ray starts here. This
+module is the design note: the formulas run row by row in `nprt.workers.kernels.shade`
+(`point_error`, `offset_origin`), and their numpy oracles (`hit_point_error`,
+`offset_ray_origin`) live in tests/workers/oracles.py.
 
 Precision design (the image must not depend on where the scene sits or how big it is):
 
@@ -36,50 +37,3 @@ Precision design (the image must not depend on where the scene sits or how big i
   cheapest that holds at any distance from the camera. bench/render/bench_extremes.py has the
   measured cost.
 """
-
-from __future__ import annotations
-
-import numpy as np
-
-from nprt.workers.kernels.shade import GAMMA64_3, LOCAL_REL
-
-
-def _rowdot(m: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """(n, 3, k) m, (n, 3) v -> (n, 3): sum_j m[:, c, j] v[:, j], summed (0 + 1) + 2."""
-    return (m[..., 0] * v[:, None, 0] + m[..., 1] * v[:, None, 1]) + m[..., 2] * v[:, None, 2]
-
-
-def hit_point_error(v_max: np.ndarray, p_loc: np.ndarray, l2w: np.ndarray, w2l: np.ndarray,
-                    p: np.ndarray) -> np.ndarray:
-    """Per-coordinate bound on the world error of hit points, including the trip of a ray
-    origin back into the instance's local space.
-
-    v_max : (n,) float64 largest |coordinate| of the hit triangle's local vertices;
-    p_loc : (n, 3) float64 local hit points; l2w, w2l : (n, 3, 4) float64 instance
-    transforms; p : (n, 3) float64 world points
-    returns (n, 3) float64
-    """
-    e_loc = LOCAL_REL * v_max  # (n,) the same on every local axis
-    m = np.abs(l2w)
-    mx = np.abs(l2w[:, :, :3] * p_loc[:, None, :])  # (n, 3, 3) |M_cj x_j|
-    a = ((mx[..., 0] + mx[..., 1]) + mx[..., 2]) + m[..., 3]
-    e_world = GAMMA64_3 * a + (1.0 + GAMMA64_3) * (((m[..., 0] + m[..., 1]) + m[..., 2])
-                                                     * e_loc[:, None])
-    w = np.abs(w2l)
-    e_back = GAMMA64_3 * (_rowdot(w, np.abs(p) + e_world) + w[..., 3])  # local units
-    return e_world + _rowdot(m, e_back)
-
-
-def offset_ray_origin(p: np.ndarray, p_err: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Push points off their surface to the side that `n` points to, past their error.
-
-    p, p_err : (n, 3) float64 world hit points and their error bounds;
-    n : (n, 3) float64 unit geometric normals toward the side the new rays leave from
-    returns (n, 3) float64
-    """
-    an = np.abs(n)
-    d = (an[:, 0] * p_err[:, 0] + an[:, 1] * p_err[:, 1]) + an[:, 2] * p_err[:, 2]
-    off = d[:, None] * n
-    o = p + off
-    return np.where(off > 0, np.nextafter(o, np.inf),
-                    np.where(off < 0, np.nextafter(o, -np.inf), o))

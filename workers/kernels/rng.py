@@ -1,27 +1,69 @@
 """Counter-based RNG: every random number is a pure hash of
 (seed, pixel, sample, bounce, dimension), so images depend on neither batch
-size, batch order, nor which shard evaluates a ray."""
+size, batch order, nor which shard evaluates a ray. The hash (splitmix64's finaliser) is
+defined once, here, in compiled code; the shading kernels inline `uniform_keyed`, and
+tests/workers/oracles.py keeps a numpy copy to check it against."""
 
 from __future__ import annotations
 
 import numpy as np
-
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_S30, _S27, _S31 = np.uint64(30), np.uint64(27), np.uint64(31)
+from numba import njit
 
 # Dimension layout within one bounce. Camera jitter uses bounce index CAMERA_BOUNCE.
 DIM_BSDF_U, DIM_BSDF_V, DIM_RR = 0, 1, 2
 DIM_LIGHT_BASE = 3  # shadow ray s uses dims DIM_LIGHT_BASE + 3*s + {0: light pick, 1: u, 2: v}
 CAMERA_BOUNCE = 255
 
+# error_model="numpy" as in every kernel module.
+JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
-def _mix(x: np.ndarray) -> np.ndarray:
-    """splitmix64 finaliser, (n,) uint64 -> (n,) uint64 (wrapping arithmetic)."""
-    x = (x ^ (x >> _S30)) * _M1
-    x = (x ^ (x >> _S27)) * _M2
-    return x ^ (x >> _S31)
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
+_TO_UNIT = 1.0 / (1 << 53)
+
+
+@njit(inline="always", **JIT)
+def _mix(x):
+    """splitmix64 finaliser on a uint64 (wrapping)."""
+    x = (x ^ (x >> np.uint64(30))) * _M1
+    x = (x ^ (x >> np.uint64(27))) * _M2
+    return x ^ (x >> np.uint64(31))
+
+
+@njit(inline="always", **JIT)
+def dim_key(seed, dim):
+    """The per-(seed, dimension) key of `uniform`; seed and dim uint64."""
+    return _mix(seed + _GOLDEN * (dim + np.uint64(1)))
+
+
+@njit(inline="always", **JIT)
+def uniform_keyed(key, pixel, sample, bounce):
+    """`uniform` for one row, given its dimension's key (uint64)."""
+    x = key ^ (np.uint64(pixel) << np.uint64(32)) ^ np.uint64(sample)
+    x = _mix(x)
+    x = _mix(x ^ (np.uint64(bounce) * _GOLDEN))
+    return np.float64(x >> np.uint64(11)) * _TO_UNIT
+
+
+@njit(**JIT)
+def uniform_rows(seed, rows, pixel, sample, bounce, dim):
+    """(k,) float64 uniforms of one dimension for `rows` (k,) int64 of pixel, sample (n,)
+    u32 and bounce (n,) u8."""
+    key = dim_key(np.uint64(seed), np.uint64(dim))
+    out = np.empty(len(rows))
+    for j in range(len(rows)):
+        i = rows[j]
+        out[j] = uniform_keyed(key, pixel[i], sample[i], bounce[i])
+    return out
+
+
+@njit(**JIT)
+def _uniform(seed, pixel, sample, bounce, dim):
+    out = np.empty(len(pixel))
+    for i in range(len(pixel)):
+        out[i] = uniform_keyed(dim_key(seed, dim[i]), pixel[i], sample[i], bounce[i])
+    return out
 
 
 def uniform(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce, dim) -> np.ndarray:
@@ -33,10 +75,8 @@ def uniform(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce, dim) -> np
     dim    : int or (n,) int
     returns (n,) float64
     """
-    with np.errstate(over="ignore"):
-        key = _mix(np.uint64(seed & 0xFFFFFFFFFFFFFFFF)
-                   + _GOLDEN * (np.asarray(dim, dtype=np.uint64) + np.uint64(1)))
-        x = key ^ (pixel.astype(np.uint64) << np.uint64(32)) ^ sample.astype(np.uint64)
-        x = _mix(x)
-        x = _mix(x ^ (np.asarray(bounce, dtype=np.uint64) * _GOLDEN))
-    return (x >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+    n = len(pixel)
+    return _uniform(np.uint64(seed & 0xFFFFFFFFFFFFFFFF),
+                    np.ascontiguousarray(pixel, np.uint32), np.ascontiguousarray(sample, np.uint32),
+                    np.ascontiguousarray(np.broadcast_to(bounce, (n,)), np.uint64),
+                    np.ascontiguousarray(np.broadcast_to(dim, (n,)), np.uint64))

@@ -1,9 +1,8 @@
-"""Jitted shading kernels: the counter RNG, next-event light sampling, BSDF continuation
-and surface interactions, row by row with exactly the float operations (and their order)
+"""Jitted shading kernels: next-event light sampling, BSDF continuation and surface
+interactions, row by row with exactly the float operations (and their order)
 of the numpy formulas they replace, so film sums stay bit-identical.
 
-One fixed sum order, written out in the numpy oracles too
-(`nprt.workers.wavefront.surface.surface_at`):
+One fixed sum order, written out in the numpy oracles too (tests/workers/oracles.py):
 three-term dot products, instance transforms included, sum (p0 + p2) + p1 (`_dot`), then
 add a translation; norms sum (x0² + x1²) + x2² (`_norm`). These are also the orders numpy
 2.x takes for `np.einsum("ij,ij->i")` and `np.linalg.norm(v, axis=1)` on C-ordered rows,
@@ -16,53 +15,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from nprt.workers.kernels.rng import DIM_BSDF_U, DIM_LIGHT_BASE, DIM_RR
+from nprt.workers.kernels.rng import DIM_BSDF_U, DIM_LIGHT_BASE, DIM_RR, dim_key, uniform_keyed
 
 # error_model="numpy": x / 0.0 is inf or NaN (as in numpy), not a ZeroDivisionError.
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
-_GOLDEN = np.uint64(0x9E3779B97F4A7C15)
-_TO_UNIT = 1.0 / (1 << 53)
-
-
-@njit(inline="always", **JIT)
-def _mix(x):
-    """splitmix64 finaliser on a uint64 (wrapping)."""
-    x = (x ^ (x >> np.uint64(30))) * _M1
-    x = (x ^ (x >> np.uint64(27))) * _M2
-    return x ^ (x >> np.uint64(31))
-
-
-@njit(inline="always", **JIT)
-def dim_key(seed, dim):
-    """The per-(seed, dimension) key of `nprt.workers.kernels.rng.uniform`; seed and dim uint64."""
-    return _mix(seed + _GOLDEN * (dim + np.uint64(1)))
-
-
-@njit(inline="always", **JIT)
-def uniform_keyed(key, pixel, sample, bounce):
-    """`nprt.workers.kernels.rng.uniform` for one row, given its dimension's key (uint64)."""
-    x = key ^ (np.uint64(pixel) << np.uint64(32)) ^ np.uint64(sample)
-    x = _mix(x)
-    x = _mix(x ^ (np.uint64(bounce) * _GOLDEN))
-    return np.float64(x >> np.uint64(11)) * _TO_UNIT
-
-
-@njit(**JIT)
-def uniform_rows(seed, rows, pixel, sample, bounce, dim):
-    """(k,) float64 uniforms of one dimension for `rows` (k,) int64 of pixel, sample (n,)
-    u32 and bounce (n,) u8."""
-    key = dim_key(np.uint64(seed), np.uint64(dim))
-    out = np.empty(len(rows))
-    for j in range(len(rows)):
-        i = rows[j]
-        out[j] = uniform_keyed(key, pixel[i], sample[i], bounce[i])
-    return out
-
-
-# The rounding-error constants of nprt.workers.kernels.offset, whose formulas the next three copy.
+# The rounding-error constants of the spawn offset (design: nprt.workers.kernels.offset).
 # They live here, not there: numba's cache is keyed on this file, so a constant taken
 # from another module would stay frozen in cached code after it changed.
 # pbrt's gamma(n) = n u / (1 - n u), u the unit roundoff of the format.
@@ -73,6 +31,13 @@ GAMMA64_3 = 3 * _U64 / (1 - 3 * _U64)
 # vertex v and a ray origin o near the triangle is at most twice that.
 LOCAL_REL = 2 * GAMMA32_7
 _LOCAL_REL = LOCAL_REL
+# Floor of a light's cosine where it divides a pdf (the quad's solid-angle density, in
+# next_event here and in `LightSet.pdf_quad_hit` for MIS): a grazing sample gets a huge,
+# finite density (weight ~0), never a division by zero.
+MIN_COS = 1e-30
+# Russian roulette kills a path with probability 1 - max(throughput), at most this much,
+# so no path is certain to die.
+RR_MAX_KILL = 0.95
 _G64 = GAMMA64_3
 _G64_1 = 1.0 + GAMMA64_3
 
@@ -85,7 +50,7 @@ def _abs_rowdot(m, it, c, v0, v1, v2):
 
 @njit(inline="always", **JIT)
 def point_error(l2w, w2l, it, v_max, pl, p, i, out):
-    """out[i] = `nprt.workers.kernels.offset.hit_point_error` of world point p[i] (3,) float64 of
+    """out[i] = the oracle `hit_point_error` of world point p[i] (3,) float64 of
     instance it, from its local point pl (3,) float64 and its triangle's largest
     |local vertex coordinate| v_max."""
     e = _LOCAL_REL * v_max
@@ -104,7 +69,7 @@ def point_error(l2w, w2l, it, v_max, pl, p, i, out):
 
 @njit(inline="always", **JIT)
 def offset_origin(p, p_err, n, i, out, k):
-    """out[k] = `nprt.workers.kernels.offset.offset_ray_origin` of row i of p, p_err, n (h, 3)
+    """out[k] = the oracle `offset_ray_origin` of row i of p, p_err, n (h, 3)
     float64, in float64 with its one-step rounding away from the surface."""
     d = (abs(n[i, 0]) * p_err[i, 0] + abs(n[i, 1]) * p_err[i, 1]) + abs(n[i, 2]) * p_err[i, 2]
     for c in range(3):
@@ -115,16 +80,6 @@ def offset_origin(p, p_err, n, i, out, k):
         elif off < 0:
             o = np.nextafter(o, -np.inf)
         out[k, c] = o
-
-
-@njit(**JIT)
-def offset_rows(p, p_err, n):
-    """`nprt.workers.kernels.offset.offset_ray_origin` for (k, 3) float64 p, p_err and n (its oracle
-    test)."""
-    out = np.empty_like(p)
-    for i in range(len(p)):
-        offset_origin(p, p_err, n, i, out, i)
-    return out
 
 
 @njit(inline="always", **JIT)
@@ -193,7 +148,7 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, al
                               q_normal[li, 0], q_normal[li, 1], q_normal[li, 2])
                 dist = d
                 if cos_l > 0:
-                    pdf_q = d * d / (max(cos_l, 1e-30) * q_area[li]) / fcount
+                    pdf_q = d * d / (max(cos_l, MIN_COS) * q_area[li]) / fcount
                     pdf_l = pdf_q
                     for c in range(3):
                         val[c] = q_radiance[li, c] / pdf_q
@@ -245,7 +200,7 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, al
 def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, verts,
             faces, normals, uvs, mesh_vbase, mesh_fbase, mesh_has_n, mesh_has_uv, mesh_mat,
             mat_albedo, mat_emission, mat_tex, tex_base, tex_h, tex_w, texels, w2l):
-    """Surface interactions of `nprt.workers.wavefront.surface.surface_at` for `rows` (k,)
+    """Surface interactions of the oracle `surface_at` for `rows` (k,)
     int64 of the
     hit records inst, prim (n,) int32; u, v (n,) float32; direction (n, 3) float32.
     slot_of_mesh (M,) int64 base mesh -> slot here (-1: not held); inst_mesh (m,) int32;
@@ -255,7 +210,7 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
     material: albedo, emission (3,) float64, texture (-1: none). Per texture: texel base,
     height, width; texels (T, 3) float32; w2l (m, 3, 4) float64 (inverses of l2w).
     returns bad (the first of rows whose mesh is not held, else -1), p, ng, ns, albedo,
-    emission, p_err (k, 3) float64 (p's error bound, `nprt.workers.kernels.offset.hit_point_error`).
+    emission, p_err (k, 3) float64 (p's error bound, the oracle `hit_point_error`).
     """
     n = len(rows)
     p = np.empty((n, 3))
@@ -347,8 +302,8 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
 @njit(**JIT)
 def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p, p_err, ng,
                   ns, albedo, thr, russian_roulette, rr_start_depth):
-    """Cosine-hemisphere continuation of `rows` (k,) int64 (of `nprt.workers.kernels.sampling.
-    cosine_hemisphere` and `PathIntegrator._continue`): cos_phi, sin_phi (k,) float64 of
+    """Cosine-hemisphere continuation of `rows` (k,) int64 (of the oracle
+    `cosine_hemisphere` and `PathIntegrator._continue`): cos_phi, sin_phi (k,) float64 of
     phi = 2 pi u2 come from numpy, whose SIMD sines need not round like libm's.
 
     ray_of (h,) int64 hit -> ray; pixel, sample (n,) u32; depth (n,) u8 per ray;
@@ -376,7 +331,7 @@ def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p,
         x, y = r * cos_phi[j], r * sin_phi[j]
         z = np.sqrt(max(0.0, 1.0 - u1))
         n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
-        sign = 1.0 if n2 >= 0 else -1.0  # Duff et al. frame, as nprt.workers.kernels.sampling.frame
+        sign = 1.0 if n2 >= 0 else -1.0  # Duff et al. frame, as the oracle `frame`
         a = -1.0 / (sign + n2)
         b = n0 * n1 * a
         d0 = x * (1.0 + sign * (n0 * n0) * a) + y * b + z * n0
@@ -388,7 +343,7 @@ def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p,
         if t0 != t0 or t1 != t1 or t2 != t2:
             continue  # t.max(axis=1) > 0 fails on NaN
         if russian_roulette and np.int64(dp) + 1 >= rr_start_depth:
-            q = min(max(1.0 - max(max(t0, t1), t2), 0.0), 0.95)
+            q = min(max(1.0 - max(max(t0, t1), t2), 0.0), RR_MAX_KILL)
             if not uniform_keyed(key_rr, px, sm, dp) >= q:
                 continue
             s = 1.0 - q

@@ -1,13 +1,12 @@
-"""Whole-scene closest-hit and shadow queries in one process: local geometry plus the
-replicated quad lights. Used by the reference renderer (all instances) and the raw
-throughput benchmark."""
+"""The closest-hit stage of every shard's wavefront (the reference's too): this shard's
+geometry plus the replicated quad lights, folded into the hit record a ray carries."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from nprt.workers.traversal.local import LocalGeometry
-from nprt.workers.wavefront.batch import LIGHT_BASE, RayBatch, ShadowRayBatch, precedes
+from nprt.workers.wavefront.batch import LIGHT_BASE, RayBatch, precedes
 from nprt.workers.wavefront.lights import LightSet
 
 
@@ -31,8 +30,3 @@ def resolve_closest(rays: RayBatch, geometry: LocalGeometry, lights: LightSet) -
         hit_prim=np.where(on_light, no_prim, hit_prim).astype(np.int32),
         hit_u=np.where(got & ~on_light, u, np.where(on_light, 0.0, rays.hit_u)).astype(np.float32),
         hit_v=np.where(got & ~on_light, v, np.where(on_light, 0.0, rays.hit_v)).astype(np.float32))
-
-
-def unoccluded(shadow: ShadowRayBatch, geometry: LocalGeometry) -> np.ndarray:
-    """(n,) bool: shadow rays that no geometry here blocks."""
-    return ~geometry.intersect_occluded(shadow.origin, shadow.direction, shadow.tmax)

@@ -9,8 +9,12 @@ from nprt.scene.model import Scene
 from nprt.workers.kernels import bvh as kernels
 from nprt.workers.kernels import pairs as pair_kernels
 
-# Boxes are padded so flat geometry (a ground quad) never yields a zero-width slab.
+# Boxes are padded so flat geometry (a ground quad) never yields a zero-width slab: by
+# BOX_PAD_REL of their diagonal, BOX_PAD_ABS (a box of one point), and BOX_PAD_COORD_REL
+# of their largest |coordinate| (float32 vertices far from the origin round by that much).
 BOX_PAD_REL = 1e-5
+BOX_PAD_ABS = 1e-9
+BOX_PAD_COORD_REL = 1e-7
 # Up to this many requested instances, a plain loop over their boxes beats the BVH.
 BVH_MIN_INSTANCES = 8
 
@@ -35,8 +39,9 @@ class InstanceTable:
         corners = _box_corners(local)  # (m, 8, 3)
         world = np.einsum("mij,mkj->mki", l2w[:, :3, :3], corners) + l2w[:, None, :3, 3]
         lo, hi = world.min(axis=1), world.max(axis=1)
-        pad = BOX_PAD_REL * np.linalg.norm(hi - lo, axis=1, keepdims=True) + 1e-9
-        pad = pad + 1e-7 * np.abs(np.concatenate([lo, hi], axis=1)).max(axis=1, keepdims=True)
+        pad = BOX_PAD_REL * np.linalg.norm(hi - lo, axis=1, keepdims=True) + BOX_PAD_ABS
+        pad = pad + BOX_PAD_COORD_REL * np.abs(np.concatenate([lo, hi], axis=1)).max(
+            axis=1, keepdims=True)
         self.world_bounds = np.stack([lo - pad, hi + pad], axis=1)
         self.local_bounds = local
         boxes = np.array(self.world_bounds, np.float64, order="C")
@@ -69,6 +74,11 @@ class InstanceTable:
         """`kernels.bvh_build(world_bounds)`'s arrays, or None (no boxes, or non-finite)."""
         return None if self._bvh is None else self._bvh[1:]
 
+    @property
+    def bvh_inputs(self) -> tuple | None:
+        """(world_bounds (m, 2, 3) float64, *bvh) as the kernels take them, or None."""
+        return self._bvh
+
     def __getstate__(self):
         state = self.__dict__.copy()
         for name in ("_bvh", "_mesh", "_world_to_local", "normal_to_world"):
@@ -88,7 +98,7 @@ class InstanceTable:
     def to_local(self, inst: np.ndarray, origin: np.ndarray, direction: np.ndarray):
         """Move rays into their instance's local space in float64, then cast to float32.
 
-        inst : (n,) int32; origin, direction : (n, 3) float32 world
+        inst : (n,) int32; origin (n, 3) float64, direction (n, 3) float32 world
         returns origin, direction : (n, 3) float32 local (direction not renormalised,
         so t is the same in both spaces)
         """
@@ -113,7 +123,8 @@ class InstanceTable:
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
         """Slab test of rays against a set of instance boxes, in float64.
 
-        origin, direction : (n, 3) float32; tmax : (n,) float32; instances : (k,) int
+        origin (n, 3) float64, direction (n, 3) float32; tmax : (n,) float32 or float64;
+        instances : (k,) int
         returns ray (p,) int64, inst (p,) int32, t_enter (p,) float64, t_exit (p,) float64
         for every crossing with t_exit >= max(t_enter, 0) and t_enter < tmax, ray-major and
         then in the order of `instances`. Per axis t = (plane - origin) * (1 / direction),

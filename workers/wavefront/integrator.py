@@ -16,7 +16,7 @@ import numpy as np
 
 from nprt.scene.model import Camera, Material, Mesh
 from nprt.workers.kernels import shade as shade_kernels
-from nprt.workers.kernels.rng import DIM_BSDF_V
+from nprt.workers.kernels.rng import DIM_BSDF_V, uniform_rows
 from nprt.workers.passes import Pass
 from nprt.workers.settings import RenderSettings
 from nprt.workers.traversal.toplevel import InstanceTable
@@ -115,7 +115,7 @@ class PathIntegrator:
         return Shaded(pixel, rgb, shadow, secondary)
 
     def _surface_at(self, rays: RayBatch, surf: np.ndarray):
-        """Surfaces of rays[surf], through the kernel (bit-identical to `surface_at`)."""
+        """Surfaces of rays[surf], through the kernel."""
         if self._surfaces is None:
             self._surfaces = SurfaceTables(self.meshes, self.materials, self.table)
         return self._surfaces.at(rays.hit_inst, rays.hit_prim, rays.hit_u, rays.hit_v,
@@ -163,7 +163,7 @@ class PathIntegrator:
                   go: np.ndarray) -> RayBatch:
         """One BSDF ray per hit where go (absorbed or terminated ones dropped)."""
         g = np.flatnonzero(go)
-        u2 = shade_kernels.uniform_rows(self.s.seed, surf[g], rays.pixel, rays.sample,
+        u2 = uniform_rows(self.s.seed, surf[g], rays.pixel, rays.sample,
                                         rays.depth, DIM_BSDF_V)
         phi = 2.0 * np.pi * u2  # sines in numpy: its SIMD versions need not round like libm's
         c, k, origin, d, t, pdf = shade_kernels.bsdf_continue(

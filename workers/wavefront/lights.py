@@ -11,8 +11,11 @@ import numpy as np
 
 from nprt.scene.model import Environment, Scene
 from nprt.workers.kernels.sampling import normalize
+from nprt.workers.kernels.shade import MIN_COS
 
-FAR_T = np.float32(1e30)  # tmax of shadow rays toward directional lights
+# "No limit" as a float32 distance: the tmax of shadow rays toward directional lights,
+# and the tfar Embree traces to (nprt.workers.traversal.local).
+FAR_T = np.float32(1e30)
 
 
 class LightSet:
@@ -74,7 +77,7 @@ class LightSet:
                                  self.quad_normal[light]))
         area = self.quad_area[light]
         with np.errstate(divide="ignore"):
-            return (t.astype(np.float64) ** 2) / (np.maximum(cos_l, 1e-12) * area * self.count)
+            return (t.astype(np.float64) ** 2) / (np.maximum(cos_l, MIN_COS) * area * self.count)
 
     def environment_radiance(self, direction: np.ndarray) -> np.ndarray:
         """(n, 3) float32 unit directions -> (n, 3) float64 radiance of escaped rays."""
@@ -84,45 +87,3 @@ class LightSet:
             w = np.clip(direction[:, 1].astype(np.float64), 0.0, 1.0)[:, None]
             return (1 - w) * np.asarray(env.horizon)[None] + w * np.asarray(env.zenith)[None]
         return np.broadcast_to(np.asarray(env.radiance, np.float64), (n, 3))
-
-    def sample(self, pick: np.ndarray, u1: np.ndarray, u2: np.ndarray, p: np.ndarray):
-        """Sample one light per row for next-event estimation from points p.
-
-        pick, u1, u2 : (n,) float64 uniforms; p : (n, 3) float64 shading points
-        returns wi (n, 3) f64 unit, dist (n,) f64 (FAR_T for directional),
-        radiance_over_pdf (n, 3) f64 = Le * G-terms / pdf excluding the receiver cosine,
-        pdf_solid (n,) f64 for MIS (0 for delta lights, meaning no MIS).
-        """
-        n = len(p)
-        idx = np.minimum((pick * self.count).astype(np.int64), self.count - 1)
-        wi = np.zeros((n, 3))
-        dist = np.full(n, float(FAR_T))
-        value = np.zeros((n, 3))
-        pdf = np.zeros(n)
-        q = idx < self.n_quads
-        if q.any():
-            li = idx[q]
-            y = self.quad_corner[li] + u1[q, None] * self.quad_u[li] + u2[q, None] * self.quad_v[li]
-            v = y - p[q]
-            d = np.linalg.norm(v, axis=1)
-            w = v / np.maximum(d, 1e-30)[:, None]
-            cos_l = -np.einsum("ij,ij->i", w, self.quad_normal[li])
-            pdf_q = np.where(cos_l > 0, d**2 / (np.maximum(cos_l, 1e-30) * self.quad_area[li]), 0.0)
-            pdf_q = pdf_q / self.count
-            ok = cos_l > 0
-            wi[q], dist[q], pdf[q] = w, d, np.where(ok, pdf_q, 0.0)
-            value[q] = np.where(ok[:, None], self.quad_radiance[li] /
-                                np.where(ok, pdf_q, 1.0)[:, None], 0.0)
-        pt = (idx >= self.n_quads) & (idx < self.n_quads + self.n_points)
-        if pt.any():
-            li = idx[pt] - self.n_quads
-            v = self.point_pos[li] - p[pt]
-            d = np.linalg.norm(v, axis=1)
-            wi[pt], dist[pt] = v / np.maximum(d, 1e-30)[:, None], d
-            value[pt] = self.point_intensity[li] / np.maximum(d**2, 1e-30)[:, None] * self.count
-        dl = idx >= self.n_quads + self.n_points
-        if dl.any():
-            li = idx[dl] - self.n_quads - self.n_points
-            wi[dl] = -self.dir_dir[li]
-            value[dl] = self.dir_irradiance[li] * self.count
-        return wi, dist, value, pdf
