@@ -6,8 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from nprt.workers.kernels.nearest import NONE as NO_OWNER
+from nprt.workers.kernels.nearest import bvh_nearest_owner as nearest_owner
 from nprt.workers.runtime.protocol import EVERYWHERE
 from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL
+from nprt.workers.traversal.toplevel import BVH_MIN_INSTANCES
 from nprt.workers.wavefront.batch import RayBatch, ShadowRayBatch
 from nprt.workers.wavefront.world import ShardWorld
 
@@ -40,11 +43,29 @@ def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, 
     remote : (m,) int32 instances not intersected here; visited : (n,) uint64 bitmask
     returns (n,) int32 target shard or DONE
     """
-    target = np.full(len(origin), DONE, np.int32)
     # Stretched as local intersection culls (nprt.workers.traversal.local): a hit on another
-    # shard tied
-    # with tmax must still be visited, or the global tie rule could not see it.
+    # shard tied with tmax must still be visited, or the global tie rule could not see it.
     box_tmax = np.asarray(tmax, np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
+    inputs = world.table.bvh_inputs
+    if inputs is not None and len(remote) > BVH_MIN_INSTANCES and len(origin):
+        # One candidate per ray in a kernel; the same answer as the sort below.
+        in_set = np.zeros(len(world.table), bool)
+        in_set[remote] = True
+        owner = nearest_owner(
+            np.array(origin, np.float64, order="C"), np.array(direction, np.float64, order="C"),
+            np.array(box_tmax, np.float64, order="C"), *inputs, in_set,
+            np.array(world.owner, np.int32, order="C"),
+            np.array(visited, np.uint64, order="C"),
+            np.empty(len(inputs[2]) + 1, np.int32))
+        return np.where(owner == NO_OWNER, DONE, owner).astype(np.int32)
+    return nearest_by_crossings(world, remote, origin, direction, box_tmax, visited)
+
+
+def nearest_by_crossings(world: ShardWorld, remote: np.ndarray, origin, direction, box_tmax,
+                         visited: np.ndarray) -> np.ndarray:
+    """`nearest_unvisited` by listing every crossing and sorting: for tables without a BVH
+    or with few boxes. box_tmax (n,) float64 is tmax already stretched."""
+    target = np.full(len(origin), DONE, np.int32)
     ray, inst, t_enter, _ = world.table.box_entries(origin, direction, box_tmax, remote)
     if len(ray) == 0:
         return target
