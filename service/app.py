@@ -19,6 +19,7 @@ from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.formparsers import MultiPartException
 
+from nprt.service.admission import FastAdmission
 from nprt.service.auth import TokenMiddleware
 from nprt.service.bodyguard import JsonGuard
 from nprt.service.config import ServiceSettings
@@ -83,6 +84,7 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
                               "follow tiles over SSE, fetch PNG/EXR. gRPC: protos/nprt.proto.")
     app.state.settings = settings
     # The last added runs first: the token is checked before the body guard reads a byte.
+    app.add_middleware(FastAdmission)
     app.add_middleware(JsonGuard)
     app.add_middleware(TokenMiddleware, token=settings.api_token)
     app.include_router(scenes.router)

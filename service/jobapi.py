@@ -5,10 +5,12 @@ jobs up, so any number of API workers can share one store."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import shutil
 import sqlite3
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from nprt.service import checkpoint, images
@@ -34,6 +36,9 @@ class JobApi:
         self.broker = EventBroker(settings.max_watchers, settings.watcher_tile_bytes)
         # Its own connection: the feed's reads never wait on this worker's requests.
         self._feed = EventFeed(JobStore(settings.db_path), self.broker)
+        # One thread for the store's writes: they serialise on its connection anyway, and
+        # a plain executor hop costs less than anyio's worker threads.
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="nprt-store-writer")
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
 
     def start(self) -> JobApi:
@@ -41,11 +46,17 @@ class JobApi:
         return self
 
     def stop(self) -> None:
+        self._writer.shutdown(wait=True)
         self._feed.stop()
         self._feed.store.close()
         self.store.close()
 
     # ------------------------------------------------------------ writes (off the loop)
+
+    async def in_writer(self, fn, *args):
+        """fn(*args) on the writer thread: a write may wait for another process's, and
+        must not hold the event loop meanwhile."""
+        return await asyncio.get_running_loop().run_in_executor(self._writer, fn, *args)
 
     def submit(self, scene: str, settings: RenderSettings,
                idempotency_key: str | None = None,

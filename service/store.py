@@ -52,6 +52,22 @@ _ADDED_COLUMNS = {
     "frames": "TEXT",  # JSON [first, last] of an animated scene's frame range, or NULL
 }
 _INDEXES = "CREATE UNIQUE INDEX IF NOT EXISTS jobs_idempotency_key ON jobs(idempotency_key);"
+# The queue depth as a counter kept by triggers: admission reads one row, not a count over
+# every queued job. Recounted once per open, in the transaction that makes the triggers.
+_QUEUE_COUNTER = """
+CREATE TABLE IF NOT EXISTS counters (name TEXT PRIMARY KEY, n INTEGER NOT NULL);
+INSERT OR IGNORE INTO counters VALUES ('queued', 0);
+CREATE TRIGGER IF NOT EXISTS jobs_queued_insert AFTER INSERT ON jobs WHEN NEW.state = 'queued'
+BEGIN UPDATE counters SET n = n + 1 WHERE name = 'queued'; END;
+CREATE TRIGGER IF NOT EXISTS jobs_queued_update AFTER UPDATE OF state ON jobs
+WHEN (OLD.state = 'queued') != (NEW.state = 'queued')
+BEGIN UPDATE counters SET n = n + (CASE WHEN NEW.state = 'queued' THEN 1 ELSE -1 END)
+WHERE name = 'queued'; END;
+CREATE TRIGGER IF NOT EXISTS jobs_queued_delete AFTER DELETE ON jobs WHEN OLD.state = 'queued'
+BEGIN UPDATE counters SET n = n - 1 WHERE name = 'queued'; END;
+UPDATE counters SET n = (SELECT COUNT(*) FROM jobs WHERE state = 'queued')
+WHERE name = 'queued';
+"""
 _JSON_COLUMNS = ("settings", "stats", "pixel_samples", "frames")
 _UPDATABLE = frozenset({"started_at", "finished_at", "passes_done", "passes_total", "error",
                         "stats", "pixel_samples"})
@@ -109,6 +125,7 @@ class JobStore:
                 if name not in have:
                     self._db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {decl}")
             self._db.executescript(_INDEXES)
+            self._db.executescript(f"BEGIN IMMEDIATE;{_QUEUE_COUNTER}COMMIT;")
         self._rdb = sqlite3.connect(path, check_same_thread=False, isolation_level=None,
                                     timeout=BUSY_TIMEOUT_S)
         self._rdb.row_factory = sqlite3.Row
@@ -129,14 +146,14 @@ class JobStore:
         """Store a queued job. With an idempotency key that is already stored, nothing is
         inserted and the stored job is returned (compare its id to tell). With max_queued,
         QueueFull when that many jobs are queued (checked in the same statement, so
-        concurrent inserts from any process never overshoot it)."""
+        concurrent inserts from any process never overshoot it; O(1), a counter)."""
         now = time.time()
         depth = -1 if max_queued is None else max_queued
         with self._lock:
             cur = self._db.execute(
                 "INSERT INTO jobs (id, scene, settings, state, created_at, passes_total, "
                 "idempotency_key, frames) SELECT ?, ?, ?, 'queued', ?, ?, ?, ? WHERE ? < 0 OR "
-                "(SELECT COUNT(*) FROM jobs WHERE state = 'queued') < ? "
+                "(SELECT n FROM counters WHERE name = 'queued') < ? "
                 "ON CONFLICT (idempotency_key) DO NOTHING",
                 (job_id, scene, json.dumps(settings), now, passes_total, idempotency_key,
                  None if frames is None else json.dumps(list(frames)), depth, depth))

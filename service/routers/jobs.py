@@ -37,29 +37,31 @@ MAX_OFFSET = (1 << 31) - 1  # SQLite takes 64-bit offsets; nobody pages past 2^3
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep],
-             responses=error_responses(400, 401, 409, 413, 429, 503))
-async def create_job(body: JobCreate, api: ApiDep, response: Response,
+             response_model=JobPublic, responses=error_responses(400, 401, 409, 413, 429, 503))
+async def create_job(body: JobCreate, api: ApiDep,
                      idempotency_key: Annotated[str | None, Header(
                          min_length=1, max_length=200,
                          description="a retried request with the same key returns the job "
                                      "the first one created (header Idempotent-Replayed)")
-                     ] = None) -> JobPublic:
+                     ] = None) -> Response:
     """Store the job and queue it; rendering starts when a slot is free. Past
     NPRT_MAX_QUEUED_JOBS queued jobs: 429 with Retry-After (retry with the same
     Idempotency-Key)."""
     try:
         frames = None if body.frames is None else (body.frames.first, body.frames.last)
-        rec, created = await run_in_threadpool(api.submit, body.scene, body.render_settings(),
-                                               idempotency_key, frames)
+        rec, created = await api.in_writer(api.submit, body.scene, body.render_settings(),
+                                           idempotency_key, frames)
     except InvalidJob as e:
         # Same answer as FastAPI's own validation errors, so clients see the field.
         raise RequestValidationError([
             {"type": "value_error", "loc": ["body", e.field], "msg": str(e),
              "input": jsonable_encoder(getattr(body, e.field))}]) from None
-    response.headers["Location"] = f"/v1/jobs/{rec.id}"
+    headers = {"Location": f"/v1/jobs/{rec.id}"}
     if not created:
-        response.headers["Idempotent-Replayed"] = "true"
-    return JobPublic.from_record(rec)
+        headers["Idempotent-Replayed"] = "true"
+    # Serialized here, once: returning the model would have FastAPI validate it again.
+    return Response(JobPublic.from_record(rec).model_dump_json(), status.HTTP_202_ACCEPTED,
+                    headers, media_type="application/json")
 
 
 @router.get("")
@@ -84,7 +86,7 @@ async def cancel_job(job_id: str, api: ApiDep) -> JobPublic:
     """The cancel is stored first (it survives a restart): a queued job is canceled at
     once, a running one stops at its next pass boundary and ends canceled (409 if the job
     already finished)."""
-    return JobPublic.from_record(await run_in_threadpool(api.cancel, job_id))
+    return JobPublic.from_record(await api.in_writer(api.cancel, job_id))
 
 
 async def _image(api, job_id: str, fmt: str) -> Response:

@@ -72,6 +72,9 @@ export function showStats(job, baseline) {
     rows.push(["transfers total", `${fmtInt(s.total_transfers || 0)} (${fmtBytes(s.total_bytes || 0)})`]);
     if (s.checkpoint_bytes !== undefined) rows.push(["checkpoints written", fmtBytes(s.checkpoint_bytes)]);
     if (s.coordinator_wait_s !== undefined) rows.push(["coordinator waiting", fmtSeconds(s.coordinator_wait_s)]);
+    if (s.coordinator_cpu_s != null) rows.push(["coordinator CPU", fmtSeconds(s.coordinator_cpu_s)]);
+    const shardCpu = (s.shard_stats || []).filter((x) => x.cpu_s != null);
+    if (shardCpu.length) rows.push(["shard CPU total", fmtSeconds(shardCpu.reduce((a, x) => a + x.cpu_s, 0))]);
     if (s.hops_histogram?.length) rows.push(["hops histogram", s.hops_histogram.join(" / ")]);
     for (const [k, v] of Object.entries(s.counters || {})) rows.push([k.replaceAll("_", " "), fmtInt(v)]);
     for (const t of s.proxy_training || []) {  // one Ray task per proxy, live while preparing
@@ -104,16 +107,21 @@ export function showShards(job) {
     box.replaceChildren(el("p", { class: "muted" }, `${job.settings.shards} shards; their figures arrive when the job finishes`));
     return;
   }
-  const head = el("tr", {}, ...["shard", "node", "pid", "geometry", "busy", "calls", "bytes in", "bytes out"].map((h) => el("th", {}, h)));
+  const cpu = shards.some((s) => s.cpu_s != null);  // CPU seconds, when the coordinator reports them
+  const head = el("tr", {}, ...["shard", "node", "pid", "geometry", "busy", ...(cpu ? ["CPU"] : []), "calls", "bytes in", "bytes out"].map((h) => el("th", {}, h)));
   const rows = shards.map((s) => el("tr", { "data-shard": s.shard },
     el("td", {}, s.shard), el("td", { title: s.node || "" }, (s.node || "–").slice(0, 12)), el("td", {}, s.pid),
     el("td", {}, fmtBytes(s.geometry_bytes)),
     el("td", { class: "busy" }, el("div", { class: "bar small" },
       el("div", { class: "fill", style: `width:${Math.min(100, 100 * s.busy_fraction).toFixed(1)}%` }),
       el("span", {}, `${(100 * s.busy_fraction).toFixed(1)}%`))),
+    ...(cpu ? [el("td", { class: "cpu" }, s.cpu_s == null ? "–" : fmtSeconds(s.cpu_s))] : []),
     el("td", {}, fmtInt(s.calls)), el("td", {}, fmtBytes(s.bytes_in)), el("td", {}, fmtBytes(s.bytes_out))));
+  const coordinator = job.stats.coordinator_cpu_s;
   box.replaceChildren(el("table", { id: "shard-table" }, el("thead", {}, head), el("tbody", {}, ...rows)),
-    el("p", { class: "muted" }, "busy: the shard's seconds of work over the job's wall time"));
+    el("p", { class: "muted" }, "busy: the shard's seconds of work over the job's wall time" +
+      (cpu ? "; CPU: the shard process's CPU seconds in this job" : "") +
+      (coordinator == null ? "" : `; coordinator CPU: ${fmtSeconds(coordinator)}`)));
 }
 
 // phase_s sums each stage's seconds over all shards; divided by the shard count it is the
