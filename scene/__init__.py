@@ -9,10 +9,10 @@ from importlib import import_module
 _EXPORTS = {
     "SceneError": "nprt.scene.errors",
     "Scene": "nprt.scene.model",
-    "load_scene": "nprt.scene.io",
-    "save_scene": "nprt.scene.io",
+    "load_scene": "nprt.scene.json_load",
+    "save_scene": "nprt.scene.json_save",
     "load_any": "nprt.scene.io",
-    "load_gltf": "scene.gltf",
+    "load_gltf": "nprt.scene.gltf",
     "make_demo": "nprt.scene.demos",
     "DEMOS": "nprt.scene.demos",
     "Partition": "nprt.scene.partition",

@@ -18,7 +18,7 @@ from nprt.scene.animation import (
     with_animation,
 )
 from nprt.scene.errors import SceneError
-from nprt.scene.io import trs_matrix
+from nprt.scene.transform import trs_matrix
 
 # Fields each kind of light may key, by its field in `lights` and the Scene's.
 LIGHT_FIELDS = {

@@ -14,9 +14,11 @@ import trimesh
 
 from nprt.scene.errors import SceneError
 from nprt.scene.gltf_anim import gltf_animation
-from nprt.scene.io import build_mesh, file_normals, scene_from_meshes, srgb_to_linear
+from nprt.scene.io import scene_from_meshes
+from nprt.scene.meshfile import build_mesh, file_normals
 from nprt.scene.model import TRANSFORM_DTYPE, Material, Mesh, Scene, validate_transform
 from nprt.scene.paths import FileRefs, load_trimesh
+from nprt.scene.texture import srgb_to_linear
 
 log = logging.getLogger(__name__)
 

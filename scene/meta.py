@@ -150,7 +150,7 @@ def load_scene_meta(path, root: Path | None = None, write_cache: bool = True) ->
     """The metadata of a JSON scene file, with a `DirectorySource` for its meshes. Meshes
     whose cached entry is missing or stale are read (one at a time) and the cache is
     rewritten; with the cache current no mesh file is opened."""
-    from nprt.scene.io import animated, read_spec, scene_parts, spec_mesh
+    from nprt.scene.json_load import animated, read_spec, scene_parts, spec_mesh
     from nprt.scene.store import DirectorySource
 
     spec, refs, shown = read_spec(path, root)

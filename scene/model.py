@@ -1,7 +1,7 @@
 """The in-memory scene model: base meshes, instances, materials, lights, camera.
 
 These are plain frozen dataclasses of numpy arrays; the JSON schema that users
-write lives in `nprt.scene.schema` and is converted into these by `nprt.scene.io`.
+write lives in `nprt.scene.schema` and is converted into these by `nprt.scene.json_load`.
 """
 
 from __future__ import annotations

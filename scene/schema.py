@@ -1,6 +1,7 @@
 """The JSON scene file format as pydantic v2 models, with its constraints on the fields.
 
-`nprt.scene.io` reads and writes these and converts them to and from `nprt.scene.model.Scene`.
+`nprt.scene.json_load` and `nprt.scene.json_save` read and write these and convert them to
+and from `nprt.scene.model.Scene`.
 """
 
 from __future__ import annotations
@@ -100,7 +101,8 @@ def _instances_form(value) -> str:
 
 
 # A list of InstanceSpec, or {"file": ...}. The tags are dropped from error paths by
-# nprt.scene.io (a tag that is not an identifier never shows), so errors read instances[3].mesh.
+# nprt.scene.json_load (a tag that is not an identifier never shows), so errors read
+# instances[3].mesh.
 InstancesSpec = Annotated[
     Annotated[list[InstanceSpec], Field(min_length=1), Tag("list")]
     | Annotated[InstanceFileSpec, Tag("array-file")],

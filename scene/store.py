@@ -76,7 +76,7 @@ class DirectorySource(MeshSource):
         self.url = Path(self.scene_file).resolve().as_uri()
 
     def _load(self, indices: list[int]) -> dict[int, Mesh]:
-        from nprt.scene.io import read_spec, spec_mesh
+        from nprt.scene.json_load import read_spec, spec_mesh
 
         spec, refs, shown = read_spec(self.scene_file, None if self.root is None
                                       else Path(self.root))

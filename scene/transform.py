@@ -1,4 +1,5 @@
-"""Moving a whole scene by a similarity x -> s R x + t (instances, camera, lights), with
+"""4x4 transforms: a translate/rotate/scale matrix (`trs_matrix`, the scene file's form),
+and moving a whole scene by a similarity x -> s R x + t (instances, camera, lights), with
 the radiometry adjusted so that the rendered image must not change: the invariance that
 the numerics tests and `bench/render/bench_extremes.py` check.
 
@@ -14,7 +15,7 @@ import dataclasses
 import numpy as np
 
 from nprt.scene.errors import SceneError
-from nprt.scene.model import Camera, Instance, Scene
+from nprt.scene.model import TRANSFORM_DTYPE, Camera, Instance, Scene
 
 # A 'sky' environment blends by the direction's +y component: only rotations that keep
 # +y (about the y axis) leave it unchanged.
@@ -83,3 +84,23 @@ def transform_scene(scene: Scene, m: np.ndarray, name: str | None = None) -> Sce
                                  for d in scene.directional_lights),
         camera=camera,
         name=scene.name if name is None else name)
+
+
+def trs_matrix(translate=None, rotate_deg=None, scale=None) -> np.ndarray:
+    """T @ Rz @ Ry @ Rx @ S as (4, 4) float64; rotate_deg are Euler angles about x, y, z."""
+    m = np.eye(4, dtype=TRANSFORM_DTYPE)
+    if scale is not None:
+        m[:3, :3] = np.diag(np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)))
+    if rotate_deg is not None:
+        import trimesh
+
+        r = np.eye(4)
+        for axis, deg in zip("xyz", rotate_deg, strict=True):
+            r = trimesh.transformations.rotation_matrix(np.radians(deg), _AXES[axis]) @ r
+        m = r @ m
+    if translate is not None:
+        m[:3, 3] = translate
+    return m
+
+
+_AXES = {"x": [1.0, 0.0, 0.0], "y": [0.0, 1.0, 0.0], "z": [0.0, 0.0, 1.0]}

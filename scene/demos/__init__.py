@@ -39,7 +39,7 @@ def build_demo(name: str, size: str, seed: int, path: Path) -> Path:
     """Write demo `name` at `size` as a JSON scene at `path` (meshes as PLY beside it,
     instances in an .npz, an animation as keyframes): what
     `nprt.scene.store.materialize_demo` caches."""
-    from nprt.scene.io import save_scene
+    from nprt.scene.json_save import save_scene
 
     check_demo(name, size)
     return save_scene(make_demo(name, size, seed), path, instance_file=True)

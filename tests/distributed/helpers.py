@@ -89,9 +89,9 @@ def _refuse(*a, **kw):
 def refuse_mesh_reads(monkeypatch) -> None:
     """From now on any mesh read in this (the driver's) process fails the test; shard
     actors and training tasks are other processes and load theirs as usual."""
-    from nprt.scene import io as scene_io
+    from nprt.scene import json_load
     from nprt.scene.store import DirectorySource
 
-    monkeypatch.setattr(scene_io, "read_mesh_file", _refuse)
-    monkeypatch.setattr(scene_io, "build_mesh", _refuse)
+    monkeypatch.setattr(json_load, "read_mesh_file", _refuse)
+    monkeypatch.setattr(json_load, "build_mesh", _refuse)
     monkeypatch.setattr(DirectorySource, "_load", _refuse)

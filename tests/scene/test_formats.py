@@ -14,8 +14,9 @@ from trimesh.exchange.obj import export_obj
 from trimesh.exchange.ply import export_ply
 from trimesh.exchange.stl import export_stl, export_stl_ascii
 
-from nprt.scene.io import load_any, srgb_to_linear
+from nprt.scene.io import load_any
 from nprt.scene.model import Mesh
+from nprt.scene.texture import srgb_to_linear
 
 RNG = np.random.default_rng(5)
 TEXELS = (RNG.random((4, 6, 3)) * 255).astype(np.uint8)  # (h, w, 3) sRGB

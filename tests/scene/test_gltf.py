@@ -10,7 +10,7 @@ from trimesh.visual.material import PBRMaterial
 
 from nprt.scene.errors import SceneError
 from nprt.scene.gltf import load_gltf
-from nprt.scene.io import srgb_to_linear
+from nprt.scene.texture import srgb_to_linear
 from tests.scene._util import translate
 
 
