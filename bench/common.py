@@ -1,5 +1,10 @@
-"""Helpers shared by the render benchmarks: one timed distributed render, the machine
-record, and replacing a marked section of bench/README.md (or the top-level README)."""
+"""Helpers shared by the benchmarks: where results go (`RESULTS`), the epilogue every script
+ends with (`finish`: JSON, plot, table, and its marked section of bench/README.md or the
+top-level README), the `--smoke` flag of the CI smoke test (tests/test_bench_smoke.py), one
+timed distributed render and the machine record.
+
+`NPRT_BENCH_RESULTS` moves `RESULTS` elsewhere (the smoke test points it at a temporary
+folder); a README section is only written for results that lie beside that README."""
 
 from __future__ import annotations
 
@@ -9,20 +14,23 @@ import platform
 import re
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-import numpy as np
-import ray
+if TYPE_CHECKING:  # imported where used: bench_massive's bare driver imports this module
+    import numpy as np
 
-from nprt.scene.model import Scene
-from nprt.workers.render import render
-from nprt.workers.runtime.coordinator import Coordinator
-from nprt.workers.settings import RenderSettings
-from nprt.workers.stats.quality import compare
+    from nprt.scene.model import Scene
+    from nprt.workers.settings import RenderSettings
 
 BENCH_README = Path(__file__).resolve().parent / "README.md"
+ROOT_README = BENCH_README.parents[1] / "README.md"
+RECORDED = BENCH_README.parent / "results"  # the results bench/README.md shows
+RESULTS = Path(os.environ.get("NPRT_BENCH_RESULTS") or RECORDED)
 
 
 def machine(ray_cpus: int) -> dict:
+    import ray
+
     return {"platform": platform.platform(), "python": platform.python_version(),
             "cpus": os.cpu_count(), "ray": ray.__version__, "ray_cpus": ray_cpus,
             "load_average_before": os.getloadavg()}
@@ -31,6 +39,9 @@ def machine(ray_cpus: int) -> dict:
 def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1):
     """Start a Coordinator (timed as prepare: plan, proxies, actors), render `repeat`
     times and keep the fastest. Returns (row, image (h, w, 3) float32, coordinator info)."""
+    from nprt.workers.render import render
+    from nprt.workers.runtime.coordinator import Coordinator
+
     t0 = time.perf_counter()
     coord = Coordinator(scene, s)
     prepare_s = time.perf_counter() - t0
@@ -68,6 +79,8 @@ def bench_scene(name: str, size: str) -> Scene:
 
 def quality(base: np.ndarray, img: np.ndarray) -> dict:
     """PSNR (dB, inf when identical), SSIM and mean FLIP of img against base."""
+    from nprt.workers.stats.quality import compare
+
     return {k: round(v, 5) for k, v in compare(base, img).items()}
 
 
@@ -81,6 +94,48 @@ def replace_section(readme: Path, begin: str, end: str, section: str) -> None:
     readme.write_text(text)
 
 
+def publish(name: str, section: str, results: Path, readme: Path = BENCH_README) -> bool:
+    """Replace readme's `<!-- name:begin -->` ... `<!-- name:end -->` section, only when
+    `results` (a file or folder the section links to) lies beside the README: never for a
+    --smoke run or results written elsewhere. Returns whether it wrote."""
+    try:
+        Path(results).resolve().relative_to(readme.parent.resolve())
+    except ValueError:
+        print(f"{readme.name} not updated: {results} is outside {readme.parent}")
+        return False
+    replace_section(readme, f"<!-- {name}:begin -->", f"<!-- {name}:end -->", section)
+    return True
+
+
+def finish(res: dict, path: Path, *, plot=None, markdown=None, section: str | None = None,
+           intro: str = "", readme: Path = BENCH_README, update_readme: bool = True,
+           table_file: bool = False) -> str:
+    """The epilogue of a benchmark: write res as JSON at path, its plot (plot(res, png)) as
+    the .png beside it, print the table (markdown(res); also as the .md beside it with
+    table_file) and, when `section` names a README
+    section and update_readme, replace it with intro + table. In intro, `{json}` and `{png}`
+    stand for the result files relative to the README. Returns the table."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(res, indent=1, default=str))
+    png = path.with_suffix(".png")
+    if plot is not None:
+        plot(res, png)
+    table = markdown(res) if markdown is not None else ""
+    if table_file:
+        path.with_suffix(".md").write_text(table + "\n")
+    print(table)
+    print(f"\nwrote {path}" + (f" and {png}" if plot is not None else ""))
+    if section and update_readme:
+        try:
+            rel = path.resolve().relative_to(readme.parent.resolve())
+        except ValueError:
+            rel = path
+        text = intro.replace("{json}", str(rel)).replace("{png}", str(rel.with_suffix(".png")))
+        publish(section, text + table, path, readme)
+    return table
+
+
 def add_render_flags(ap, results: Path) -> None:
     """Image, sampling and output flags every render benchmark takes."""
     ap.add_argument("--width", type=int, default=160)
@@ -89,22 +144,29 @@ def add_render_flags(ap, results: Path) -> None:
     ap.add_argument("--bounces", type=int, default=5)
     ap.add_argument("--shadow-rays", type=int, default=4)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=results)
+    add_output_flags(ap, results)
+
+
+def add_output_flags(ap, out: Path = RESULTS) -> None:
+    """--out, --no-readme and --smoke (the smallest input; never writes a README)."""
+    ap.add_argument("--out", type=Path, default=out)
     ap.add_argument("--no-readme", action="store_true", help="do not update the README")
+    ap.add_argument("--smoke", action="store_true",
+                    help="smallest input, for the CI smoke test (implies --no-readme)")
+
+
+def smoke(args, **tiny):
+    """With --smoke, replace args' values by the tiny ones given and set no_readme."""
+    if getattr(args, "smoke", False):
+        for k, v in tiny.items():
+            setattr(args, k, v)
+        args.no_readme = True
+    return args
 
 
 def render_settings(args, **kw) -> RenderSettings:
+    from nprt.workers.settings import RenderSettings
+
     return RenderSettings(width=args.width, height=args.height or args.width * 3 // 4,
                           spp=args.spp, spp_per_pass=args.spp, bounces=args.bounces,
                           shadow_rays=args.shadow_rays, seed=args.seed, **kw)
-
-
-def save(res: dict, path: Path, plot, markdown) -> str:
-    """Write res as JSON and its plot (same stem, .png); print and return the table."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(res, indent=1))
-    plot(res, path.with_suffix(".png"))
-    table = markdown(res)
-    print(table)
-    print(f"\nwrote {path} and {path.with_suffix('.png')}")
-    return table

@@ -19,11 +19,10 @@ import argparse
 import json
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+from bench.common import RESULTS, smoke
 
 
 def split_cells(mesh, levels: int):
@@ -118,7 +117,10 @@ def main(argv=None) -> None:
     ap.add_argument("--steps", type=int, default=12000, help="optimiser steps, all cells")
     ap.add_argument("--samples", type=int, default=1 << 19, help="training rays, all cells")
     ap.add_argument("--eval", type=int, default=1 << 16)
-    args = ap.parse_args(argv)
+    ap.add_argument("--smoke", action="store_true",
+                    help="a tiny pine, 0 and 1 levels, 20 steps, for the CI smoke test")
+    args = smoke(ap.parse_args(argv), mesh=["forest:tiny:pine"], levels=[0, 1], steps=20,
+                 samples=1 << 12, eval=1 << 12)
     RESULTS.mkdir(exist_ok=True)
     out = RESULTS / "proxy_cells.jsonl"
     for spec in args.mesh:

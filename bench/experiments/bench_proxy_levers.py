@@ -21,14 +21,13 @@ import json
 import math
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
+from bench.common import RESULTS, smoke
 from bench.experiments.bench_proxy_cells import find_mesh
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
 # variant -> changes against the production visibility net
 VARIANTS = {
     "production (line + Fourier 3, MSE)": {},
@@ -212,7 +211,10 @@ def main(argv=None) -> None:
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--speed", action="store_true",
                     help="only time the chord-grid variants' visibility net in onnxruntime")
-    args = ap.parse_args(argv)
+    ap.add_argument("--smoke", action="store_true",
+                    help="a tiny pine, production and one grid variant, 20 steps (CI smoke test)")
+    args = smoke(ap.parse_args(argv), mesh=["forest:tiny:pine"], steps=20, samples=1 << 12,
+                 variants=[list(VARIANTS)[0], list(VARIANTS)[3]])
     torch.set_num_threads(1)
     if args.speed:
         from nprt.proxies.model import ResidualMLP

@@ -16,9 +16,9 @@ import json
 import os
 import time
 from dataclasses import replace
-from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+from bench.common import RESULTS, finish, smoke
+
 # One change at a time against the base config; "steps x3" is the plain budget knob.
 VARIANTS = {
     "default (line+fourier3, natural hit share)": {},
@@ -44,14 +44,15 @@ def meshes(size: str):
     return [fam["foliage"], fam["holes"], fam["rings"], forest["pine"]]
 
 
-def run(steps: int, size: str) -> list[dict]:
+def run(steps: int, size: str, samples: int = 1 << 17, variants=tuple(VARIANTS)) -> list[dict]:
     from nprt.proxies.config import ProxyConfig
     from nprt.proxies.train import train_proxy
 
-    base = ProxyConfig(width=16, steps=steps, n_samples=1 << 17, grid=32, eval_samples=1 << 15)
+    base = ProxyConfig(width=16, steps=steps, n_samples=samples, grid=32, eval_samples=1 << 15)
     rows = []
     for mesh in meshes(size):
-        for name, change in VARIANTS.items():
+        for name in variants:
+            change = VARIANTS[name]
             kw = {k: (int(v * getattr(base, k)) if k in SCALED else v)
                   for k, v in change.items()}
             cfg = replace(base, **kw)
@@ -83,15 +84,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.experiments.bench_proxy_thin")
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--size", default="tiny", choices=["tiny", "small", "default"])
-    args = ap.parse_args(argv)
-    rows = run(args.steps, args.size)
-    RESULTS.mkdir(exist_ok=True)
-    stem = RESULTS / f"proxy_thin_{args.size}"
-    stem.with_suffix(".json").write_text(json.dumps({"steps": args.steps, "rows": rows},
-                                                    indent=1))
-    table = markdown(rows)
-    stem.with_suffix(".md").write_text(table + "\n")
-    print(table)
+    ap.add_argument("--samples", type=int, default=1 << 17, help="training rays (base config)")
+    ap.add_argument("--smoke", action="store_true",
+                    help="the default variant, 20 steps on 4096 rays, for the CI smoke test")
+    args = smoke(ap.parse_args(argv), steps=20, samples=1 << 12)
+    rows = run(args.steps, args.size, args.samples,
+               list(VARIANTS)[:1] if args.smoke else tuple(VARIANTS))
+    path = RESULTS / f"proxy_thin_{args.size}.json"
+    finish({"steps": args.steps, "rows": rows}, path, markdown=lambda r: markdown(rows),
+           table_file=True)
     return 0
 
 

@@ -26,12 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import BENCH_README, replace_section
+from bench.common import publish
 from bench.network.netmodel import cpu_corrected, fit_rpc_s, replay
 
 log = logging.getLogger(__name__)
 
-BEGIN, END = "<!-- bench_network:begin -->", "<!-- bench_network:end -->"
 # Xu et al., Table 4: Sculpture, 1920x1080, 1 spp, two nodes (transmission s, the three
 # compute columns summed, total s) at 1, 2, 4 and 20 GigE.
 PAPER_T4 = {"proxy": {1: (0.927, 2.117, 3.044), 2: (0.563, 2.108, 2.671),
@@ -348,7 +347,7 @@ def report(out: Path, update_readme: bool = True) -> int:
     text = "\n\n".join(parts)
     print(text)
     if update_readme:
-        replace_section(BENCH_README, BEGIN, END, text)
+        publish("bench_network", text, out)
     return 0
 
 

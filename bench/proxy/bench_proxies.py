@@ -23,13 +23,13 @@ import ray
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from bench.common import (
-    BENCH_README,
+    RESULTS,
     add_render_flags,
+    finish,
     machine,
     quality,
     render_settings,
-    replace_section,
-    save,
+    smoke,
     timed_render,
 )
 from nprt.proxies.evaluate import throughput
@@ -41,8 +41,6 @@ from nprt.workers.wavefront.batch import KIND_NAMES
 
 log = logging.getLogger(__name__)
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
-BEGIN, END = "<!-- bench_proxies:begin -->", "<!-- bench_proxies:end -->"
 MODES = ("exact", "proxy", "oracle")
 TARGETS = {"bytes_ratio_k4": 3.0, "secondary_vs_oracle": 1.15, "psnr_db": 40.0,
            "psnr_db_k4": 45.0, "train_s_per_mesh": 300.0, "queries_per_s": 1e6}
@@ -259,19 +257,16 @@ def main(argv=None) -> int:
     ap.add_argument("--ray-cpus", type=int, default=None,
                     help="logical CPUs of the local Ray (default: the largest K)")
     ap.add_argument("--scenes", default=",".join(DEMOS), help="comma-separated demo names")
-    args = ap.parse_args(argv)
+    args = smoke(ap.parse_args(argv), size="tiny", shards="2", width=16, spp=1, bounces=1,
+                 shadow_rays=1, scenes="forest")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
-    path = args.out / f"bench_proxies_{args.size}.json"
-    table = save(run(args), path, plot, markdown)
-    if not args.no_readme and args.out.resolve() == RESULTS.resolve():
-        rel = path.relative_to(BENCH_README.parent)
-        replace_section(BENCH_README, BEGIN, END,
-                        "## exact vs proxy vs oracle (`bench_proxies.py`)\n\n"
-                        f"`python -m bench.proxy.bench_proxies --size {args.size}` "
-                        f"(`{rel}`, plot `{rel.with_suffix('.png')}`). See the module "
-                        f"docstring for what is measured.\n\n![]({rel.with_suffix('.png')})"
-                        f"\n\n{table}")
+    finish(run(args), args.out / f"bench_proxies_{args.size}.json", plot=plot,
+           markdown=markdown, section="bench_proxies", update_readme=not args.no_readme,
+           intro="## exact vs proxy vs oracle (`bench_proxies.py`)\n\n"
+                 f"`python -m bench.proxy.bench_proxies --size {args.size}` "
+                 "(`{json}`, plot `{png}`). See the module docstring for what is "
+                 "measured.\n\n![]({png})\n\n")
     return 0
 
 

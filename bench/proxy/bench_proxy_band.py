@@ -20,21 +20,19 @@ import ray
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from bench.common import (
-    BENCH_README,
+    RESULTS,
     add_render_flags,
+    finish,
     machine,
     quality,
     render_settings,
-    replace_section,
-    save,
+    smoke,
     timed_render,
 )
 from bench.proxy.bench_proxies import TARGETS
 from nprt.scene.demos import DEMOS, make_demo
 from nprt.workers.settings import ProxySettings
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
-BEGIN, END = "<!-- bench_proxy_band:begin -->", "<!-- bench_proxy_band:end -->"
 BANDS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5)
 PSNR_TARGET = TARGETS["psnr_db_k4"]
 
@@ -44,14 +42,14 @@ def run(args) -> dict:
     names = [n for n in args.scenes.split(",") if n]
     ray.init(num_cpus=args.shards, include_dashboard=False, log_to_driver=False,
              logging_level=logging.WARNING)
-    out = {"size": args.size, "settings": base.model_dump(), "bands": BANDS,
+    out = {"size": args.size, "settings": base.model_dump(), "bands": args.bands,
            "default_band": ProxySettings().band, "machine": machine(args.shards),
            "scenes": {}}
     columns = (TextColumn("{task.description:<24}"), BarColumn(), MofNCompleteColumn(),
                TimeElapsedColumn())
     try:
         with Progress(*columns) as bar:
-            task = bar.add_task("renders", total=len(names) * (2 + len(BANDS)))
+            task = bar.add_task("renders", total=len(names) * (2 + len(args.bands)))
             for name in names:
                 scene = make_demo(name, args.size)
                 sc = out["scenes"][name] = {"points": []}
@@ -62,7 +60,7 @@ def run(args) -> dict:
                     bar.advance(task)
                 ex_row, ex_img, _ = anchors["exact"]
                 sc["exact"], sc["oracle"] = ex_row, anchors["oracle"][0]
-                for band in BANDS:
+                for band in args.bands:
                     bar.update(task, description=f"{name} band {band}")
                     s = base.model_copy(update={"mode": "proxy",
                                                 "proxy": ProxySettings(band=band)})
@@ -96,7 +94,7 @@ def markdown(res: dict) -> str:
                 f"{q['psnr_db']:.2f}"
             lines.append(
                 f"| {name} | {r['band']}{mark} | {psnr} | {q['ssim']:.4f} | {q['flip']:.4f} | "
-                f"{ex['total_bytes'] / r['total_bytes']:.2f}x | "
+                f"{ex['total_bytes'] / max(r['total_bytes'], 1):.2f}x | "
                 f"{r['transfers']['secondary'] / max(ora['transfers']['secondary'], 1):.2f}x | "
                 f"{c.get('proxy_mispredictions', 0):,} / {c.get('proxy_uncertain', 0):,} | "
                 f"{r['render_s']:.2f} |")
@@ -115,7 +113,7 @@ def plot(res: dict, path: Path) -> None:
         ex = sc["exact"]["total_bytes"]
         bands = [r["band"] for r in sc["points"]]
         psnr = [r["quality_vs_exact"]["psnr_db"] for r in sc["points"]]
-        ratio = [ex / r["total_bytes"] for r in sc["points"]]
+        ratio = [ex / max(r["total_bytes"], 1) for r in sc["points"]]
         axes[0].plot(bands, psnr, "o-", label=name)
         line, = axes[1].plot(ratio, psnr, "o-", label=name)
         for b, x, y in zip(bands, ratio, psnr, strict=True):
@@ -143,18 +141,16 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default=",".join(DEMOS))
     ap.add_argument("--size", choices=["tiny", "small", "default"], default="default")
     ap.add_argument("--shards", type=int, default=4)
+    ap.add_argument("--bands", type=float, nargs="+", default=list(BANDS))
     add_render_flags(ap, RESULTS)
-    args = ap.parse_args(argv)
+    args = smoke(ap.parse_args(argv), scenes="forest", size="tiny", shards=2, width=16, spp=1,
+                 bounces=1, shadow_rays=1, bands=[0.4])
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    path = args.out / f"proxy_band_{args.size}.json"
-    table = save(run(args), path, plot, markdown)
-    if not args.no_readme and args.out.resolve() == RESULTS.resolve():
-        rel = path.relative_to(BENCH_README.parent)
-        replace_section(BENCH_README, BEGIN, END,
-                        "## Confidence band (`bench_proxy_band.py`)\n\n"
-                        f"`python -m bench.proxy.bench_proxy_band --size {args.size}` "
-                        f"(`{rel}`):\n\n"
-                        f"![]({rel.with_suffix('.png')})\n\n" + table)
+    finish(run(args), args.out / f"proxy_band_{args.size}.json", plot=plot, markdown=markdown,
+           section="bench_proxy_band", update_readme=not args.no_readme,
+           intro="## Confidence band (`bench_proxy_band.py`)\n\n"
+                 f"`python -m bench.proxy.bench_proxy_band --size {args.size}` "
+                 "(`{json}`):\n\n![]({png})\n\n")
     return 0
 
 

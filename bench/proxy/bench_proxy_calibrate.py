@@ -24,7 +24,9 @@ import os
 import time
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+from bench.common import RESULTS, smoke
+
+SHIPPED = Path(__file__).resolve().parents[2] / "proxies" / "shipped"
 
 
 def _old_proxies(old_dir: Path) -> dict:
@@ -74,7 +76,7 @@ def table(old: dict, new: list[tuple[str, dict]], demos, sizes) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.proxy.bench_proxy_calibrate",
                                  description=__doc__)
-    ap.add_argument("--old", type=Path, required=True, help="folder of the old .nprx files")
+    ap.add_argument("--old", type=Path, help="folder of the old .nprx files (required)")
     ap.add_argument("--demos", nargs="+", default=["forest", "city", "sculpture"])
     ap.add_argument("--sizes", nargs="+", default=["default", "small", "tiny"])
     ap.add_argument("--meshes", nargs="*", default=None, help="mesh names (default: all)")
@@ -86,7 +88,12 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, default=RESULTS / "proxy_calibration.jsonl")
     ap.add_argument("--table", type=Path, nargs="+", default=None, metavar="NEW_DIR",
                     help="print old against each NEW_DIR's proxies (no training)")
-    args = ap.parse_args(argv)
+    ap.add_argument("--smoke", action="store_true",
+                    help="one tiny mesh against the shipped proxies, 40 steps (CI smoke test)")
+    args = smoke(ap.parse_args(argv), old=SHIPPED, demos=["forest"], sizes=["tiny"],
+                 steps=[40], samples=[1 << 12], widths=[8])
+    if args.old is None:
+        ap.error("--old is required")
     if args.table is not None:
         new = [(d.name, _old_proxies(d)) for d in args.table]  # labelled by folder name
         print(table(_old_proxies(args.old), new, args.demos, args.sizes))

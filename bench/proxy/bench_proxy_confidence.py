@@ -19,10 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import BENCH_README, bench_scene, replace_section, save
+from bench.common import RESULTS, bench_scene, finish, smoke
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
-BEGIN, END = "<!-- bench_proxy_confidence:begin -->", "<!-- bench_proxy_confidence:end -->"
 BANDS = np.round(np.linspace(0.0, 0.5, 26), 3)
 TABLE_BANDS = (0.0, 0.1, 0.2, 0.4)
 TARGET = 0.97
@@ -107,18 +105,20 @@ def main(argv=None) -> None:
     ap.add_argument("--size", default="default", help="size of the demos")
     ap.add_argument("--family-size", default="small")
     ap.add_argument("--no-readme", action="store_true")
-    args = ap.parse_args(argv)
+    ap.add_argument("--smoke", action="store_true",
+                    help="the family scene alone, for the CI smoke test")
+    args = smoke(ap.parse_args(argv), scenes=["family@16"])  # shipped: nothing to train
     res = run(args.scenes, args.size, args.family_size)
-    table = save(res, RESULTS / "proxy_confidence.json", plot, markdown)
-    if not args.no_readme:
-        cmd = "python -m bench.proxy.bench_proxy_confidence"
-        replace_section(BENCH_README, BEGIN, END, (
-            f"`{cmd}` (`results/proxy_confidence.json`): each proxy the policy ships at K = 4 "
+    finish(
+        res, RESULTS / "proxy_confidence.json", plot=plot, markdown=markdown,
+        section="bench_proxy_confidence", update_readme=not args.no_readme, intro=(
+            "`python -m bench.proxy.bench_proxy_confidence` (`{json}`): "
+            "each proxy the policy ships at K = 4 "
             f"(demos at `{args.size}`, the family scene at `{args.family_size}`), on its "
             "held-out rays. *share*: queries it answers itself (|visibility - threshold| >= "
             "band); *acc*: accuracy on those. Band 0 is the held-out accuracy of the 97 % "
             f"target; proxy mode's default band is {res['default_band']}.\n\n"
-            "![](results/proxy_confidence.png)\n\n" + table))
+            "![]({png})\n\n"))
 
 
 if __name__ == "__main__":

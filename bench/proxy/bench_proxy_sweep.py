@@ -24,22 +24,20 @@ import ray
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 from bench.common import (
-    BENCH_README,
+    RESULTS,
+    ROOT_README,
     add_render_flags,
+    finish,
     machine,
     quality,
     render_settings,
-    replace_section,
-    save,
+    smoke,
     timed_render,
 )
 from nprt.proxies.config import ProxyConfig
 from nprt.scene.demos import DEMOS, make_demo
 from nprt.workers.settings import ProxySettings
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
-ROOT_README = BENCH_README.parents[1] / "README.md"
-BEGIN, END = "<!-- bench_proxy_sweep:begin -->", "<!-- bench_proxy_sweep:end -->"
 # One knob at a time; every other knob at its default (ProxySettings()).
 SWEEPS = {
     "threshold": [0.3, 0.4, None, 0.6, 0.7],  # None: each proxy's calibrated threshold
@@ -51,11 +49,13 @@ SWEEPS = {
 PSNR_CAP = 80.0  # identical images (inf dB) are drawn here
 
 
-def points() -> list[tuple[str, object, ProxySettings]]:
-    """(knob, value, settings); the default settings appear once per knob that has it."""
+def points(knobs=tuple(SWEEPS), per_knob: int | None = None
+           ) -> list[tuple[str, object, ProxySettings]]:
+    """(knob, value, settings) for the first per_knob values (all: None) of each knob; the
+    default settings appear once per knob that has it."""
     out = []
-    for knob, values in SWEEPS.items():
-        for v in values:
+    for knob in knobs:
+        for v in SWEEPS[knob][:per_knob]:
             kw = {knob: v}
             if knob == "steps":
                 kw["width"] = 16  # one width, so the step budget alone changes
@@ -68,7 +68,7 @@ def run(args) -> dict:
     ray.init(num_cpus=args.shards, include_dashboard=False, log_to_driver=False,
              logging_level=logging.WARNING)
     scene = make_demo(args.scene, args.size)
-    todo = points()
+    todo = points(args.knobs, args.per_knob)
     out = {"scene": args.scene, "size": args.size, "settings": base.model_dump(),
            "machine": machine(args.shards), "anchors": {}, "points": []}
     columns = (TextColumn("{task.description:<30}"), BarColumn(), MofNCompleteColumn(),
@@ -128,7 +128,7 @@ def markdown(res: dict) -> str:
     for mode, r in res["anchors"].items():
         q = r["quality_vs_exact"]
         lines.append(f"| *{mode}* | | {r['total_bytes'] / 1e6:.2f} | "
-                     f"{ex['total_bytes'] / r['total_bytes']:.2f}x | "
+                     f"{ex['total_bytes'] / max(r['total_bytes'], 1):.2f}x | "
                      f"{r['transfers']['secondary']:,} / {r['transfers']['shadow']:,} | "
                      f"{r['render_s']:.2f} | {q['psnr_db']:.2f} | {q['ssim']:.4f} | "
                      f"{q['flip']:.4f} | | | | |")
@@ -136,7 +136,7 @@ def markdown(res: dict) -> str:
         q, c = r["quality_vs_exact"], r["counters"]
         value = "calibrated" if r["value"] is None else r["value"]
         lines.append(f"| {r['knob']} | {value} | {r['total_bytes'] / 1e6:.2f} | "
-                     f"{ex['total_bytes'] / r['total_bytes']:.2f}x | "
+                     f"{ex['total_bytes'] / max(r['total_bytes'], 1):.2f}x | "
                      f"{r['transfers']['secondary']:,} / {r['transfers']['shadow']:,} | "
                      f"{r['render_s']:.2f} | {q['psnr_db']:.2f} | {q['ssim']:.4f} | "
                      f"{q['flip']:.4f} | {c.get('proxy_mispredictions', 0):,} / "
@@ -196,19 +196,19 @@ def main(argv=None) -> int:
     ap.add_argument("--scene", choices=DEMOS, default="forest")
     ap.add_argument("--size", choices=["tiny", "small", "default"], default="default")
     ap.add_argument("--shards", type=int, default=4)
+    ap.add_argument("--knobs", nargs="+", default=list(SWEEPS), choices=list(SWEEPS))
+    ap.add_argument("--per-knob", type=int, default=None, help="only the first N values")
     add_render_flags(ap, RESULTS)
-    args = ap.parse_args(argv)
+    args = smoke(ap.parse_args(argv), size="tiny", shards=2, width=16, spp=1, bounces=1,
+                 shadow_rays=1, knobs=["band"], per_knob=1)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
-    path = args.out / f"proxy_sweep_{args.scene}_{args.size}.json"
-    table = save(run(args), path, plot, markdown)
-    if not args.no_readme and args.out.resolve() == RESULTS.resolve():
-        rel = path.relative_to(ROOT_README.parent)
-        replace_section(ROOT_README, BEGIN, END,
-                        "### Speed against accuracy (proxy mode)\n\n"
-                        f"`python -m bench.proxy.bench_proxy_sweep --scene {args.scene} --size "
-                        f"{args.size}` (`{rel}`):\n\n![]({rel.with_suffix('.png')})\n\n"
-                        + table)
+    finish(run(args), args.out / f"proxy_sweep_{args.scene}_{args.size}.json", plot=plot,
+           markdown=markdown, section="bench_proxy_sweep", readme=ROOT_README,
+           update_readme=not args.no_readme,
+           intro="### Speed against accuracy (proxy mode)\n\n"
+                 f"`python -m bench.proxy.bench_proxy_sweep --scene {args.scene} --size "
+                 f"{args.size}` (`{{json}}`):\n\n![]({{png}})\n\n")
     return 0
 
 

@@ -39,7 +39,15 @@ from rich.progress import (  # noqa: E402
     TimeElapsedColumn,
 )
 
-from bench.common import replace_section, timed_render  # noqa: E402
+from bench.common import (  # noqa: E402
+    BENCH_README,
+    RESULTS,
+    add_output_flags,
+    finish,
+    publish,
+    smoke,
+    timed_render,
+)
 from nprt.scene.demos import DEMOS, make_demo  # noqa: E402
 from nprt.scene.model import Scene  # noqa: E402
 from nprt.workers.render import render  # noqa: E402
@@ -48,9 +56,6 @@ from nprt.workers.wavefront.batch import KIND_NAMES  # noqa: E402
 
 log = logging.getLogger(__name__)
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
-README = Path(__file__).resolve().parents[1] / "README.md"
-README_BEGIN, README_END = "<!-- bench_distributed:begin -->", "<!-- bench_distributed:end -->"
 PAPER_BASELINE_S = {2: 7.0, 8: 15.1}  # exact forwarding, Xu et al., their scenes and cluster
 PHASES = ("generate", "local_intersect", "top_level", "shade", "transfer_wait",
           "coordinator_wait")
@@ -250,8 +255,8 @@ def update_readme(paths: list[Path]) -> None:
     order = ("small", "default", "tiny")
     for path in sorted(paths, key=lambda p: (order.index(json.loads(p.read_text())["size"]), p)):
         res = json.loads(path.read_text())
-        tables.append(f"`{path.relative_to(README.parent)}` "
-                      f"(plot: `{path.with_suffix('.png').relative_to(README.parent)}`):\n\n"
+        tables.append(f"`{path.relative_to(BENCH_README.parent)}` "
+                      f"(plot: `{path.with_suffix('.png').relative_to(BENCH_README.parent)}`):\n\n"
                       + markdown(res))
     section = ("## Distributed exact renderer (`bench_distributed.py`)\n\n"
                "`python -m bench.render.bench_distributed --size small` renders each demo with the "
@@ -268,7 +273,7 @@ def update_readme(paths: list[Path]) -> None:
                "cluster and its own scenes: compare the growth with K (the bracketed "
                "ratios), not the seconds.\n\n"
                + "\n\n".join(tables))
-    replace_section(README, README_BEGIN, README_END, section)
+    publish("bench_distributed", section, paths[0])
 
 
 def main(argv=None) -> int:
@@ -287,19 +292,15 @@ def main(argv=None) -> int:
     ap.add_argument("--ray-cpus", type=int, default=None,
                     help="logical CPUs of the local Ray (default: the largest K)")
     ap.add_argument("--scenes", default=",".join(DEMOS), help="comma-separated demo names")
-    ap.add_argument("--out", type=Path, default=RESULTS)
-    ap.add_argument("--no-readme", action="store_true", help="do not update bench/README.md")
-    args = ap.parse_args(argv)
+    add_output_flags(ap, RESULTS)
+    args = smoke(ap.parse_args(argv), size="tiny", shards="2", width=16, spp=1, spp_per_pass=1,
+                 bounces=1, shadow_rays=1, repeat=1, scenes="forest")
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     res = run(args)
     stem = f"bench_distributed_{args.size}"
     path = args.out / f"{stem}.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(res, indent=1))
-    plot(res, path.with_suffix(".png"))
-    print(markdown(res))
-    print(f"\nwrote {path} and {path.with_suffix('.png')}")
+    finish(res, path, plot=plot, markdown=markdown)
     if not args.no_readme and args.out.resolve() == RESULTS.resolve():
         update_readme(sorted(RESULTS.glob("bench_distributed_*.json")))
     bad = [(n, r["k"], r["rel_error"]) for n, sc in res["scenes"].items()

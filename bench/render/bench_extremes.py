@@ -39,7 +39,7 @@ import numpy as np
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench.common import machine, replace_section, timed_render  # noqa: E402
+from bench.common import RESULTS, add_output_flags, machine, publish, smoke, timed_render  # noqa: E402,E501
 from nprt.scene.demos import make_demo  # noqa: E402
 from nprt.scene.transform import similarity, transform_scene  # noqa: E402
 from nprt.workers.render import render  # noqa: E402
@@ -50,9 +50,6 @@ from nprt.workers.wavefront.reference import ReferenceRenderer  # noqa: E402
 
 log = logging.getLogger(__name__)
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
-README = Path(__file__).resolve().parents[1] / "README.md"
-README_BEGIN, README_END = "<!-- bench_extremes:begin -->", "<!-- bench_extremes:end -->"
 DEMOS = ("forest", "city")
 MODES = ("reference", "exact", "proxy")
 K = 4
@@ -256,7 +253,7 @@ def _loads(record: dict | None) -> str:
     return " / ".join(f"{m['load_average_before'][0]:.0f}" for m in machines if m)
 
 
-def write_readme(res: dict, table: str) -> None:
+def write_readme(res: dict, table: str, out: Path) -> None:
     before, after = res.get("throughput_before"), res["throughput"]
     section = "\n".join([
         "## Numerical stability at the extremes (`bench_extremes.py`)", "",
@@ -274,7 +271,7 @@ def write_readme(res: dict, table: str) -> None:
         f"(before) and {_loads(after)} (after); ray and transfer counts are the same on "
         "both sides, so rays/s differences within the spread of the rounds are noise:", "",
         throughput_markdown(before, after)])
-    replace_section(README, README_BEGIN, README_END, section)
+    publish("bench_extremes", section, out)
 
 
 def report(res: dict, out: Path, readme: bool) -> None:
@@ -293,9 +290,10 @@ def report(res: dict, out: Path, readme: bool) -> None:
     plot(res, out / "bench_extremes.png")
     table = markdown(res)
     print(table)
-    print(throughput_markdown(res["throughput_before"], res["throughput"]))
+    if res["throughput"] is not None:
+        print(throughput_markdown(res["throughput_before"], res["throughput"]))
     if readme:
-        write_readme(res, table)
+        write_readme(res, table, out)
 
 
 def main(argv=None) -> int:
@@ -317,19 +315,22 @@ def main(argv=None) -> int:
                     help="'before': a record of the code before float64 origins (no README)")
     ap.add_argument("--report-only", action="store_true",
                     help="redo plot, tables and README from the saved results")
-    ap.add_argument("--out", type=Path, default=RESULTS)
-    ap.add_argument("--no-readme", action="store_true")
-    args = ap.parse_args(argv)
+    add_output_flags(ap, RESULTS)
+    # smoke: the reference only (exact K = 4 starts a pool per image: seconds each)
+    args = smoke(ap.parse_args(argv), demos=["forest"], size="tiny", modes=["reference"],
+                 width=16, height=12, spp=1, bounces=1, shadow_rays=1, translations=[1e3],
+                 scales=[1e-3], no_throughput=True)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     result_path = args.out / ("bench_extremes.json" if args.label == "after"
                               else f"bench_extremes_{args.label}.json")
     if args.report_only:
         report(json.loads(result_path.read_text()), args.out, not args.no_readme)
         return 0
-    import ray
+    if set(args.modes) != {"reference"} or not args.no_throughput:  # the reference needs no Ray
+        import ray
 
-    ray.init(num_cpus=args.ray_cpus, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)
+        ray.init(num_cpus=args.ray_cpus, include_dashboard=False, log_to_driver=False,
+                 logging_level=logging.WARNING)
     args.out.mkdir(parents=True, exist_ok=True)
     res = {"size": args.size, "machine": machine(args.ray_cpus),
            "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}

@@ -30,14 +30,7 @@ from pathlib import Path
 import numpy as np
 import ray
 
-from bench.common import (
-    BENCH_README,
-    add_render_flags,
-    machine,
-    render_settings,
-    replace_section,
-    save,
-)
+from bench.common import RESULTS, add_render_flags, finish, machine, render_settings, smoke
 from nprt.proxies.cache import ProxyCache
 from nprt.proxies.tasks import RayTrainer
 from nprt.scene.demos import make_demo
@@ -45,8 +38,6 @@ from nprt.scene.store import open_scene
 from nprt.workers.frames import render_frames
 from nprt.workers.render import make_renderer
 from nprt.workers.settings import ProxySettings
-
-RESULTS = Path(__file__).resolve().parents[1] / "results"
 
 
 class ProxyCalls:
@@ -187,7 +178,8 @@ def main(argv=None) -> int:
     ap.add_argument("--train-proxies", type=int, default=None, metavar="S",
                     help="also proxy mode with proxies trained from scratch, S steps each")
     add_render_flags(ap, RESULTS)
-    args = ap.parse_args(argv)
+    args = smoke(ap.parse_args(argv), size="tiny", shards=2, width=16, spp=1, bounces=1,
+                 shadow_rays=1)
     scene = make_demo("windy", args.size)  # the reference renders it in memory
     stored = open_scene(f"windy:{args.size}")  # shards: metadata, as the service does
     ray.init(num_cpus=args.ray_cpus or args.shards, include_dashboard=False,
@@ -225,11 +217,8 @@ def main(argv=None) -> int:
         ray.shutdown()
     res["train_proxies"] = args.train_proxies
     res["file"] = f"bench_frames_{args.size}.json"
-    table = save(res, args.out / res["file"], plot, markdown)
-    if not args.no_readme:
-        replace_section(BENCH_README, "<!-- bench_frames:begin -->", "<!-- bench_frames:end -->",
-                        f"## Animated frames\n\n![](results/{Path(res['file']).stem}.png)\n\n"
-                        + table)
+    finish(res, args.out / res["file"], plot=plot, markdown=markdown, section="bench_frames",
+           intro="## Animated frames\n\n![]({png})\n\n", update_readme=not args.no_readme)
     return 0
 
 

@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+from bench.common import RESULTS, publish, smoke  # light: no Ray, no nprt
+
 ROOT = Path(__file__).resolve().parents[2]
-BEGIN, END = "<!-- bench_massive:begin -->", "<!-- bench_massive:end -->"
 
 
 def _rss_mb() -> float:
@@ -88,7 +88,8 @@ def driver(args) -> int:
 def _child(report: Path, *flags: str) -> dict:
     """Run this module as a driver process with `flags`; returns the report it wrote."""
     cmd = [sys.executable, "-m", "bench.render.bench_massive", *flags, "--report", str(report)]
-    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    path = os.pathsep.join(filter(None, (str(ROOT), os.environ.get("PYTHONPATH"))))
+    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": path})
     return json.loads(report.read_text())
 
 
@@ -133,14 +134,18 @@ def main(argv=None) -> int:
     ap.add_argument("--train-width", type=int, default=16)
     ap.add_argument("--ray-cpus", type=int, default=8,
                     help="Ray's CPUs for the renders (K = 8 wants 8)")
+    ap.add_argument("--ks", type=int, nargs=2, default=[4, 8],
+                    help="the two shard counts rendered (their images must be equal)")
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_massive.json")
     ap.add_argument("--no-readme", action="store_true")
+    ap.add_argument("--smoke", action="store_true", help="tiny scene, for the CI smoke test")
     ap.add_argument("--driver", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--bare", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--address", help=argparse.SUPPRESS)
     ap.add_argument("--image", help=argparse.SUPPRESS)
     ap.add_argument("--report", help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
+    args = smoke(ap.parse_args(argv), scene="forest:small", small_scene="forest:tiny", width=8,
+                 height=6, bounces=1, train_steps=20, train_width=8, ray_cpus=2, ks=[1, 2])
     if args.bare:
         return bare_driver(args)
     if args.driver:
@@ -148,7 +153,6 @@ def main(argv=None) -> int:
 
     import ray
 
-    from bench.common import BENCH_README, replace_section
     from nprt.scene.store import open_scene
 
     load_before = os.getloadavg()
@@ -161,8 +165,8 @@ def main(argv=None) -> int:
         try:
             address = ray.get_runtime_context().gcs_address
             bare_mb = _bare(address, tmp)
-            renders = {k: _render(k, args, address, tmp) for k in (4, 8)}
-            small, _ = _render(4, args, address, tmp, args.small_scene)
+            renders = {k: _render(k, args, address, tmp) for k in args.ks}
+            small, _ = _render(args.ks[0], args, address, tmp, args.small_scene)
         finally:
             ray.shutdown()
         # Training on as many Ray CPUs as real cores: each task trains one thread, so
@@ -183,14 +187,15 @@ def main(argv=None) -> int:
                    "max_shard_share": round(max(rep["shard_geometry_bytes"]) / mesh_bytes, 4)}
     res = {"scene": args.scene, "summary": meta.summary(), "open_s": round(open_s, 2),
            "bare_ray_driver_mb": bare_mb,
-           "small_scene": {"scene": args.small_scene, "k": 4,
+           "small_scene": {"scene": args.small_scene, "k": args.ks[0],
                            "mesh_bytes": small["mesh_bytes"],
                            "rss_peak_mb": small["rss_peak_mb"]},
            "bare_ray_driver_share": round(bare_mb * 2**20 / mesh_bytes, 4),
            "settings": {k: getattr(args, k) for k in ("width", "height", "spp", "bounces",
                                                       "train_steps", "train_width",
                                                       "ray_cpus")},
-           "renders": rows, "k4_equals_k8": bool(np.array_equal(renders[4][1], renders[8][1])),
+           "renders": rows,
+           "k4_equals_k8": bool(np.array_equal(*(renders[k][1] for k in args.ks))),
            "training": training,
            "train_speedup": round(training[1]["wall_s"] / training[0]["wall_s"], 3),
            "load_average_before": load_before, "load_average_after": os.getloadavg(),
@@ -200,7 +205,7 @@ def main(argv=None) -> int:
     table = markdown(res)
     print(table)
     if not args.no_readme:
-        replace_section(BENCH_README, BEGIN, END, table)
+        publish("bench_massive", table, args.out)
     return 0
 
 

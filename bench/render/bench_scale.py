@@ -17,7 +17,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import tempfile
 import threading
 import time
@@ -26,14 +25,13 @@ from pathlib import Path
 import numpy as np
 import ray
 
-from bench.common import BENCH_README, machine, quality, replace_section
+from bench.common import RESULTS, finish, machine, quality, smoke
 from nprt.scene.io import load_any
 from nprt.workers.render import render
 from nprt.workers.runtime.coordinator import Coordinator
 from nprt.workers.runtime.pool import ShardPool
 from nprt.workers.settings import RenderSettings
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
 TARGETS = {"exact_ratio": 0.8, "proxy_ratio": 0.65, "busy_k2": 0.8, "setup_s": 5.0,
            "first_tile_s": 1.0}
 
@@ -229,9 +227,12 @@ def main(argv: list[str] | None = None) -> int:
                     help="exact renders at these K too, for the busy fraction")
     ap.add_argument("--instances", type=int, default=100_000)
     ap.add_argument("--warm-scene", default="forest")
+    ap.add_argument("--warm-width", type=int, default=320, help="image width of the warm-pool jobs")
     ap.add_argument("--out", type=Path, default=RESULTS / "bench_scale.json")
     ap.add_argument("--no-readme", action="store_true")
-    args = ap.parse_args(argv)
+    ap.add_argument("--smoke", action="store_true", help="tiny scene, for the CI smoke test")
+    args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=16, height=12, spp=1,
+                 extra_k=[], instances=200, warm_scene="forest:tiny", warm_width=16)
     ray.init(include_dashboard=False, log_to_driver=False)
     res = {"machine": machine(int(ray.cluster_resources().get("CPU", 0))),
            "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
@@ -240,16 +241,10 @@ def main(argv: list[str] | None = None) -> int:
         res["renders"] += bench_renders(name, args)
     res["setup"] = bench_setup_100k(args.instances)
     ray.shutdown()
-    res["warm_pool"] = bench_warm_pool(args.warm_scene, 320)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(res, indent=1, default=str))
-    plot(res, args.out.with_suffix(".png"))
-    table = markdown(res)
-    print(table)
-    if not args.no_readme:
-        section = ("### Runtime at scale (issue 9)\n\n![](results/bench_scale.png)\n\n" + table)
-        replace_section(BENCH_README, "<!-- bench_scale:begin -->", "<!-- bench_scale:end -->",
-                        section)
+    res["warm_pool"] = bench_warm_pool(args.warm_scene, args.warm_width)
+    finish(res, args.out, plot=plot, markdown=markdown, section="bench_scale",
+           intro="### Runtime at scale (issue 9)\n\n![]({png})\n\n",
+           update_readme=not args.no_readme)
     return 0
 
 

@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+from bench.common import RESULTS, finish, smoke
+
 WARMUP_INSTANCES = 1000
 TARGET_S = 5.0
 STEPS = ("load", "partition", "world", "pickle", "unpickle", "shard", "surface")
@@ -155,7 +156,8 @@ def run(n: int = 100_000, k: int = 2, seed: int = 0, form: str = "npz",
         if warmup:
             cmd += ["--warmup", str(write_scene(Path(tmp) / "warm", WARMUP_INSTANCES, seed + 1,
                                                 form))]
-        env = {**os.environ, "PYTHONPATH": str(root)}
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+            filter(None, (str(root), os.environ.get("PYTHONPATH"))))}
         out = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True)
         if out.returncode != 0:
             raise RuntimeError(f"measurement failed ({out.returncode}):\n{out.stderr[-4000:]}")
@@ -189,18 +191,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--label", default="", help="added to the results file name")
     ap.add_argument("--measure", help=argparse.SUPPRESS)
     ap.add_argument("--warmup", help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
+    ap.add_argument("--smoke", action="store_true", help="200 instances, for the CI smoke test")
+    args = smoke(ap.parse_args(argv), instances=200)
     if args.measure:
         _measure_main(args.measure, args.k, args.warmup)
         return 0
     res = run(args.instances, args.k, args.seed, args.format)
     label = "_".join(x for x in (args.format, str(args.instances), args.label) if x)
     out = RESULTS / f"bench_setup_{label}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(res, indent=1))
-    print(table([res], [label]))
-    print(f"\ncritical path {res['critical_path_s']:.2f} s (target {TARGET_S} s: "
-          f"{'met' if res['met'] else 'NOT met'}); wrote {out}")
+    finish(res, out, markdown=lambda r: table([r], [label]))
+    print(f"critical path {res['critical_path_s']:.2f} s (target {TARGET_S} s: "
+          f"{'met' if res['met'] else 'NOT met'})")
     return 0
 
 

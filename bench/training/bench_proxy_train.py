@@ -13,12 +13,11 @@ training numbers are those recorded at training time; queries/s is re-measured o
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import platform
 from pathlib import Path
 
-RESULTS = Path(__file__).resolve().parents[1] / "results"
+from bench.common import RESULTS, finish, smoke
 
 
 def measure(size: str, target: float, train: bool) -> list[dict]:
@@ -162,28 +161,22 @@ def main(argv=None) -> int:
     ap.add_argument("--no-train", action="store_true", help="only use cached proxies")
     ap.add_argument("--analytic", action="store_true",
                     help="instead: sphere/box/torus, encodings x widths at a fixed step budget")
-    args = ap.parse_args(argv)
+    ap.add_argument("--smoke", action="store_true",
+                    help="the tiny demos, cached proxies only, for the CI smoke test")
+    args = smoke(ap.parse_args(argv), size="tiny", no_train=True)
     logging.basicConfig(level=logging.WARNING)
-    RESULTS.mkdir(exist_ok=True)
     if args.analytic:
         rows = measure_analytic()
-        stem = RESULTS / "proxy_train_analytic"
-        stem.with_suffix(".json").write_text(json.dumps(
-            {"budget": ANALYTIC_BUDGET, "rows": rows}, indent=1))
-        table = markdown_analytic(rows)
-        stem.with_suffix(".md").write_text(table + "\n")
-        print(table)
+        path = RESULTS / "proxy_train_analytic.json"
+        finish({"budget": ANALYTIC_BUDGET, "rows": rows}, path,
+               markdown=lambda r: markdown_analytic(rows), table_file=True)
         return 0
     rows = measure(args.size, args.target, not args.no_train)
-    RESULTS.mkdir(exist_ok=True)
-    stem = RESULTS / f"proxy_train_{args.size}"
+    path = RESULTS / f"proxy_train_{args.size}.json"
     meta = {"size": args.size, "target": args.target, "machine": platform.processor()
             or platform.machine(), "python": platform.python_version()}
-    stem.with_suffix(".json").write_text(json.dumps({**meta, "rows": rows}, indent=1))
-    table = markdown(rows)
-    stem.with_suffix(".md").write_text(table + "\n")
-    plot(rows, stem.with_suffix(".png"))
-    print(table)
+    finish({**meta, "rows": rows}, path, plot=lambda r, png: plot(rows, png),
+           markdown=lambda r: markdown(rows), table_file=True)
     return 0
 
 
