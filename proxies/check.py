@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 
 BLOCK = 8  # block edge, pixels (the smallest tile a render takes)
 SHARE = 1 / 64  # of the image's blocks, checked
-MIN_BLOCKS = 16  # fewer blocks than this give no useful interval
+MIN_BLOCKS = 32  # fewer blocks leave the interval too wide to fail a target (heavy tails)
 BOOTSTRAP = 2000
 CONFIDENCE = 0.95
 
