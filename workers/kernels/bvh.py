@@ -4,6 +4,8 @@ order and t values of the numpy reference formula (see `InstanceTable.box_entrie
 
 from __future__ import annotations
 
+from collections import namedtuple
+
 import numpy as np
 from numba import njit
 
@@ -146,12 +148,10 @@ def _bvh_build(boxes):
     for i in range(m):
         for a in range(3):
             centre[i, a] = 0.5 * boxes[i, 0, a] + 0.5 * boxes[i, 1, a]  # never overflows
-    bin_lo = np.empty((BVH_BINS, 3))
-    bin_hi = np.empty((BVH_BINS, 3))
-    bin_n = np.zeros(BVH_BINS, np.int64)
-    right_area = np.empty(BVH_BINS)
     c_lo, c_hi = np.empty(3), np.empty(3)  # centroid bounds of the node
-    r_lo, r_hi, l_lo, l_hi = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    sweep = _SweepScratch(np.empty((BVH_BINS, 3)), np.empty((BVH_BINS, 3)),
+                          np.zeros(BVH_BINS, np.int64), np.empty(BVH_BINS), np.empty(3),
+                          np.empty(3), np.empty(3), np.empty(3))
     right = np.empty(m, np.int32)  # right-hand prims of the node being split
     stack = np.empty((cap, 3), np.int64)  # (node, start, end) still to build
     stack[0, 0], stack[0, 1], stack[0, 2] = 0, 0, m
@@ -159,80 +159,102 @@ def _bvh_build(boxes):
     while top > 0:
         top -= 1
         node, s, e = stack[top, 0], stack[top, 1], stack[top, 2]
-        c_lo[:] = np.inf
-        c_hi[:] = -np.inf
-        for a in range(3):
-            lo, hi = np.inf, -np.inf
-            for x in range(s, e):
-                b = prim[x]
-                lo = min(lo, boxes[b, 0, a])
-                hi = max(hi, boxes[b, 1, a])
-                c_lo[a] = min(c_lo[a], centre[b, a])
-                c_hi[a] = max(c_hi[a], centre[b, a])
-            node_box[node, 0, a], node_box[node, 1, a] = lo, hi
+        _node_bounds(boxes, centre, prim, s, e, node_box[node], c_lo, c_hi)
         node_start[node], node_count[node] = s, e - s
         if e - s <= BVH_LEAF_SIZE:
             continue
-        best_cost, best_axis, best_bin = np.inf, -1, -1
-        for a in range(3):
-            ext = c_hi[a] - c_lo[a]
-            if not ext > 0.0:
-                continue
-            bin_n[:] = 0
-            bin_lo[:] = np.inf
-            bin_hi[:] = -np.inf
-            for x in range(s, e):
-                b = prim[x]
-                k = _bin(centre[b, a], c_lo[a], ext)
-                bin_n[k] += 1
-                for y in range(3):
-                    bin_lo[k, y] = min(bin_lo[k, y], boxes[b, 0, y])
-                    bin_hi[k, y] = max(bin_hi[k, y], boxes[b, 1, y])
-            # Sweep from the right: right_area[k] is the half area of bins k..end.
-            r_lo[:] = np.inf
-            r_hi[:] = -np.inf
-            for k in range(BVH_BINS - 1, 0, -1):
-                for y in range(3):
-                    r_lo[y] = min(r_lo[y], bin_lo[k, y])
-                    r_hi[y] = max(r_hi[y], bin_hi[k, y])
-                right_area[k] = _half_area3(r_lo, r_hi)
-            l_lo[:] = np.inf
-            l_hi[:] = -np.inf
-            n_left = 0
-            for k in range(BVH_BINS - 1):  # split between bins k and k + 1
-                n_left += bin_n[k]
-                for y in range(3):
-                    l_lo[y] = min(l_lo[y], bin_lo[k, y])
-                    l_hi[y] = max(l_hi[y], bin_hi[k, y])
-                n_right = (e - s) - n_left
-                if n_left == 0 or n_right == 0:
-                    continue
-                cost = _half_area3(l_lo, l_hi) * n_left + right_area[k + 1] * n_right
-                if cost < best_cost:
-                    best_cost, best_axis, best_bin = cost, a, k
+        best_axis, best_bin = _best_split(boxes, centre, prim, s, e, c_lo, c_hi, sweep)
         if best_axis < 0:
             mid = s + (e - s) // 2
         else:
-            ext = c_hi[best_axis] - c_lo[best_axis]
-            # Stable partition: left prims compacted in place (i <= x), right ones
-            # buffered and appended.
-            i, j = s, 0
-            for x in range(s, e):
-                b = prim[x]
-                if _bin(centre[b, best_axis], c_lo[best_axis], ext) <= best_bin:
-                    prim[i] = b
-                    i += 1
-                else:
-                    right[j] = b
-                    j += 1
-            prim[i:e] = right[:j]
-            mid = i
+            mid = _partition(centre, prim, s, e, best_axis, best_bin, c_lo[best_axis],
+                             c_hi[best_axis] - c_lo[best_axis], right)
         node_child[node] = q
         stack[top, 0], stack[top, 1], stack[top, 2] = q, s, mid
         stack[top + 1, 0], stack[top + 1, 1], stack[top + 1, 2] = q + 1, mid, e
         top += 2
         q += 2
     return node_box, node_child, node_start, node_count, prim, q
+
+
+_SweepScratch = namedtuple("_SweepScratch", "bin_lo bin_hi bin_n right_area r_lo r_hi l_lo l_hi")
+
+
+@njit(inline="always", **JIT)
+def _node_bounds(boxes, centre, prim, s, e, box, c_lo, c_hi):
+    """box (2, 3) = the union of boxes prim[s:e]; c_lo, c_hi (3,) their centroids' bounds."""
+    c_lo[:] = np.inf
+    c_hi[:] = -np.inf
+    for a in range(3):
+        lo, hi = np.inf, -np.inf
+        for x in range(s, e):
+            b = prim[x]
+            lo = min(lo, boxes[b, 0, a])
+            hi = max(hi, boxes[b, 1, a])
+            c_lo[a] = min(c_lo[a], centre[b, a])
+            c_hi[a] = max(c_hi[a], centre[b, a])
+        box[0, a], box[1, a] = lo, hi
+
+
+@njit(inline="always", **JIT)
+def _best_split(boxes, centre, prim, s, e, c_lo, c_hi, w):
+    """The binned SAH split of prim[s:e]: (axis, last bin of the left side), or (-1, -1)
+    when no axis has two non-empty sides. w: a `_SweepScratch`."""
+    best_cost, best_axis, best_bin = np.inf, -1, -1
+    for a in range(3):
+        ext = c_hi[a] - c_lo[a]
+        if not ext > 0.0:
+            continue
+        w.bin_n[:] = 0
+        w.bin_lo[:] = np.inf
+        w.bin_hi[:] = -np.inf
+        for x in range(s, e):
+            b = prim[x]
+            k = _bin(centre[b, a], c_lo[a], ext)
+            w.bin_n[k] += 1
+            for y in range(3):
+                w.bin_lo[k, y] = min(w.bin_lo[k, y], boxes[b, 0, y])
+                w.bin_hi[k, y] = max(w.bin_hi[k, y], boxes[b, 1, y])
+        # Sweep from the right: right_area[k] is the half area of bins k..end.
+        w.r_lo[:] = np.inf
+        w.r_hi[:] = -np.inf
+        for k in range(BVH_BINS - 1, 0, -1):
+            for y in range(3):
+                w.r_lo[y] = min(w.r_lo[y], w.bin_lo[k, y])
+                w.r_hi[y] = max(w.r_hi[y], w.bin_hi[k, y])
+            w.right_area[k] = _half_area3(w.r_lo, w.r_hi)
+        w.l_lo[:] = np.inf
+        w.l_hi[:] = -np.inf
+        n_left = 0
+        for k in range(BVH_BINS - 1):  # split between bins k and k + 1
+            n_left += w.bin_n[k]
+            for y in range(3):
+                w.l_lo[y] = min(w.l_lo[y], w.bin_lo[k, y])
+                w.l_hi[y] = max(w.l_hi[y], w.bin_hi[k, y])
+            n_right = (e - s) - n_left
+            if n_left == 0 or n_right == 0:
+                continue
+            cost = _half_area3(w.l_lo, w.l_hi) * n_left + w.right_area[k + 1] * n_right
+            if cost < best_cost:
+                best_cost, best_axis, best_bin = cost, a, k
+    return best_axis, best_bin
+
+
+@njit(inline="always", **JIT)
+def _partition(centre, prim, s, e, axis, last_bin, lo, ext, right):
+    """Stable partition of prim[s:e] by centroid bin (<= last_bin left): left prims are
+    compacted in place, right ones buffered in `right` and appended. Returns the middle."""
+    i, j = s, 0
+    for x in range(s, e):
+        b = prim[x]
+        if _bin(centre[b, axis], lo, ext) <= last_bin:
+            prim[i] = b
+            i += 1
+        else:
+            right[j] = b
+            j += 1
+    prim[i:e] = right[:j]
+    return i
 
 
 @njit(inline="always", **JIT)

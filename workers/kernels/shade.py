@@ -129,62 +129,26 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, al
         i = rows[r]
         j = ray_of[i]
         px, sm, dp = pixel[j], sample[j], depth[j]
-        p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
         for s in range(S):
             pick = uniform_keyed(keys[3 * s], px, sm, dp)
             u1 = uniform_keyed(keys[3 * s + 1], px, sm, dp)
             u2 = uniform_keyed(keys[3 * s + 2], px, sm, dp)
             li = min(np.int64(pick * fcount), count - 1)
-            dist = far_t
-            pdf_l = 0.0
             if li < n_quads:
-                v0 = ((q_corner[li, 0] + u1 * q_u[li, 0]) + u2 * q_v[li, 0]) - p0
-                v1 = ((q_corner[li, 1] + u1 * q_u[li, 1]) + u2 * q_v[li, 1]) - p1
-                v2 = ((q_corner[li, 2] + u1 * q_u[li, 2]) + u2 * q_v[li, 2]) - p2
-                d = _norm(v0, v1, v2)
-                dd = max(d, 1e-30)
-                wi[0], wi[1], wi[2] = v0 / dd, v1 / dd, v2 / dd
-                cos_l = -_dot(wi[0], wi[1], wi[2],
-                              q_normal[li, 0], q_normal[li, 1], q_normal[li, 2])
-                dist = d
-                if cos_l > 0:
-                    pdf_q = d * d / (max(cos_l, MIN_COS) * q_area[li]) / fcount
-                    pdf_l = pdf_q
-                    for c in range(3):
-                        val[c] = q_radiance[li, c] / pdf_q
-                else:
-                    val[0] = val[1] = val[2] = 0.0
+                dist, pdf_l = _sample_quad(li, u1, u2, p, i, q_corner, q_u, q_v, q_normal,
+                                           q_area, q_radiance, fcount, wi, val)
             elif li < n_quads + n_points:
-                lp = li - n_quads
-                v0, v1, v2 = pt_pos[lp, 0] - p0, pt_pos[lp, 1] - p1, pt_pos[lp, 2] - p2
-                d = _norm(v0, v1, v2)
-                dd = max(d, 1e-30)
-                wi[0], wi[1], wi[2] = v0 / dd, v1 / dd, v2 / dd
-                dist = d
-                d2 = max(d * d, 1e-30)
-                for c in range(3):
-                    val[c] = pt_intensity[lp, c] / d2 * fcount
+                dist, pdf_l = _sample_point(li - n_quads, p, i, pt_pos, pt_intensity, fcount,
+                                            wi, val)
             else:
+                dist, pdf_l = far_t, 0.0
                 ld = li - n_quads - n_points
                 for c in range(3):
                     wi[c] = -dir_dir[ld, c]
                     val[c] = dir_irradiance[ld, c] * fcount
-            cos_s = _dot(wi[0], wi[1], wi[2], ns[i, 0], ns[i, 1], ns[i, 2])
-            cos_g = _dot(wi[0], wi[1], wi[2], ng[i, 0], ng[i, 1], ng[i, 2])
-            if not (cos_s > 0 and cos_g > 0):
+            ok, c0, c1, c2 = _light_contribution(wi, val, pdf_l, fS, ns, ng, albedo, thr, i)
+            if not ok:
                 continue
-            mc = max(cos_s, 0.0)
-            pdf_b = mc / np.pi
-            if pdf_l > 0:
-                w = fS * pdf_l / (fS * pdf_l + pdf_b) / fS
-            else:
-                w = 1.0 / fS
-            scale = mc * w
-            c0 = thr[i, 0] * (albedo[i, 0] / np.pi) * val[0] * scale
-            c1 = thr[i, 1] * (albedo[i, 1] / np.pi) * val[1] * scale
-            c2 = thr[i, 2] * (albedo[i, 2] / np.pi) * val[2] * scale
-            if c0 != c0 or c1 != c1 or c2 != c2 or not (c0 > 0 or c1 > 0 or c2 > 0):
-                continue  # contrib.max(axis=1) > 0: NaN propagates and fails
             offset_origin(p, p_err, ng, i, o_p, k)
             for c in range(3):
                 o_dir[k, c] = np.float32(wi[c])
@@ -194,6 +158,65 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, al
             o_pix[k] = px
             k += 1
     return k, o_p, o_dir, o_tmax, o_con, o_pix
+
+
+@njit(inline="always", **JIT)
+def _sample_quad(li, u1, u2, p, i, q_corner, q_u, q_v, q_normal, q_area, q_radiance, fcount,
+                 wi, val):
+    """A point on quad li (uniform by area, u1 u2) seen from p[i]: wi (3,) its unit
+    direction, val (3,) radiance over pdf (0 behind the quad). Returns (distance, pdf_l),
+    pdf_l the solid-angle density of picking it (0 behind)."""
+    v0 = ((q_corner[li, 0] + u1 * q_u[li, 0]) + u2 * q_v[li, 0]) - p[i, 0]
+    v1 = ((q_corner[li, 1] + u1 * q_u[li, 1]) + u2 * q_v[li, 1]) - p[i, 1]
+    v2 = ((q_corner[li, 2] + u1 * q_u[li, 2]) + u2 * q_v[li, 2]) - p[i, 2]
+    d = _norm(v0, v1, v2)
+    dd = max(d, 1e-30)
+    wi[0], wi[1], wi[2] = v0 / dd, v1 / dd, v2 / dd
+    cos_l = -_dot(wi[0], wi[1], wi[2], q_normal[li, 0], q_normal[li, 1], q_normal[li, 2])
+    if cos_l > 0:
+        pdf_q = d * d / (max(cos_l, MIN_COS) * q_area[li]) / fcount
+        for c in range(3):
+            val[c] = q_radiance[li, c] / pdf_q
+        return d, pdf_q
+    val[0] = val[1] = val[2] = 0.0
+    return d, 0.0
+
+
+@njit(inline="always", **JIT)
+def _sample_point(lp, p, i, pt_pos, pt_intensity, fcount, wi, val):
+    """Point light lp seen from p[i]: wi, val as `_sample_quad`; returns (distance, 0)."""
+    v0, v1, v2 = pt_pos[lp, 0] - p[i, 0], pt_pos[lp, 1] - p[i, 1], pt_pos[lp, 2] - p[i, 2]
+    d = _norm(v0, v1, v2)
+    dd = max(d, 1e-30)
+    wi[0], wi[1], wi[2] = v0 / dd, v1 / dd, v2 / dd
+    d2 = max(d * d, 1e-30)
+    for c in range(3):
+        val[c] = pt_intensity[lp, c] / d2 * fcount
+    return d, 0.0
+
+
+@njit(inline="always", **JIT)
+def _light_contribution(wi, val, pdf_l, fS, ns, ng, albedo, thr, i):
+    """The MIS-weighted diffuse contribution of one light sample at hit i: (kept, rgb),
+    kept where the light is above both the shading and the geometric surface and the
+    contribution is positive (and not NaN)."""
+    cos_s = _dot(wi[0], wi[1], wi[2], ns[i, 0], ns[i, 1], ns[i, 2])
+    cos_g = _dot(wi[0], wi[1], wi[2], ng[i, 0], ng[i, 1], ng[i, 2])
+    if not (cos_s > 0 and cos_g > 0):
+        return False, 0.0, 0.0, 0.0
+    mc = max(cos_s, 0.0)
+    pdf_b = mc / np.pi
+    if pdf_l > 0:
+        w = fS * pdf_l / (fS * pdf_l + pdf_b) / fS
+    else:
+        w = 1.0 / fS
+    scale = mc * w
+    c0 = thr[i, 0] * (albedo[i, 0] / np.pi) * val[0] * scale
+    c1 = thr[i, 1] * (albedo[i, 1] / np.pi) * val[1] * scale
+    c2 = thr[i, 2] * (albedo[i, 2] / np.pi) * val[2] * scale
+    if c0 != c0 or c1 != c1 or c2 != c2 or not (c0 > 0 or c1 > 0 or c2 > 0):
+        return False, c0, c1, c2  # contrib.max(axis=1) > 0: NaN propagates and fails
+    return True, c0, c1, c2
 
 
 @njit(**JIT)
@@ -232,39 +255,13 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
         b0 = 1.0 - b1 - b2
         f = mesh_fbase[slot] + prim[h]
         t0, t1, t2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        v_max = 0.0
-        for c in range(3):
-            x0 = np.float64(verts[t0, c])
-            pl[c] = b0 * x0 + b1 * np.float64(verts[t1, c]) + b2 * np.float64(verts[t2, c])
-            v_max = max(v_max, abs(x0), abs(np.float64(verts[t1, c])),
-                        abs(np.float64(verts[t2, c])))
-        e10 = np.float64(verts[t1, 0]) - np.float64(verts[t0, 0])
-        e11 = np.float64(verts[t1, 1]) - np.float64(verts[t0, 1])
-        e12 = np.float64(verts[t1, 2]) - np.float64(verts[t0, 2])
-        e20 = np.float64(verts[t2, 0]) - np.float64(verts[t0, 0])
-        e21 = np.float64(verts[t2, 1]) - np.float64(verts[t0, 1])
-        e22 = np.float64(verts[t2, 2]) - np.float64(verts[t0, 2])
-        gl[0] = e11 * e22 - e12 * e21  # np.cross's order
-        gl[1] = e12 * e20 - e10 * e22
-        gl[2] = e10 * e21 - e11 * e20
-        if mesh_has_n[slot]:
-            for c in range(3):
-                sl[c] = (b0 * np.float64(normals[t0, c]) + b1 * np.float64(normals[t1, c])
-                         + b2 * np.float64(normals[t2, c]))
-        else:
-            sl[0], sl[1], sl[2] = gl[0], gl[1], gl[2]
+        v_max = _local_hit(verts, normals, mesh_has_n[slot], t0, t1, t2, b0, b1, b2, pl, gl,
+                           sl)
         mat = mesh_mat[slot]
         tx = mat_tex[mat]
         if tx >= 0 and mesh_has_uv[slot]:
-            uu = (b0 * np.float64(uvs[t0, 0]) + b1 * np.float64(uvs[t1, 0])
-                  + b2 * np.float64(uvs[t2, 0]))
-            vv = (b0 * np.float64(uvs[t0, 1]) + b1 * np.float64(uvs[t1, 1])
-                  + b2 * np.float64(uvs[t2, 1]))
-            th, tw = tex_h[tx], tex_w[tx]
-            x = np.int64(np.floor((uu % 1.0) * tw)) % tw
-            y = np.int64(np.floor(((1.0 - vv) % 1.0) * th)) % th
-            for c in range(3):
-                albedo[i, c] = np.float64(texels[tex_base[tx] + y * tw + x, c])
+            _texel(uvs, t0, t1, t2, b0, b1, b2, tex_base[tx], tex_h[tx], tex_w[tx], texels,
+                   albedo, i)
         else:
             for c in range(3):
                 albedo[i, c] = mat_albedo[mat, c]
@@ -274,29 +271,78 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
             p[i, c] = (_dot(l2w[it, c, 0], l2w[it, c, 1], l2w[it, c, 2], pl[0], pl[1], pl[2])
                        + l2w[it, c, 3])
         point_error(l2w, w2l, it, v_max, pl, p, i, p_err)
-        g0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], gl[0], gl[1], gl[2])
-        g1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], gl[0], gl[1], gl[2])
-        g2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], gl[0], gl[1], gl[2])
-        s0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], sl[0], sl[1], sl[2])
-        s1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], sl[0], sl[1], sl[2])
-        s2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], sl[0], sl[1], sl[2])
-        ln = _norm(g0, g1, g2)  # normalize: zero vectors stay zero
-        if not ln > 0:
-            ln = 1.0
-        g0, g1, g2 = g0 / ln, g1 / ln, g2 / ln
-        ln = _norm(s0, s1, s2)
-        if not ln > 0:
-            ln = 1.0
-        s0, s1, s2 = s0 / ln, s1 / ln, s2 / ln
-        # Two-sided diffuse: both normals face the side the ray came from.
-        if _dot(g0, g1, g2, np.float64(direction[h, 0]), np.float64(direction[h, 1]),
-                np.float64(direction[h, 2])) > 0:
-            g0, g1, g2 = -g0, -g1, -g2
-        if _dot(s0, s1, s2, g0, g1, g2) < 0:
-            s0, s1, s2 = -s0, -s1, -s2
-        ng[i, 0], ng[i, 1], ng[i, 2] = g0, g1, g2
-        ns[i, 0], ns[i, 1], ns[i, 2] = s0, s1, s2
+        _world_normals(nmat, it, gl, sl, direction, h, ng, ns, i)
     return -1, p, ng, ns, albedo, emission, p_err
+
+
+@njit(inline="always", **JIT)
+def _local_hit(verts, normals, has_n, t0, t1, t2, b0, b1, b2, pl, gl, sl):
+    """Triangle (t0, t1, t2) at barycentrics b in local space, in float64: point pl (3,),
+    geometric normal gl (3,) (np.cross's order, not unit), shading normal sl (3,) (the
+    vertex normals interpolated, or gl). Returns the largest |vertex coordinate|."""
+    v_max = 0.0
+    for c in range(3):
+        x0 = np.float64(verts[t0, c])
+        pl[c] = b0 * x0 + b1 * np.float64(verts[t1, c]) + b2 * np.float64(verts[t2, c])
+        v_max = max(v_max, abs(x0), abs(np.float64(verts[t1, c])),
+                    abs(np.float64(verts[t2, c])))
+    e10 = np.float64(verts[t1, 0]) - np.float64(verts[t0, 0])
+    e11 = np.float64(verts[t1, 1]) - np.float64(verts[t0, 1])
+    e12 = np.float64(verts[t1, 2]) - np.float64(verts[t0, 2])
+    e20 = np.float64(verts[t2, 0]) - np.float64(verts[t0, 0])
+    e21 = np.float64(verts[t2, 1]) - np.float64(verts[t0, 1])
+    e22 = np.float64(verts[t2, 2]) - np.float64(verts[t0, 2])
+    gl[0] = e11 * e22 - e12 * e21  # np.cross's order
+    gl[1] = e12 * e20 - e10 * e22
+    gl[2] = e10 * e21 - e11 * e20
+    if has_n:
+        for c in range(3):
+            sl[c] = (b0 * np.float64(normals[t0, c]) + b1 * np.float64(normals[t1, c])
+                     + b2 * np.float64(normals[t2, c]))
+    else:
+        sl[0], sl[1], sl[2] = gl[0], gl[1], gl[2]
+    return v_max
+
+
+@njit(inline="always", **JIT)
+def _texel(uvs, t0, t1, t2, b0, b1, b2, base, th, tw, texels, albedo, i):
+    """albedo[i] = the nearest texel (wrapping; row (1 - v) h) of the texture at texels[base:]
+    (th x tw) under the interpolated UV."""
+    uu = (b0 * np.float64(uvs[t0, 0]) + b1 * np.float64(uvs[t1, 0])
+          + b2 * np.float64(uvs[t2, 0]))
+    vv = (b0 * np.float64(uvs[t0, 1]) + b1 * np.float64(uvs[t1, 1])
+          + b2 * np.float64(uvs[t2, 1]))
+    x = np.int64(np.floor((uu % 1.0) * tw)) % tw
+    y = np.int64(np.floor(((1.0 - vv) % 1.0) * th)) % th
+    for c in range(3):
+        albedo[i, c] = np.float64(texels[base + y * tw + x, c])
+
+
+@njit(inline="always", **JIT)
+def _world_normals(nmat, it, gl, sl, direction, h, ng, ns, i):
+    """ng[i], ns[i] = gl, sl moved by instance it's normal matrix and made unit (zero stays
+    zero), both facing the side ray h came from (two-sided diffuse)."""
+    g0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], gl[0], gl[1], gl[2])
+    g1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], gl[0], gl[1], gl[2])
+    g2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], gl[0], gl[1], gl[2])
+    s0 = _dot(nmat[it, 0, 0], nmat[it, 0, 1], nmat[it, 0, 2], sl[0], sl[1], sl[2])
+    s1 = _dot(nmat[it, 1, 0], nmat[it, 1, 1], nmat[it, 1, 2], sl[0], sl[1], sl[2])
+    s2 = _dot(nmat[it, 2, 0], nmat[it, 2, 1], nmat[it, 2, 2], sl[0], sl[1], sl[2])
+    ln = _norm(g0, g1, g2)
+    if not ln > 0:
+        ln = 1.0
+    g0, g1, g2 = g0 / ln, g1 / ln, g2 / ln
+    ln = _norm(s0, s1, s2)
+    if not ln > 0:
+        ln = 1.0
+    s0, s1, s2 = s0 / ln, s1 / ln, s2 / ln
+    if _dot(g0, g1, g2, np.float64(direction[h, 0]), np.float64(direction[h, 1]),
+            np.float64(direction[h, 2])) > 0:
+        g0, g1, g2 = -g0, -g1, -g2
+    if _dot(s0, s1, s2, g0, g1, g2) < 0:
+        s0, s1, s2 = -s0, -s1, -s2
+    ng[i, 0], ng[i, 1], ng[i, 2] = g0, g1, g2
+    ns[i, 0], ns[i, 1], ns[i, 2] = s0, s1, s2
 
 
 @njit(**JIT)
