@@ -57,6 +57,10 @@ class ServiceSettings(BaseSettings):
                                              "default admits a burst of 500)")
     retry_after_s: int = Field(2, ge=1, le=3600,
                                description="Retry-After of a 429 or 503 answer, seconds")
+    scheduler_nice: int = Field(10, ge=0, le=19,
+                                description="niceness the scheduler process (and the Ray "
+                                            "processes it starts) runs at, so that renders "
+                                            "yield the CPU to API workers on a shared host")
     ray_start_attempts: int = Field(3, ge=1, le=20,
                                     description="tries at starting or joining Ray per job")
 

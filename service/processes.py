@@ -37,6 +37,8 @@ def run_scheduler(settings: ServiceSettings) -> int:
     from nprt.service.scheduler import Scheduler, SchedulerRunning
 
     done = threading.Event()
+    if settings.scheduler_nice:  # inherited by Ray's processes, which this one starts
+        os.nice(settings.scheduler_nice)
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: done.set())
     try:
