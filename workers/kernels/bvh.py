@@ -63,8 +63,9 @@ def _node_hit(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2, tmax):
 
 def _buffers(n: int, k: int):
     """Output rows: ray (c,) int64, col (c,) int32, t_enter, t_exit (c,) float64, with
-    room for two crossings per ray and at least one ray's worth (k)."""
-    cap = 2 * n + k + 16
+    room for four crossings per ray (scenes of overlapping boxes average about three, and
+    every growth copies them all) and at least one ray's worth (k)."""
+    cap = 4 * n + k + 16
     return (np.empty(cap, np.int64), np.empty(cap, np.int32), np.empty(cap), np.empty(cap))
 
 
