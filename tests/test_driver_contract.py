@@ -21,7 +21,7 @@ def test_no_driver_module_imports_tracing_code_at_import_time():
 
 def test_the_contract_covers_the_driver_entry_points():
     mods = set(driver_modules(ImportGraph(REPO)))
-    assert {"nprt.service.cli", "nprt.service.app", "nprt.service.manager",
+    assert {"nprt.service.cli", "nprt.service.app", "nprt.service.scheduler",
             "nprt.workers.render", "nprt.workers.frames", "nprt.workers.runtime.coordinator",
             "nprt.workers.runtime.pool", "nprt.workers.stats.counters",
             "nprt.scene.store"} <= mods

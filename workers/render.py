@@ -14,6 +14,7 @@ import numpy as np
 from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
 from nprt.workers.film import Film
+from nprt.workers.jitcache import note_cold_compile
 from nprt.workers.passes import Pass, count_passes, iter_passes
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats
@@ -85,6 +86,8 @@ def make_renderer(scene, settings: RenderSettings, ray_address: str | None = Non
     here), else a coordinator (on a warm pool from the PoolRegistry `pools` if given).
     scene: a Scene, or a SceneMeta from nprt.scene.store.open_scene (the driver then holds no
     geometry); on_progress: per-mesh proxy training progress (Coordinator)."""
+    note_cold_compile("reference render" if settings.shards == 0 else "shard warm-up",
+                      distributed=settings.shards > 0)
     if settings.shards == 0:
         from nprt.workers.wavefront.reference import ReferenceRenderer
 

@@ -1,5 +1,10 @@
 """One Ray per process, shared by every pool and coordinator in it: started here (and shut
-down by the last user) unless the process already joined one."""
+down by the last user) unless the process already joined one.
+
+Ray stays off the console unless nprt logs at DEBUG: no dashboard (`include_dashboard`),
+worker output stays in Ray's log files (`log_to_driver`), and Ray's own Python logger
+shows errors only (its start-up notices, such as the one that token authentication is on,
+are not for nprt's users). At DEBUG, Ray logs at INFO and forwards worker output."""
 
 from __future__ import annotations
 
@@ -13,9 +18,15 @@ _RAY_USERS = 0  # live pools on a Ray that this module started
 _RAY_OWNED = False
 
 
+def ray_console() -> dict:
+    """The ray.init arguments that decide what Ray prints, by nprt's own level (the root
+    logger's: `nprt --log-level debug` lowers it to DEBUG)."""
+    debug = logging.getLogger().isEnabledFor(logging.DEBUG)
+    return {"logging_level": logging.INFO if debug else logging.ERROR, "log_to_driver": debug}
+
+
 def _init(address: str | None) -> None:
-    ray.init(address=address, include_dashboard=False, logging_level=logging.WARNING,
-             log_to_driver=False)
+    ray.init(address=address, include_dashboard=False, **ray_console())
 
 
 def ensure_ray(address: str | None = None) -> bool:

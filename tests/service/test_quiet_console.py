@@ -1,0 +1,50 @@
+"""A first run through Ray prints nothing of Ray's own: no Python log record of Ray's
+(such as its token-authentication notice) and no line of its C++ core (core_worker.cc and
+the like) reaches the console of `nprt render` unless --log-level debug."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+# "[2026-11-26 06:22:40,272 E 5712 5712] core_worker.cc:2465: ..." (C++, any severity)
+RAY_CPP = re.compile(r"^\[\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+ [DIWEF] \d+ \d+\] \S+\.(cc|h):\d+")
+# "2026-11-26 06:24:01,447\tWARNING authentication_token_setup.py:85 -- ..." (Ray's Python
+# logger), and "(raylet)" / "(ShardActor pid=...)" forwarded from Ray's processes
+RAY_PY = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d,\d+\t[A-Z]+ \S+\.py:\d+ -- ")
+RAY_FORWARDED = re.compile(r"^\((raylet|gcs_server|\w+ pid=\d+)")
+
+
+def ray_lines(text: str) -> list[str]:
+    return [ln for ln in text.splitlines()
+            if RAY_CPP.match(ln) or RAY_PY.match(ln) or RAY_FORWARDED.match(ln)]
+
+
+def test_ray_line_patterns_match_what_ray_prints():
+    seen = ("[2026-11-26 06:22:40,272 E 5712 5712] core_worker.cc:2465: Actor with class "
+            "name: 'ShardActor' has constructor arguments in the object store\n"
+            "2026-11-26 06:24:01,447\tWARNING authentication_token_setup.py:85 -- Token "
+            "authentication is enabled for this Ray cluster.\n"
+            "(ShardActor pid=7218) warm-up done\n"
+            "2026-11-26 06:20:54,311 WARNING nprt.workers.jitcache: compiling the numba kernels\n"
+            "wrote out.png (16x12, 1 spp) in 4.2 s")
+    assert len(ray_lines(seen)) == 3
+
+
+@pytest.mark.slow
+def test_a_distributed_render_prints_no_line_of_ray(tmp_path):
+    env = {**os.environ, "RAY_ADDRESS": "local", "NPRT_SCENE_CACHE": str(tmp_path / "scenes"),
+           "PYTHONPATH": str(REPO)}
+    cmd = [sys.executable, "-m", "nprt.service.cli", "render", "forest:tiny", "--shards", "2",
+           "--width", "16", "--height", "12", "--spp", "1", "-o", str(tmp_path / "out.png")]
+    res = subprocess.run(cmd, env=env, cwd=tmp_path, capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert (tmp_path / "out.png").stat().st_size > 0
+    assert ray_lines(res.stdout + res.stderr) == []
