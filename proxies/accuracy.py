@@ -18,9 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 KINDS = ("secondary", "shadow")
-# sRGB RMS error per wrong proxy answer per ray of the kind (fitted on forest, city and
-# sculpture at K = 4; bench/README.md "Accuracy target").
-SENSITIVITY = {"secondary": 1.0, "shadow": 0.25}
+# sRGB RMS error per wrong proxy answer per ray of the kind, fitted on forest, city and
+# sculpture (default size, K = 4, targets 30 and 45; bench/README.md "Accuracy target"):
+# least squares gave shadow 2.26 and secondary 0 (secondary errors did not show in the image
+# beside the shadow ones); secondary keeps 1.0 so that its bands still follow the target.
+SENSITIVITY = {"secondary": 1.0, "shadow": 2.3}
 # Box queries per ray of the kind assumed before a render measures them (the largest the
 # demos measured; the after-render prediction uses the measured ones).
 PRIOR_QUERIES = {"secondary": 1.0, "shadow": 1.0}
