@@ -1,0 +1,84 @@
+"""Every benchmark runs: each bench/<group>/*.py entry point (a module with a `__main__`
+block) runs once with `--smoke`, its smallest input, in a subprocess. Results go to a
+temporary folder (NPRT_BENCH_RESULTS), scenes and proxies to empty caches, as on a fresh
+checkout. Not timed. The selected runs go PARALLEL at a time in one fixture; each script's
+exit status is its own test, and no README or recorded result may change. SLOW ones (a
+multi-process runtime at scale, minutes even at their smallest) are marked slow."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+BENCH = REPO / "bench"
+GROUPS = ("render", "proxy", "training", "experiments", "network", "service")
+PARALLEL = 2  # CI has two cores; more runs at once only share them
+RUN_TIMEOUT_S = 600  # a hung bench fails instead of stalling CI
+# bench_massive: three driver processes, two Ray starts and two training rounds;
+# bench_scale: four pools and a job manager.
+SLOW = ("bench.render.bench_massive", "bench.render.bench_scale")
+
+pytestmark = pytest.mark.timeout(3600)  # the fixture runs every selected bench
+
+
+def entry_points() -> list[str]:
+    """Dotted module names of every bench script with a `__main__` block."""
+    return sorted(f"bench.{p.parent.name}.{p.stem}" for p in BENCH.glob("*/*.py")
+                  if 'if __name__ == "__main__":' in p.read_text())
+
+
+def _fingerprint() -> dict[str, str]:
+    """sha256 of both READMEs and of every file in bench/results."""
+    files = [BENCH / "README.md", REPO / "README.md", *sorted((BENCH / "results").glob("*"))]
+    return {str(f.relative_to(REPO)): hashlib.sha256(f.read_bytes()).hexdigest()
+            for f in files if f.is_file()}
+
+
+def _run(module: str, out: Path, caches: Path) -> subprocess.CompletedProcess:
+    env = {**os.environ, "NPRT_BENCH_RESULTS": str(out), "RAY_ADDRESS": "local",
+           "NPRT_SCENE_CACHE": str(caches / "scenes"), "NPRT_PROXY_CACHE": str(caches / "proxies"),
+           "PYTHONPATH": os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))),
+           "MPLBACKEND": "Agg"}
+    try:
+        return subprocess.run([sys.executable, "-m", module, "--smoke"], cwd=REPO, env=env,
+                              capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
+    except subprocess.TimeoutExpired as e:
+        return subprocess.CompletedProcess(e.cmd, -9, str(e.stdout or ""),
+                                           f"{e.stderr or ''}\ntimed out after {e.timeout} s")
+
+
+@pytest.fixture(scope="module")
+def smoke_runs(request, tmp_path_factory):
+    """{module: CompletedProcess} of every selected entry point, and the fingerprints
+    before and after all of them."""
+    before = _fingerprint()
+    root = tmp_path_factory.mktemp("bench-smoke")
+    mods = [item.callspec.params["module"] for item in request.session.items
+            if item.originalname == "test_bench_runs_on_its_smallest_input"]
+    with ThreadPoolExecutor(PARALLEL) as pool:
+        done = list(pool.map(lambda m: _run(m, root / m, root / "caches"), mods))
+    return dict(zip(mods, done, strict=True)), before, _fingerprint()
+
+
+def test_every_bench_group_has_entry_points():
+    assert {m.split(".")[1] for m in entry_points()} >= set(GROUPS)
+
+
+@pytest.mark.parametrize("module", [
+    pytest.param(m, marks=pytest.mark.slow) if m in SLOW else m for m in entry_points()])
+def test_bench_runs_on_its_smallest_input(smoke_runs, module):
+    res = smoke_runs[0][module]
+    assert res.returncode == 0, f"{module} --smoke:\n{res.stdout[-2000:]}\n{res.stderr[-4000:]}"
+
+
+def test_smoke_runs_change_no_readme_nor_recorded_result(smoke_runs):
+    _, before, after = smoke_runs
+    changed = sorted(k for k in before.keys() | after.keys() if before.get(k) != after.get(k))
+    assert changed == []
