@@ -1,26 +1,23 @@
 """A trace-driven model of a render on K dedicated nodes joined by links of bandwidth B: a
-small discrete-event simulation that replays the shard calls a Coordinator recorded
-(workers/runtime/calltrace.py) with their compute times, the bytes of every parcel and which calls
-consumed it.
+small discrete-event simulation that replays the wavefront steps the shards recorded
+(workers/runtime/calltrace.py) with their compute times, the bytes of every parcel and which
+step consumed it.
 
-What it models, following workers/runtime/coordinator.py:
-- Shard s runs on node s; its calls run one at a time, in the recorded order (a Ray actor
-  runs its calls in submission order; a call whose parcels are still on the wire blocks
-  the calls behind it).
-- The coordinator dispatches a call once every call whose output it consumes has returned,
-  with at most MAX_QUEUED_CALLS calls of one shard in flight, and with a pass attempt
-  (token) admitted only while fewer than `window` attempts are live. A message between the
-  coordinator and a shard takes `rpc_s` each way (its processing included).
-- A parcel moves once its consumer's call reaches the consumer's node (Ray pulls the
-  arguments of a queued actor call). Every node has an uplink and a downlink of B; flows
-  share them max-min fairly (TCP-like), so a parcel between two nodes is limited by the
-  busier of the sender's uplink and the receiver's downlink.
-- A pass ends when each shard, after the calls queued before it, has handed back its
-  partial film (n_pixels x 3 float64) over its uplink to the coordinator's node.
+What it models, following workers/runtime/coordinator.py and remote.py:
+- Shard s runs on node s; its steps run one at a time, in the recorded order. A step starts
+  once the shard is free, every parcel it consumed has arrived, and every camera-ray order
+  it ran has arrived.
+- A parcel leaves when its producing step ends and goes straight to its consumer's node
+  (shard to shard; no coordinator hop). Every node has an uplink and a downlink of B; flows
+  share them max-min fairly (TCP-like).
+- The coordinator admits passes in the recorded order, at most `window` live; an order
+  reaches its shard `rpc_s` after admission. A pass is complete once every step that ran
+  it has ended; the weight reaches the coordinator `rpc_s` later, the collect another
+  `rpc_s`, and then every shard sends its film (n_pixels x 3 float64) over its uplink.
 
-What it does not model: the grouping of parcels into calls changes with timing in a real
+What it does not model: the grouping of parcels into steps changes with timing in a real
 run, and the replay keeps the recorded grouping; and CPU contention between nodes (the
-model's nodes are dedicated: pass compute times measured without contention, or corrected
+model's nodes are dedicated: step compute times measured without contention, or corrected
 for it).
 """
 
@@ -30,8 +27,6 @@ import heapq
 from dataclasses import dataclass, field
 
 import numpy as np
-
-from nprt.workers.runtime.coordinator import MAX_QUEUED_CALLS
 
 HEAD = -1  # the coordinator's node: its own link is not a bottleneck (unshaped)
 
@@ -46,23 +41,13 @@ class _Flow:
 
 
 @dataclass
-class _Job:
-    """A work call or a collect, queued on one shard."""
-
-    kind: str  # "work" | "collect"
-    index: int  # call number, or token
-    arrive_s: float
-    waiting: int = 0  # parcels still on the wire
-    cpu_s: float = 0.0
-
-
-@dataclass
 class Replay:
-    """makespan_s: from the first dispatch to the last pass's film at the coordinator."""
+    """makespan_s: from the first admission to the last pass's film at the coordinator;
+    step_start_s / step_end_s: (n_steps,) in the trace's step order."""
 
     makespan_s: float
-    call_start_s: np.ndarray
-    call_end_s: np.ndarray
+    step_start_s: np.ndarray
+    step_end_s: np.ndarray
     busy_s: np.ndarray  # (k,) compute seconds per node
     bytes_moved: int
     extra: dict = field(default_factory=dict)
@@ -122,96 +107,84 @@ class _Network:
 
 
 def replay(trace: dict, bandwidth_bps: float, rpc_s: float, window: int,
-           film_bytes: dict[int, int] | None = None, cpu_s: np.ndarray | None = None) -> Replay:
-    """Replay `trace` (TraceRecorder.to_dict()) on its K shards' dedicated nodes.
+           film_bytes: dict | None = None, cpu_s: np.ndarray | None = None) -> Replay:
+    """Replay `trace` (StepTrace.to_dict()) on its K shards' dedicated nodes.
 
     bandwidth_bps: each node's link, bits per second, each direction; rpc_s: one way,
-    coordinator to shard or back; window: pass attempts in flight (Coordinator.window);
-    film_bytes: token -> bytes of one shard's partial film (default none); cpu_s: (n_calls,)
-    compute time per call (default: the recorded busy_s)."""
-    k = trace["k"]
-    calls = trace["calls"]
-    n = len(calls)
-    cpu = np.array([c["busy_s"] for c in calls]) if cpu_s is None else np.asarray(cpu_s)
-    film_bytes = film_bytes or {}
+    coordinator to shard or back; window: passes live at once (Coordinator.window);
+    film_bytes: pass index (int or str) -> bytes of one shard's film (default none);
+    cpu_s: (n_steps,) compute time per step (default: the recorded busy_s)."""
+    k, steps = trace["k"], trace["steps"]
+    n = len(steps)
+    cpu = np.array([s["busy_s"] for s in steps]) if cpu_s is None else np.asarray(cpu_s)
+    films = {int(i): b for i, b in (film_bytes or {}).items()}
+    index = {(s["shard"], s["step"]): i for i, s in enumerate(steps)}
+    by_shard = [[i for i, s in enumerate(steps) if s["shard"] == sh] for sh in range(k)]
+    waiting = np.zeros(n, np.int64)  # parcels and orders a step still waits for
+    consumers: dict[int, list[tuple[int, int]]] = {}  # producer step -> (consumer, bytes)
+    order_step: dict[int, list[int]] = {}  # pass -> steps that generated it
+    steps_of: dict[int, int] = {}  # pass -> steps that ran it, not yet ended
+    for i, s in enumerate(steps):
+        for src, src_step, _rays, nbytes in s["inputs"]:
+            if (src, src_step) in index:
+                consumers.setdefault(index[(src, src_step)], []).append((i, int(nbytes)))
+                waiting[i] += 1
+        for p in s["orders"]:
+            order_step.setdefault(p, []).append(i)
+            waiting[i] += 1
+        for p in s["passes"]:
+            steps_of[p] = steps_of.get(p, 0) + 1
+    admitted = [p for p in dict.fromkeys(trace["admitted"]) if p in steps_of]
     net = _Network(bandwidth_bps / 8.0)
-    by_shard = [[c["call"] for c in calls if c["shard"] == s] for s in range(k)]
-    pos = [0] * k  # next call of each shard to dispatch
-    returned = np.full(n, np.inf)
-    start, end = np.full(n, np.nan), np.full(n, np.nan)
-    token_calls: dict[int, int] = {}  # token -> its calls not yet returned
-    first_seen: dict[int, int] = {}  # token -> the first call carrying it
-    for c in calls:
-        for t in c["tokens"]:
-            token_calls[t] = token_calls.get(t, 0) + 1
-            first_seen.setdefault(t, c["call"])
-    order = sorted(first_seen)  # tokens in admission order
-    admit_rank = {t: i for i, t in enumerate(order)}
-    completions: list[float] = []  # times at which tokens finished (film at the head)
-    queues: list[list[_Job]] = [[] for _ in range(k)]
-    running: list[_Job | None] = [None] * k
-    in_flight = [0] * k
-    films_left: dict[int, int] = {}
-    events: list[tuple[float, int, str, tuple]] = []  # (time, seq, what, args)
+    events: list[tuple[float, int, str, tuple]] = []
     seq = [0]
+    start, end = np.full(n, np.nan), np.full(n, np.nan)
+    pos, running = [0] * k, [False] * k
     busy = np.zeros(k)
     moved = [0]
+    completions: list[float] = []
+    films_left: dict[int, int] = {}
+    next_admit = [0]
 
     def at(t: float, what: str, *args) -> None:
         seq[0] += 1
         heapq.heappush(events, (t, seq[0], what, args))
 
-    def admitted(token: int) -> float:
-        """When the coordinator could admit this token: within the window."""
-        r = admit_rank[token]
-        if r < window:
-            return 0.0
-        if len(completions) < r - window + 1:
-            return np.inf
-        return sorted(completions)[r - window]
+    def admit(now: float, count: int) -> None:
+        for _ in range(count):
+            if next_admit[0] < len(admitted):
+                p = admitted[next_admit[0]]
+                next_admit[0] += 1
+                for i in order_step.get(p, []):
+                    at(now + rpc_s, "arrive", i)
 
-    def try_dispatch(now: float) -> None:
-        for s in range(k):
-            while pos[s] < len(by_shard[s]) and in_flight[s] < MAX_QUEUED_CALLS:
-                c = calls[by_shard[s][pos[s]]]
-                ready = max([returned[p] for p, _ in c["inputs"]] +
-                            [admitted(t) for t in c["tokens"] if first_seen[t] == c["call"]] +
-                            [0.0])
-                if ready > now:
-                    break
-                pos[s] += 1
-                in_flight[s] += 1
-                at(now + rpc_s, "arrive", c["call"])
-
-    def try_run(s: int, now: float) -> None:
-        if running[s] is not None or not queues[s]:
+    def try_run(sh: int, now: float) -> None:
+        if running[sh] or pos[sh] >= len(by_shard[sh]):
             return
-        job = queues[s][0]
-        if job.waiting or job.arrive_s > now:
+        i = by_shard[sh][pos[sh]]
+        if waiting[i]:
             return
-        queues[s].pop(0)
-        running[s] = job
-        if job.kind == "work":
-            start[job.index] = now
-        at(now + job.cpu_s, "end", s)
+        pos[sh] += 1
+        running[sh] = True
+        start[i] = now
+        at(now + float(cpu[i]), "end", i)
 
-    def parcel_done(call: int, s: int):
+    def arrived(i: int):
         def done(now: float) -> None:
-            job = next(j for j in queues[s] if j.kind == "work" and j.index == call)
-            job.waiting -= 1
-            try_run(s, now)
+            waiting[i] -= 1
+            try_run(steps[i]["shard"], now)
         return done
 
-    def film_done(token: int):
+    def film_done(p: int):
         def done(now: float) -> None:
-            films_left[token] -= 1
-            if films_left[token] == 0:
+            films_left[p] -= 1
+            if films_left[p] == 0:
                 completions.append(now + rpc_s)
                 at(now + rpc_s, "admit")
         return done
 
+    admit(0.0, window)
     now = 0.0
-    try_dispatch(now)
     while events or net.flows:
         t_event = events[0][0] if events else np.inf
         t_flow = net.next_done(now)
@@ -224,58 +197,44 @@ def replay(trace: dict, bandwidth_bps: float, rpc_s: float, window: int,
             f.done(t_event)
         now, _, what, args = heapq.heappop(events)
         if what == "arrive":
-            c = calls[args[0]]
-            s = c["shard"]
-            job = _Job("work", c["call"], now, cpu_s=float(cpu[c["call"]]))
-            queues[s].append(job)
-            for (p, _), nbytes in zip(c["inputs"], c["input_bytes"], strict=True):
-                src = calls[p]["shard"]
-                if src == s or nbytes == 0:
-                    continue
-                job.waiting += 1
-                moved[0] += nbytes
-                net.add(_Flow(src, s, float(nbytes), parcel_done(c["call"], s)))
-            try_run(s, now)
-        elif what == "collect":
-            s, token = args
-            queues[s].append(_Job("collect", token, now))
-            try_run(s, now)
+            arrived(args[0])(now)
         elif what == "end":
-            s = args[0]
-            job, running[s] = running[s], None
-            busy[s] += job.cpu_s
-            if job.kind == "work":
-                end[job.index] = now
-                at(now + rpc_s, "return", job.index)
-            else:
-                nbytes = film_bytes.get(job.index, 0)
+            i = args[0]
+            sh = steps[i]["shard"]
+            running[sh] = False
+            end[i] = now
+            busy[sh] += float(cpu[i])
+            for j, nbytes in consumers.get(i, []):
+                if steps[j]["shard"] == sh or nbytes == 0:
+                    arrived(j)(now)
+                    continue
                 moved[0] += nbytes
-                net.add(_Flow(s, HEAD, float(max(nbytes, 1)), film_done(job.index)))
-            try_run(s, now)
-        elif what == "return":
-            c = calls[args[0]]
-            returned[c["call"]] = now
-            in_flight[c["shard"]] -= 1
-            for t in c["tokens"]:
-                token_calls[t] -= 1
-                if token_calls[t] == 0:  # the coordinator collects the pass from every shard
-                    films_left[t] = k
-                    for s in range(k):
-                        at(now + rpc_s, "collect", s, t)
-            try_dispatch(now)
+                net.add(_Flow(sh, steps[j]["shard"], float(nbytes), arrived(j)))
+            for p in steps[i]["passes"]:
+                steps_of[p] -= 1
+                if steps_of[p] == 0:  # weight back, then the collect, then K films
+                    at(now + 2 * rpc_s, "collect", p)
+            try_run(sh, now)
+        elif what == "collect":
+            p = args[0]
+            films_left[p] = k
+            for sh in range(k):
+                nbytes = films.get(p, 0)
+                moved[0] += nbytes
+                net.add(_Flow(sh, HEAD, float(max(nbytes, 1)), film_done(p)))
         elif what == "admit":
-            try_dispatch(now)
-    if not np.isfinite(returned).all():
-        raise RuntimeError("replay stalled: some calls never ran (inconsistent trace)")
-    return Replay(float(max(completions)), start, end, busy, int(moved[0]))
+            admit(now, 1)
+    if np.isnan(end).any():
+        raise RuntimeError("replay stalled: some steps never ran (inconsistent trace)")
+    return Replay(float(max(completions, default=0.0)), start, end, busy, int(moved[0]))
 
 
 def cpu_corrected(trace: dict, cpu_over_busy: list[float]) -> np.ndarray:
-    """Per-call compute time on a dedicated node: busy_s scaled by its shard's measured
+    """Per-step compute time on a dedicated node: busy_s scaled by its shard's measured
     process CPU seconds over busy seconds (busy time on a shared host includes waiting
     for a core)."""
-    return np.array([c["busy_s"] * min(1.0, cpu_over_busy[c["shard"]])
-                     for c in trace["calls"]])
+    return np.array([s["busy_s"] * min(1.0, cpu_over_busy[s["shard"]])
+                     for s in trace["steps"]])
 
 
 RPC_GRID_S = np.geomspace(1e-4, 0.5, 60)

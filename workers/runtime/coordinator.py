@@ -48,6 +48,7 @@ from ray.exceptions import ActorUnavailableError, RayActorError
 from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
 from nprt.workers.passes import Pass, count_tiles
+from nprt.workers.runtime.calltrace import StepTrace
 from nprt.workers.runtime.pool import (  # noqa: F401 (ShardStartError re-exported)
     PoolRegistry,
     ShardPool,
@@ -61,7 +62,9 @@ from nprt.workers.stats.counters import RenderStats
 log = logging.getLogger(__name__)
 
 MAX_PASS_ATTEMPTS = 4
-WINDOW_PER_SHARD = 3  # live passes per shard
+# Live passes per shard: at 3, shards of a 16-core machine were idle a third of the time at
+# K = 2 (busy 0.65-0.68, bench/README.md "Strong scaling"); a live pass costs a few kB.
+WINDOW_PER_SHARD = 6
 MIN_WINDOW = 4
 POLL_S = 0.25  # a shard's long poll; also how often a cancel is noticed
 BEGIN_TIMEOUT_S = 60.0  # every shard answering `begin` (a restarted one included)
@@ -95,7 +98,7 @@ class Coordinator:
                  shard_options: list[dict] | None = None, pools: PoolRegistry | None = None,
                  trace: bool = False, on_progress=None):
         self.scene, self.s, self.k = scene, settings, settings.shards
-        self.trace: list[dict] | None = [] if trace else None
+        self.trace = StepTrace(self.k) if trace else None
         self._pools, self._closed = pools, False
         if pools is not None:  # a warm pool, handed back on close
             self.pool = pools.acquire(scene, settings, ray_address=ray_address,
@@ -188,6 +191,7 @@ class Coordinator:
                     exhausted = self._admit(passes, live, waiting, attempts, tiles, epoch,
                                             exhausted)
                 if (stop or exhausted) and not live and not waiting:
+                    self._last_poll(epoch)
                     return
                 t0 = time.perf_counter()
                 ready, _ = ray.wait([*polls, *collects], num_returns=1, timeout=POLL_S * 2)
@@ -227,6 +231,20 @@ class Coordinator:
             self.cpu_s += time.process_time() - c_start
             self._end(epoch, wait=False)
 
+    def _last_poll(self, epoch: int) -> None:
+        """The shards' final totals (and trace records): every step of the job has handed
+        back its weight, so what it recorded is in its shard's outbox already."""
+        for shard, ref in enumerate(self.actors[s].poll.remote(epoch, 0.0)
+                                    for s in range(self.k)):
+            try:
+                reply = self._get(ref)
+            except SHARD_LOST:  # the image is complete; only this shard's totals are lost
+                log.warning("shard %d lost after the last pass; its totals are partial", shard)
+                continue
+            self.totals[shard] = reply
+            if self.trace is not None:
+                self.trace.add(reply.trace)
+
     def _admit(self, passes, live, waiting, attempts, tiles, epoch, exhausted) -> bool:
         """Admit passes up to the window, at most one live pass per tile, oldest first;
         order their camera rays from their shards. Returns whether `passes` ran out."""
@@ -250,6 +268,8 @@ class Coordinator:
             busy.add(tile)
             attempts[p.index] = attempts.get(p.index, 0) + 1
             live[p.index] = _Live(p)
+            if self.trace is not None:
+                self.trace.on_admit(p.index)
             orders.setdefault(p.index % self.k, []).append(p)
         waiting.extendleft(reversed(held))
         for shard, ps in orders.items():
@@ -262,7 +282,7 @@ class Coordinator:
             raise _Restarted(f"shard {shard} is not running this job (epoch {reply.epoch})")
         self.totals[shard] = reply
         if self.trace is not None:
-            self.trace += reply.trace
+            self.trace.add(reply.trace)
         for i, w in reply.returned:
             if i in live:
                 live[i].weight += w

@@ -159,6 +159,7 @@ class ShardActor:
                 rays.append(p)
         with self._step_lock:
             res = self._shard.step(orders, rays, credits)
+        end = time.time()  # before any parcel leaves: a consumer never starts earlier
         with res.times.phase("send"):
             step_id = self._steps
             sent = []
@@ -184,7 +185,7 @@ class ShardActor:
                 self._phase_cpu_s[name] = self._phase_cpu_s.get(name, 0.0) + v
             if trace:
                 self._records.append({
-                    "shard": self.id, "step": step_id, "start": start, "end": time.time(),
+                    "shard": self.id, "step": step_id, "start": start, "end": end,
                     "cpu_s": sum(res.times.phase_cpu_s.values()),
                     "busy_s": time.perf_counter() - t0,
                     "orders": [p.index for p in orders], "passes": sorted(credits),
