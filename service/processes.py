@@ -39,12 +39,19 @@ def run_scheduler(settings: ServiceSettings) -> int:
     done = threading.Event()
     if settings.scheduler_nice:  # inherited by Ray's processes, which this one starts
         os.nice(settings.scheduler_nice)
+    scheduler = Scheduler(settings)
+
+    def on_signal(*_) -> None:
+        done.set()
+        scheduler.interrupt()
+
     for sig in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(sig, lambda *_: done.set())
+        signal.signal(sig, on_signal)
     try:
-        scheduler = Scheduler(settings).start()
+        scheduler.start()
     except SchedulerRunning as e:
         log.error("%s", e)
+        scheduler.store.close()
         return 1
     try:
         done.wait()
@@ -54,10 +61,11 @@ def run_scheduler(settings: ServiceSettings) -> int:
 
 
 def _die_with_parent() -> None:
-    """In the child, before exec: SIGTERM when the parent dies (Linux), so a killed
-    `nprt serve` leaves no scheduler holding the data directory."""
+    """In the child, before exec: SIGKILL when the parent dies (Linux), so a killed
+    `nprt serve` leaves no scheduler holding the data directory (its jobs resume from their
+    checkpoints, as after any crash). A parent that exits normally stops it with SIGTERM."""
     try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGKILL)
     except OSError:
         pass
 

@@ -30,8 +30,10 @@ log = logging.getLogger(__name__)
 
 POLL_S = 0.05  # how often the store is read for new jobs and stored cancels
 SLOT_POLL_S = 0.5  # how often a job waiting for a sharded-job slot looks for its cancel
-EVENT_KEEP_S = 60.0  # events older than this are pruned (watchers read within a second)
-PRUNE_EVERY_S = 10.0
+# Events older than this are pruned; every API worker reads them within a poll (50 ms).
+TILE_EVENT_KEEP_S = 10.0  # tiles are the bulk: a 64x64 tile is 48 KiB per pass
+STATE_EVENT_KEEP_S = 600.0
+PRUNE_EVERY_S = 2.0
 LOCK_NAME = "scheduler.lock"
 LOCK_WAIT_S = 60.0  # a previous scheduler may still be stopping (checkpointing) when we start
 
@@ -70,6 +72,10 @@ class Scheduler:
     @property
     def stopping(self) -> bool:
         return self._stopping.is_set()
+
+    def interrupt(self) -> None:
+        """From a signal handler: stop waiting for the lock; stop() does the rest."""
+        self._stopping.set()
 
     # ------------------------------------------------------------ lifecycle
 
@@ -112,7 +118,7 @@ class Scheduler:
                 fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 break
             except BlockingIOError:
-                if time.monotonic() >= deadline:
+                if time.monotonic() >= deadline or self._stopping.is_set():
                     f.close()
                     raise SchedulerRunning(f"another scheduler runs on {self.settings.data_dir}"
                                            f" (it held {LOCK_NAME} for {wait_s:.0f} s)") from None
@@ -162,7 +168,8 @@ class Scheduler:
             try:
                 self.poll_once()
                 if time.monotonic() - pruned_at > PRUNE_EVERY_S:
-                    self.store.prune_events(time.time() - EVENT_KEEP_S)
+                    now = time.time()
+                    self.store.prune_events(now - TILE_EVENT_KEEP_S, now - STATE_EVENT_KEEP_S)
                     pruned_at = time.monotonic()
             except Exception:  # a busy store: the next poll catches up
                 log.exception("reading the job store failed")

@@ -323,9 +323,11 @@ class JobStore:
     def max_event_seq(self) -> int:
         return int(self._read("SELECT COALESCE(MAX(seq), 0) FROM events")[0][0])
 
-    def prune_events(self, before: float) -> None:
-        """Forget events appended before `before` (unix s): watchers read within a second."""
-        self._execute("DELETE FROM events WHERE at < ?", (before,))
+    def prune_events(self, tiles_before: float, states_before: float) -> None:
+        """Forget tile events appended before tiles_before and state events before
+        states_before (unix s): watchers read within a poll, and tiles are the bulk."""
+        self._execute("DELETE FROM events WHERE at < ? AND (kind = 'tile' OR at < ?)",
+                      (tiles_before, states_before))
 
     def _execute(self, sql: str, args: tuple) -> bool:
         with self._lock:

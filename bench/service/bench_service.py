@@ -197,14 +197,14 @@ async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: di
         def call(method: str, path: str, **kw):
             return request(session, method, path, retries, **kw)
 
-        # Long jobs already rendering (one of them K = 2), watched by every stream, so the
+        # Long jobs already rendering (one of them sharded), watched by every stream, so the
         # burst lands on a busy service that fans tiles out; canceled after the burst.
         warm = [(await call("POST", "/v1/jobs", json=w))[1]["id"] for w in watched]
         watchers = [asyncio.create_task(sse_watch(session, warm[i % len(warm)], sse_counts))
                     for i in range(args.sse_watchers)]
         watchers += [asyncio.create_task(grpc_watch(stub, warm[i % len(warm)], grpc_counts))
                      for i in range(args.grpc_streams)]
-        # Steady state: every stream open and every long job streaming tiles (the K = 2
+        # Steady state: every stream open and every long job streaming tiles (the sharded
         # one once Ray and its shards are up).
         while True:
             running = [(await call("GET", f"/v1/jobs/{j}"))[1] for j in warm]
@@ -323,8 +323,9 @@ def markdown(r: dict, label: str, args: dict) -> str:
         return "met" if ok else "**NOT met**"
 
     lines = [f"### {label}: {r['submitted']} concurrent submissions, {args['sse_watchers']} SSE"
-             f" watchers, {args['grpc_streams']} gRPC WatchJob streams, a K = 2 render "
-             f"running ({args['scene']}, {args['api_workers']} API worker(s))", "",
+             f" watchers, {args['grpc_streams']} gRPC WatchJob streams, a K = "
+             f"{args['long_shards']} render running ({args['scene']}, {args['api_workers']} "
+             "API worker(s))", "",
              "| check | value | target |", "| --- | --- | --- |",
              f"| accepted (202) | {r['accepted_202']} / {r['submitted']} | all |",
              f"| refused with Retry-After, then retried | {r['refused_then_retried'] or 0} "
@@ -390,6 +391,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--pollers", type=int, default=4, help="concurrent GET loops")
     ap.add_argument("--cpu-posts", type=int, default=100,
                     help="sequential POSTs for the CPU-per-POST figure")
+    ap.add_argument("--long-shards", type=int, default=2,
+                    help="K of the long sharded render running during the burst")
     ap.add_argument("--scene", default="forest:tiny")
     ap.add_argument("--smoke", action="store_true",
                     help="a few jobs and watchers; writes nothing under bench/results")
@@ -402,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
     # Long enough to outlast Ray's start and the burst (canceled after it): 8192 passes of
     # 64x64 x 2 spp.
     long = {**job, "width": 64, "height": 64, "spp": 16384, "tile_size": 64, "spp_per_pass": 2}
-    watched = [long] if args.smoke else [long, {**long, "shards": 2}]  # smoke: no Ray
+    watched = [long] if args.smoke else [long, {**long, "shards": args.long_shards}]
 
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:

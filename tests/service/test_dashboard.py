@@ -4,6 +4,7 @@ the A/B view. Each test saves screenshots under its tmp_path."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import httpx
@@ -271,6 +272,12 @@ def test_proxy_job_shards_phases_and_ab_view_against_exact(server, watched, api,
         "0.2 (shadow rays: 0)")
     expect(page.locator("#shard-table tbody tr")).to_have_count(2)
     expect(page.locator("#shard-table tbody tr").first.locator(".busy")).to_contain_text("%")
+    # CPU seconds per shard and of the coordinator (Coordinator.info()).
+    expect(page.locator("#shard-table thead")).to_contain_text("CPU")
+    expect(page.locator("#shard-table tbody tr").first.locator(".cpu")).to_have_text(
+        re.compile(r"\d"))
+    expect(page.locator("#shard-panel")).to_contain_text("coordinator CPU")
+    expect(page.locator("#stats-table")).to_contain_text("shard CPU total")
     expect(page.locator("#phase-caption")).to_contain_text("summed over the 2 shards, "
                                                            "divided by 2")
     expect(page.locator("#phase-svg rect[data-phase='wall time']")).to_have_count(1)

@@ -138,7 +138,10 @@ def test_canceled_job_stays_canceled_after_kill_and_restart(tmp_path):
 
     proc, url = _start(data, log_path)
     try:
-        job = httpx.get(f"{url}/v1/jobs/{job_id}").json()
+        # The scheduler died with its parent; the new one acts on the stored cancel when it
+        # starts, beside the API (the API answers before it).
+        job = wait_for(lambda: (j := httpx.get(f"{url}/v1/jobs/{job_id}").json())["state"]
+                       != "running" and j, 90, what="the stored cancel acted on")
         assert job["state"] == "canceled" and job["cancel_requested"], job
         again = httpx.post(f"{url}/v1/jobs/{job_id}/cancel", timeout=10)
         assert again.status_code == 409
