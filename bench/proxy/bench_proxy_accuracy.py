@@ -46,16 +46,19 @@ def _render(scene, s, proxy_dir, repeat: int = 1):
     coord = Coordinator(scene, s, proxy_dir=proxy_dir)
     prepare_s = time.perf_counter() - t0
     try:
-        wall = math.inf
+        wall = cpu = math.inf
+        before = 0.0  # the coordinator's CPU figure (its own and its shards') adds up
         for _ in range(repeat):  # the same image every time: keep the fastest
             t0 = time.perf_counter()
             result = render(scene, s, renderer=coord)
             wall = min(wall, time.perf_counter() - t0)
+            cpu, before = min(cpu, result.info["cpu_s"] - before), result.info["cpu_s"]
     finally:
         coord.close()
     st = result.stats.to_dict()
     row = {"mode": s.mode, "accuracy": s.proxy.accuracy if s.mode == "proxy" else None,
            "prepare_s": round(prepare_s, 3), "render_s": round(wall, 3),
+           "cpu_s": round(cpu, 3),
            "total_bytes": st["total_bytes"], "bytes": st["bytes"],
            "transfers": st["transfers"], "rays": st["rays"],
            "proxy_counters": {k: v for k, v in st["counters"].items() if k.startswith("proxy")}}
@@ -101,14 +104,14 @@ def _db(x) -> str:
 
 def markdown(res: dict) -> str:
     lines = ["| scene | mode | target | predicted dB | check dB (95 % interval) | whole image dB "
-             "| within 2 dB | met | MB | bytes vs exact | render s | check s |",
-             "| --- | --- | ---: | ---: | --- | ---: | --- | --- | ---: | ---: | ---: | ---: |"]
+             "| within 2 dB | met | MB | bytes vs exact | render s | CPU s | check s |",
+             "| --- | --- | ---: | ---: | --- | ---: | --- | --- |" + " ---: |" * 5]
     for r in res["rows"]:
         rep = r.get("report")
         if rep is None:
             lines.append(f"| {r['scene']} | {r['mode']} | | | | | | | "
                          f"{r['total_bytes'] / 1e6:.2f} | {r['bytes_vs_exact']:.2f}x | "
-                         f"{r['render_s']:.2f} | |")
+                         f"{r['render_s']:.2f} | {r['cpu_s']:.2f} | |")
             continue
         c, whole = rep["check"], r["quality_vs_exact"]["psnr_db"]
         lo, hi = c["interval_db"]
@@ -119,20 +122,23 @@ def markdown(res: dict) -> str:
             f"{_db(c['psnr_db'])} ({_db(lo)} to {_db(hi)}) | {_db(whole)} | "
             f"{'yes' if close else '**no**'} | {'yes' if rep['met'] else '**MISSED**'} | "
             f"{r['total_bytes'] / 1e6:.2f} | {r['bytes_vs_exact']:.2f}x | {r['render_s']:.2f} | "
-            f"{c['wall_s']:.1f} |")
+            f"{r['cpu_s']:.2f} | {c['wall_s']:.1f} |")
     return "\n".join(lines)
 
 
 def plot(res: dict, png: Path) -> None:
     import matplotlib.pyplot as plt
 
-    fig, (a, b) = plt.subplots(1, 2, figsize=(10, 3.8))
+    fig, (a, c, b) = plt.subplots(1, 3, figsize=(14, 3.8))
     for spec in dict.fromkeys(r["scene"] for r in res["rows"]):
         rows = [r for r in res["rows"] if r["scene"] == spec and r["mode"] == "proxy"]
         t = [r["accuracy"] for r in rows]
         a.plot(t, [r["render_s"] for r in rows], "o-", label=spec)
+        if all("cpu_s" in r for r in rows):
+            c.plot(t, [r["cpu_s"] for r in rows], "o-", label=spec)
         b.plot(t, [r["total_bytes"] / 1e6 for r in rows], "o-", label=spec)
     a.set(xlabel="accuracy target, dB", ylabel="render wall, s", title="render time")
+    c.set(xlabel="accuracy target, dB", ylabel="CPU s (coordinator + shards)", title="CPU")
     b.set(xlabel="accuracy target, dB", ylabel="ray bytes, MB", title="ray bytes")
     b.legend(fontsize=8)
     fig.tight_layout()
@@ -170,6 +176,7 @@ def main(argv=None) -> int:
     ap.add_argument("--proxy-dir", default=None, help="user proxy cache (default: nprt's)")
     ap.add_argument("--fit", action="store_true", help="print the sensitivity fit")
     ap.add_argument("--repeat", type=int, default=3, help="renders per row, the fastest kept")
+    ap.add_argument("--tag", default="", help="results/proxy_accuracy_<tag>.json (and .png)")
     add_render_flags(ap, RESULTS)
     args = smoke(ap.parse_args(argv), scenes=["foliage:tiny"], targets=[30.0, 40.0],
                  shards=2, width=32, height=24, spp=1, bounces=2, proxy_width=16,
@@ -195,7 +202,8 @@ def main(argv=None) -> int:
              "a pool start included); *met*: the check's upper bound reaches the target; "
              "*within 2 dB*: check against the whole image's PSNR.\n\n"
              "![]({png})\n\n")
-    finish(res, args.out / "proxy_accuracy.json", plot=plot, markdown=markdown,
+    name = "proxy_accuracy" + (f"_{args.tag}" if args.tag else "")
+    finish(res, args.out / f"{name}.json", plot=plot, markdown=markdown,
            section=SECTION, intro=intro, update_readme=not args.no_readme)
     return 0
 
