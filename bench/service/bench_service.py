@@ -41,7 +41,7 @@ REPO = Path(__file__).resolve().parents[2]
 RESULTS = REPO / "bench" / "results"
 TERMINAL = {"succeeded", "failed", "canceled"}
 HEALTH_INTERVAL_S = 0.02
-LABELS = ("before", "after")
+LABELS = ("before", "after", "after_2_workers")
 
 
 def _free_port() -> int:
@@ -154,14 +154,15 @@ async def grpc_watch(stub, job_id: str, counts: dict) -> None:
 async def request(session: aiohttp.ClientSession, method: str, path: str,
                   retries: dict | None = None, **kw) -> tuple[int, dict, float | None]:
     """(status, JSON body, Retry-After s). A pooled connection the server closed as idle is
-    retried once on a fresh one (POSTs carry an Idempotency-Key: no duplicate job)."""
-    for attempt in range(2):
+    retried on a fresh one, twice at most (POSTs carry an Idempotency-Key: no duplicate
+    job)."""
+    for attempt in range(3):
         try:
             async with session.request(method, path, **kw) as r:
                 after = r.headers.get("Retry-After")
                 return r.status, await r.json(), None if after is None else float(after)
         except (aiohttp.ServerDisconnectedError, aiohttp.ClientOSError):
-            if attempt == 1:
+            if attempt == 2:
                 raise
             if retries is not None:
                 retries[method] = retries.get(method, 0) + 1
@@ -186,7 +187,9 @@ async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: di
     sse_counts: dict = defaultdict(int)
     grpc_counts: dict = defaultdict(int)
     refused: dict = defaultdict(int)
-    connector = aiohttp.TCPConnector(limit=args.jobs + args.pollers + args.sse_watchers + 16)
+    # Idle connections are dropped before uvicorn's 5 s keep-alive closes them under us.
+    connector = aiohttp.TCPConnector(limit=args.jobs + args.pollers + args.sse_watchers + 16,
+                                     keepalive_timeout=2.0)
     async with aiohttp.ClientSession(url, connector=connector,
                                      timeout=aiohttp.ClientTimeout(total=120)) as session, \
             grpc.aio.insecure_channel(target) as channel:
@@ -355,15 +358,34 @@ def write_readme() -> None:
     """The README section from the saved before / after results."""
     from bench.common import BENCH_README, replace_section
 
-    parts = []
+    parts, runs = [], {}
     for label in LABELS:
         path = RESULTS / f"bench_service_{label}.json"
         if path.exists():
-            saved = json.loads(path.read_text())
+            saved = runs[label] = json.loads(path.read_text())
             host = saved["host"]
             parts.append(f"{saved['markdown']}\n\nRun: `{saved['command']}` (commit "
                          f"{saved['commit']}, {host['cpus']} cores shared with the client, "
-                         f"load average {host['load_average_before'][0]:.1f} before).")
+                         f"load average {host['load_average_before'][0]:.1f} before, "
+                         f"{host['load_average_after'][0]:.1f} after).")
+    if {"before", "after"} <= runs.keys():
+        b, a = (runs[k]["result"] for k in ("before", "after"))
+        parts.append(
+            "What changed: renders, Ray and the tile fan-out left the API process, so during "
+            f"the burst it used {a['api_cpu_s_during_burst']} s of CPU instead of "
+            f"{b['api_cpu_s_during_burst']} s, and POST p99 fell from "
+            f"{b['latency_ms']['POST /v1/jobs']['p99']:.0f} to "
+            f"{a['latency_ms']['POST /v1/jobs']['p99']:.0f} ms. The targets (POST p99 < 200 "
+            "ms, GET < 100 ms, health < 50 ms) are still not met here, and this machine "
+            "cannot tell whether they would be: its 2 cores ran at a load average of 13 to "
+            "40 from other work during these runs, the 500-connection aiohttp client shares "
+            "them, and the API process got about a quarter of a core during the burst "
+            "(its CPU over the burst's wall time). At the in-process cost of an admission "
+            "(`bench_admission` below) 500 POSTs need about 0.16 s of one core, so one "
+            "event loop answering them in turn would put the last near 0.2 s on an idle "
+            "core, and two workers half that. More API workers do not help on 2 loaded "
+            "cores (the 2-worker run). \"API CPU per POST, one at a time\" before counts "
+            "the renders that shared the process.")
     replace_section(BENCH_README, "<!-- bench_service:begin -->", "<!-- bench_service:end -->",
                     "## Service under load (`bench/service/bench_service.py`)\n\n"
                     "`python -m bench.service.bench_service --label after` "
