@@ -11,6 +11,7 @@ import hashlib
 import os
 import subprocess
 import sys
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -41,17 +42,19 @@ def _fingerprint() -> dict[str, str]:
             for f in files if f.is_file()}
 
 
-def _run(module: str, out: Path, caches: Path) -> subprocess.CompletedProcess:
+def _run(module: str, out: Path, caches: Path) -> tuple[subprocess.CompletedProcess, float]:
     env = {**os.environ, "NPRT_BENCH_RESULTS": str(out), "RAY_ADDRESS": "local",
            "NPRT_SCENE_CACHE": str(caches / "scenes"), "NPRT_PROXY_CACHE": str(caches / "proxies"),
            "PYTHONPATH": os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))),
            "MPLBACKEND": "Agg"}
+    t0 = time.perf_counter()
     try:
-        return subprocess.run([sys.executable, "-m", module, "--smoke"], cwd=REPO, env=env,
-                              capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
+        res = subprocess.run([sys.executable, "-m", module, "--smoke"], cwd=REPO, env=env,
+                             capture_output=True, text=True, timeout=RUN_TIMEOUT_S)
     except subprocess.TimeoutExpired as e:
-        return subprocess.CompletedProcess(e.cmd, -9, str(e.stdout or ""),
-                                           f"{e.stderr or ''}\ntimed out after {e.timeout} s")
+        res = subprocess.CompletedProcess(e.cmd, -9, str(e.stdout or ""),
+                                          f"{e.stderr or ''}\ntimed out after {e.timeout} s")
+    return res, time.perf_counter() - t0
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +67,17 @@ def smoke_runs(request, tmp_path_factory):
             if item.originalname == "test_bench_runs_on_its_smallest_input"]
     with ThreadPoolExecutor(PARALLEL) as pool:
         done = list(pool.map(lambda m: _run(m, root / m, root / "caches"), mods))
-    return dict(zip(mods, done, strict=True)), before, _fingerprint()
+    # wall seconds per run, for whoever sizes the CI budget (reported, never asserted)
+    report = request.config.pluginmanager.get_plugin("terminalreporter")
+    capture = request.config.pluginmanager.get_plugin("capturemanager")
+    if report is not None and capture is not None:
+        with capture.global_and_fixture_disabled():
+            report.write_line(f"\nbench smoke runs, {PARALLEL} at a time, wall s (load "
+                              f"{os.getloadavg()[0]:.1f}):")
+            for m, (_, wall) in sorted(zip(mods, done, strict=True), key=lambda x: -x[1][1]):
+                report.write_line(f"  {wall:7.1f}  {m}")
+    runs = {m: res for m, (res, _) in zip(mods, done, strict=True)}
+    return runs, before, _fingerprint()
 
 
 def test_every_bench_group_has_entry_points():
