@@ -27,15 +27,13 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from bench.common import BENCH_README, replace_section
+from bench.common import BENCH_README, RESULTS, replace_section
 from nprt.scene.demos import make_demo
 from nprt.scene.demos._common import ground, placement, sky, sun_panel
 from nprt.scene.demos.family import family_meshes
 from nprt.scene.model import Camera, Material, Scene
 from nprt.scene.model import Instances as InstanceArrays
 
-RESULTS = Path(os.environ.get("NPRT_BENCH_RESULTS")
-               or Path(__file__).resolve().parents[1] / "results")
 SECTION = "bench_per_core"
 # Targets of issue 23: nprt's samples/s over Mitsuba's at S = 1 and S = 4.
 TARGETS = {1: 1.0, 4: 0.5}

@@ -15,11 +15,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench.common import RESULTS
 from nprt.service.app import create_app
 from nprt.service.config import ServiceSettings
 
-RESULTS = Path(os.environ.get("NPRT_BENCH_RESULTS",
-                              Path(__file__).resolve().parents[1] / "results"))
 JOB = {"scene": "forest:tiny", "width": 32, "height": 32, "spp": 2}
 WARMUP = 50
 
