@@ -8,8 +8,9 @@ from __future__ import annotations
 
 from pydantic import ValidationError
 from starlette.responses import Response
-from starlette.types import ASGIApp, Message, Receive, Scope, Send
+from starlette.types import ASGIApp, Receive, Scope, Send
 
+from nprt.service.bodyguard import read_body, replayed
 from nprt.service.errors import ServiceError
 from nprt.service.schemas import JobCreate, JobPublic
 
@@ -29,27 +30,14 @@ class FastAdmission:
         if not headers.get(b"content-type", b"").startswith(b"application/json"):
             await self.app(scope, receive, send)
             return
-        body, more = b"", True
-        while more:
-            message = await receive()
-            if message["type"] != "http.request":
-                return
-            body += message.get("body", b"")
-            more = message.get("more_body", False)
+        body = await read_body(receive)
+        if body is None:  # the client went away
+            return
         answer = await _admit(scope["app"].state.api, headers, body)
         if answer is not None:
             await answer(scope, receive, send)
             return
-        sent = False
-
-        async def replay() -> Message:
-            nonlocal sent
-            if sent:
-                return await receive()
-            sent = True
-            return {"type": "http.request", "body": body, "more_body": False}
-
-        await self.app(scope, replay, send)
+        await self.app(scope, replayed(body, receive), send)
 
 
 async def _admit(api, headers: dict, body: bytes) -> Response | None:

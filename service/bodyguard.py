@@ -26,6 +26,33 @@ def json_depth(body: bytes) -> int:
     return deepest
 
 
+async def read_body(receive: Receive, max_bytes: int | None = None) -> bytes | None:
+    """The request body (reading stops once it is over max_bytes), or None if the client
+    went away first."""
+    body, more = b"", True
+    while more and (max_bytes is None or len(body) <= max_bytes):
+        message = await receive()
+        if message["type"] != "http.request":
+            return None
+        body += message.get("body", b"")
+        more = message.get("more_body", False)
+    return body
+
+
+def replayed(body: bytes, receive: Receive) -> Receive:
+    """A receive() that hands the app `body` (read already) first, then the real one."""
+    sent = False
+
+    async def replay() -> Message:
+        nonlocal sent
+        if sent:
+            return await receive()
+        sent = True
+        return {"type": "http.request", "body": body, "more_body": False}
+
+    return replay
+
+
 class JsonGuard:
     """ASGI middleware for POSTs to GUARDED_PATHS: 413 over max_bytes, 422 past max_depth,
     else the body is passed on unchanged. Runs after the token check."""
@@ -39,31 +66,18 @@ class JsonGuard:
                 and scope["path"] in GUARDED_PATHS):
             await self.app(scope, receive, send)
             return
-        body, more = b"", True
-        while more:
-            message = await receive()
-            if message["type"] != "http.request":  # the client went away
-                return
-            body += message.get("body", b"")
-            more = message.get("more_body", False)
-            if len(body) > self.max_bytes:
-                await self._refuse(scope, receive, send, 413, f"a job body is at most "
-                                   f"{self.max_bytes} bytes (got more)")
-                return
+        body = await read_body(receive, self.max_bytes)
+        if body is None:  # the client went away
+            return
+        if len(body) > self.max_bytes:
+            await self._refuse(scope, receive, send, 413, f"a job body is at most "
+                               f"{self.max_bytes} bytes (got more)")
+            return
         if json_depth(body) > self.max_depth:
             await self._refuse(scope, receive, send, 422, f"the body nests deeper than "
                                f"{self.max_depth} levels")
             return
-        sent = False
-
-        async def replay() -> Message:
-            nonlocal sent
-            if sent:
-                return await receive()
-            sent = True
-            return {"type": "http.request", "body": body, "more_body": False}
-
-        await self.app(scope, replay, send)
+        await self.app(scope, replayed(body, receive), send)
 
     @staticmethod
     async def _refuse(scope: Scope, receive: Receive, send: Send, status: int,
