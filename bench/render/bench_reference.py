@@ -1,6 +1,7 @@
 """The reference renderer's traversal against raw single-threaded Embree on the same rays:
-every ray the renderer's two-level traversal (`LocalGeometry`: top-level boxes, rays moved
-into each instance's space, one Embree call per mesh) answers is recorded and replayed
+every ray the renderer's two-level traversal (`LocalGeometry`: top-level boxes, then each
+ray's boxes nearest first, moved into the instance's space and traced through Embree's C
+API from a compiled loop) answers is recorded and replayed
 through one `EmbreeScene.run` on the scene baked into world space (every instance's
 triangles in one mesh, robust mode as the renderer).
 

@@ -66,28 +66,54 @@ def _rays_through_overlapping_trees(n: int, seed: int):
     return geo, o, d, tmax
 
 
-def test_closest_hit_in_rounds_equals_one_round_over_every_crossing(monkeypatch):
-    # Rounds take each ray's nearest boxes first and cull boxes entered beyond the closest
-    # hit so far; one round over every crossing culls nothing: the answers must be equal
-    # bit for bit, ties included.
-    import nprt.workers.traversal.local as local
+def test_closest_hit_equals_tracing_every_crossing_with_embreex():
+    # The oracle traces every box crossing (culled only by tmax) through embreex, one call
+    # per crossing's mesh with tfar = inf, and picks each ray's (t, instance) first. The
+    # renderer traces each ray's boxes nearest first through Embree's C API and stops at
+    # the first box entered beyond its closest hit: the same answer bit for bit.
+    from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL
 
     geo, o, d, tmax = _rays_through_overlapping_trees(20000, 3)
-    rounds = geo.intersect_closest(o, d, tmax)
-    monkeypatch.setattr(local, "ROUNDS", (0,))
-    once = geo.intersect_closest(o, d, tmax)
-    assert (rounds[1] >= 0).mean() > 0.2, "too few hits to compare"
-    for name, a, b in zip(("t", "inst", "prim", "u", "v"), rounds, once, strict=True):
-        assert np.array_equal(a, b), f"{name} differs in {(a != b).sum()} rays"
+    t, inst, prim, u, v = geo.intersect_closest(o, d, tmax)
+    ray, cross, _, _ = geo.table.box_entries(o, d, tmax.astype(np.float64)
+                                             * (1.0 + BOX_TMAX_SLACK_REL), geo.instances)
+    lo, ld = geo.table.to_local(cross, o[ray], d[ray])
+    ht, hp = np.full(len(ray), np.inf, np.float32), np.full(len(ray), -1, np.int32)
+    hu, hv = np.zeros(len(ray), np.float32), np.zeros(len(ray), np.float32)
+    mesh = geo.table.mesh[cross]
+    for m in np.unique(mesh):
+        k = mesh == m
+        ht[k], hp[k], hu[k], hv[k] = geo.geometry[m].intersect_closest(
+            lo[k], ld[k], np.full(k.sum(), np.inf, np.float32))
+    hit = (hp >= 0) & (ht <= tmax[ray])
+    r, ht, hc, hp, hu, hv = ray[hit], ht[hit], cross[hit], hp[hit], hu[hit], hv[hit]
+    order = np.lexsort((hc, ht, r))
+    first = order[np.r_[True, r[order][1:] != r[order][:-1]]] if len(order) else order
+    want_inst = np.full(len(o), -1, np.int32)
+    want_t = tmax.copy()
+    want_inst[r[first]], want_t[r[first]] = hc[first], ht[first]
+    assert (want_inst >= 0).mean() > 0.2, "too few hits to compare"
+    assert np.array_equal(inst, want_inst), f"{(inst != want_inst).sum()} rays differ"
+    assert np.array_equal(t, want_t)
+    got = inst >= 0
+    assert np.array_equal(prim[got], hp[first][np.argsort(r[first])])
+    assert np.array_equal(u[got], hu[first][np.argsort(r[first])])
+    assert np.array_equal(v[got], hv[first][np.argsort(r[first])])
 
 
-def test_occlusion_in_rounds_equals_one_round_over_every_crossing(monkeypatch):
-    import nprt.workers.traversal.local as local
-
+def test_occlusion_equals_tracing_every_crossing_with_embreex():
     geo, o, d, tmax = _rays_through_overlapping_trees(20000, 4)
-    rounds = geo.intersect_occluded(o, d, tmax)
-    monkeypatch.setattr(local, "ROUNDS", (0,))
-    assert np.array_equal(rounds, geo.intersect_occluded(o, d, tmax))
+    ray, cross, _, _ = geo.table.box_entries(o, d, tmax, geo.instances)
+    lo, ld = geo.table.to_local(cross, o[ray], d[ray])
+    blocked = np.zeros(len(ray), bool)
+    mesh = geo.table.mesh[cross]
+    for m in np.unique(mesh):
+        k = mesh == m
+        blocked[k] = geo.geometry[m].intersect_occluded(lo[k], ld[k], tmax[ray[k]])
+    want = np.zeros(len(o), bool)
+    want[ray[blocked]] = True
+    assert 0.05 < want.mean() < 0.95
+    assert np.array_equal(geo.intersect_occluded(o, d, tmax), want)
 
 
 def test_entry_rank_orders_each_rays_crossings_by_entry_then_position():

@@ -11,7 +11,6 @@ import pytest
 import trimesh
 
 from nprt.workers.kernels import bvh as kernels
-from nprt.workers.kernels import pairs as pair_kernels
 from nprt.workers.traversal.toplevel import BVH_MIN_INSTANCES, InstanceTable
 from tests.workers.helpers import Instance, Scene, mesh_from_trimesh, plane_mesh, trs
 
@@ -300,27 +299,6 @@ def test_single_instance_table_uses_its_bvh():
     _assert_same((got[0], got[1], got[2], got[3]), want)
 
 
-def test_pairs_by_mesh_groups_stably_and_equals_to_local():
-    rng = np.random.default_rng(7)
-    table = InstanceTable(_random_scene(rng, 50))
-    o, d, tmax = _rays(rng, table.world_bounds, 2000, 10.0)
-    o[5], d[6] = (0.5, 0.5, 0.5), (0.0, 0.0, 1.0)  # finite: to_local is for real rays
-    ray, inst, _, _ = table.box_entries(o, d, tmax, np.arange(len(table)))
-    assert len(ray) > len(o) // 2, f"only {len(ray)} crossings"
-    mesh = table.mesh[inst]
-    order = np.argsort(mesh, kind="stable")  # what LocalGeometry did before
-    got_ray, got_inst, start, lo, ld = table.pairs_by_mesh(ray, inst, o, d)
-    for name, got, want in (("ray", got_ray, ray[order]), ("inst", got_inst, inst[order])):
-        assert got.dtype == want.dtype and np.array_equal(got, want), f"{name} order differs"
-    want_start = np.searchsorted(mesh[order], np.arange(table.mesh.max() + 2))
-    assert np.array_equal(start, want_start), f"starts {start}, want {want_start}"
-    want_o, want_d = table.to_local(inst[order], o[ray[order]], d[ray[order]])
-    assert lo.dtype == ld.dtype == np.float32
-    assert np.array_equal(lo, want_o) and np.array_equal(ld, want_d), (
-        f"{np.count_nonzero(lo != want_o)} origins, {np.count_nonzero(ld != want_d)} "
-        "directions differ from to_local")
-
-
 def test_to_local_sums_in_a_fixed_order():
     # The exact float32 answer of the fixed float64 order, and the plain einsum up to
     # rounding (einsum's own order is numpy's choice; it was this one on numpy 2.4).
@@ -342,31 +320,3 @@ def test_to_local_sums_in_a_fixed_order():
     assert (np.abs(lo - e_o) <= 1e-6 * scale).all()
     assert np.allclose(ld, np.einsum("nij,nj->ni", m[:, :, :3], d64[:, 0]), rtol=1e-6,
                        atol=1e-6)
-
-
-def test_fold_closest_equals_lexsort_of_all_hits():
-    # The oracle is how LocalGeometry picked hits before: sort all (ray, t, inst), take
-    # each ray's first. Many exact ties in t, so the lowest-instance rule is exercised.
-    rng = np.random.default_rng(8)
-    n, h = 300, 3000
-    ray = rng.integers(0, n, h)
-    inst = rng.permutation(10 * h)[:h].astype(np.int32) % 4000  # (ray, inst) unique below
-    keep = np.unique(np.stack([ray, inst], 1), axis=0, return_index=True)[1]
-    ray, inst = ray[keep], inst[keep]
-    t = rng.choice(np.float32([0.5, 1.0, 1.5, 2.0, 3.25]), len(ray))
-    prim = rng.integers(0, 1000, len(ray)).astype(np.int32)
-    u, v = rng.random(len(ray)).astype(np.float32), rng.random(len(ray)).astype(np.float32)
-    state = (np.full(n, np.inf, np.float32), np.full(n, -1, np.int32),
-             np.full(n, -1, np.int32), np.zeros(n, np.float32), np.zeros(n, np.float32))
-    tmax, cut = np.full(n, np.inf, np.float32), np.full(n, np.inf, np.float32)
-    for part in np.array_split(np.arange(len(ray)), 5):  # folded in per mesh
-        pair_kernels.fold_closest(ray[part], inst[part], t[part], prim[part], u[part],
-                                  v[part], tmax, *state, cut)
-    order = np.lexsort((inst, t, ray))
-    first = order[np.r_[True, ray[order][1:] != ray[order][:-1]]]
-    r = ray[first]
-    assert np.array_equal(np.flatnonzero(state[1] >= 0), np.unique(ray))
-    for name, got, want in zip(("t", "inst", "prim", "u", "v"), state,
-                               (t, inst, prim, u, v), strict=True):
-        assert np.array_equal(got[r], want[first]), f"{name} differs from the lexsort pick"
-    assert np.array_equal(cut[r], t[first]), "the cut does not follow the closest hit"

@@ -26,6 +26,17 @@ class MeshGeometry:
             np.ascontiguousarray(mesh.vertices, dtype=EMBREE_DTYPE),
             np.ascontiguousarray(mesh.faces, dtype=np.int32),
         )
+        self._rtc = None
+
+    @property
+    def rtc(self):
+        """The same triangles as an `nprt.workers.traversal.rtc.RtcScene` (built on first
+        use), for compiled loops that trace a ray through several instances."""
+        if self._rtc is None:
+            from nprt.workers.traversal.rtc import RtcScene
+
+            self._rtc = RtcScene(self.mesh.vertices, self.mesh.faces)
+        return self._rtc
 
     def __repr__(self) -> str:
         return f"MeshGeometry({self.mesh.name!r}, {len(self.mesh.faces)} triangles)"

@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from nprt.workers.kernels import pairs as kernels
+from nprt.workers.kernels import pairs as pair_kernels
+from nprt.workers.traversal import rtc
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.batch import precedes
@@ -16,11 +17,6 @@ from nprt.workers.wavefront.lights import FAR_T
 # t Embree gives a hit may round below its box's float64 entry distance, and a hit tied
 # with tmax must still be found for the tie rule. Hits themselves are cut at tmax exactly.
 BOX_TMAX_SLACK_REL = 2.0**-16
-# Crossings are traced in rounds, each ray's nearest box first, so a hit found in one round
-# culls the boxes it hides in the next (their entry lies beyond it). Rounds take ranks
-# [ROUNDS[j], ROUNDS[j + 1]); the last takes the rest. More rounds mean more, smaller
-# Embree calls.
-ROUNDS = (0, 1, 2)
 
 
 class LocalGeometry:
@@ -34,23 +30,30 @@ class LocalGeometry:
         missing = set(table.mesh[self.instances].tolist()) - set(geometry)
         if missing:
             raise ValueError(f"instances reference meshes {sorted(missing)} not held here")
+        self._scene_of_mesh = None
 
     def __repr__(self) -> str:
         return f"LocalGeometry({len(self.geometry)} meshes, {len(self.instances)} instances)"
 
     def _crossings(self, origin, direction, box_tmax):
-        """Box crossings ray (p,) int64, inst (p,) int32, t_enter (p,) float64, their
-        rank within their ray (nearest first), and origin, direction as float64 C arrays."""
+        """Box crossings ray (p,) int64, inst (p,) int32, t_enter (p,) float64 (ray-major),
+        their rank within their ray (nearest entry first), and origin, direction as float64
+        C arrays."""
         ray, inst, t_enter, _ = self.table.box_entries(origin, direction, box_tmax,
                                                        self.instances)
         o = np.ascontiguousarray(origin, np.float64)
         d = np.ascontiguousarray(direction, np.float64)
-        return ray, inst, t_enter, kernels.entry_rank(ray, t_enter), o, d
+        return ray, inst, t_enter, pair_kernels.entry_rank(ray, t_enter), o, d
 
-    def _rounds(self, rank):
-        top = int(rank.max()) + 1 if len(rank) else 0
-        bounds = [k for k in ROUNDS if k < top] + [max(top, 1)]
-        return list(zip(bounds[:-1], bounds[1:], strict=True))
+    def _scenes(self) -> np.ndarray:
+        """(M,) uint64 Embree scene of each base mesh held here (0 elsewhere)."""
+        if self._scene_of_mesh is None:
+            n = max(self.table.n_mesh, max(self.geometry, default=-1) + 1)
+            scenes = np.zeros(n, np.uint64)
+            for m, g in self.geometry.items():
+                scenes[m] = g.rtc.handle
+            self._scene_of_mesh = scenes
+        return self._scene_of_mesh
 
     def intersect_closest(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray,
                           hit_inst: np.ndarray | None = None,
@@ -73,24 +76,17 @@ class LocalGeometry:
         run_inst = np.full(n, -1, np.int32)
         run_prim = np.full(n, -1, np.int32)
         run_u, run_v = np.zeros(n, np.float32), np.zeros(n, np.float32)
-        cut = tmax.copy()  # (n,) float32 no crossing entered beyond this can win
         ray, inst, t_enter, rank, o, d = self._crossings(
             origin, direction, tmax.astype(np.float64) * (1.0 + BOX_TMAX_SLACK_REL))
-        mesh_of, n_mesh, w2l = self.table.kernel_arrays()
-        for k_lo, k_hi in self._rounds(rank):
-            r, i, start, lo, ld = kernels.closest_round(
-                ray, inst, rank, t_enter, k_lo, k_hi, cut, BOX_TMAX_SLACK_REL, mesh_of,
-                n_mesh, w2l, o, d)
-            for m in np.flatnonzero(start[1:] > start[:-1]):
-                a, b = start[m], start[m + 1]
-                # Embree gets tfar = FAR_T, not the cut: which of two triangles tied on a
-                # shared edge it reports depends on tfar, and an exact render must not
-                # depend on the tmax a ray happened to arrive with (nor on which shard found
-                # the closer hit). Crossings are culled by box entry instead, which is exact.
-                t, prim, u, v = self.geometry[m].closest_into(
-                    lo[a:b], ld[a:b], np.full(b - a, FAR_T, np.float32))
-                kernels.fold_closest(r[a:b], i[a:b], t, prim, u, v, tmax, run_t, run_inst,
-                                     run_prim, run_u, run_v, cut)
+        mesh_of, _, w2l = self.table.kernel_arrays()
+        # Each ray's boxes nearest entry first, until one is entered beyond its closest hit
+        # so far (exact: no hit there can win or tie). Embree gets tfar = FAR_T, not that
+        # hit's t: which of two triangles tied on a shared edge it reports depends on tfar,
+        # and an exact render must not depend on the tmax a ray arrived with (nor on which
+        # shard found the closer hit).
+        rtc.closest_crossings(np.uint64(rtc.INTERSECT1), ray, inst, rank, t_enter,
+                              BOX_TMAX_SLACK_REL, tmax, FAR_T, mesh_of, self._scenes(), w2l,
+                              o, d, run_t, run_inst, run_prim, run_u, run_v)
         t_best = tmax.copy()
         if hit_inst is None:
             better = (run_inst >= 0) & (run_t < t_best)
@@ -110,13 +106,7 @@ class LocalGeometry:
         tmax = np.ascontiguousarray(tmax, np.float32)
         occluded = np.zeros(len(origin), bool)
         ray, inst, _, rank, o, d = self._crossings(origin, direction, tmax)
-        mesh_of, n_mesh, w2l = self.table.kernel_arrays()
-        for k_lo, k_hi in self._rounds(rank):
-            r, _, start, lo, ld = kernels.occluded_round(
-                ray, inst, rank, k_lo, k_hi, occluded, mesh_of, n_mesh, w2l, o, d)
-            for m in np.flatnonzero(start[1:] > start[:-1]):
-                a, b = start[m], start[m + 1]
-                rr = r[a:b]
-                hit = self.geometry[m].occluded_into(lo[a:b], ld[a:b], tmax[rr])
-                occluded[rr[hit]] = True  # not |=: rr repeats when a ray meets two instances
+        mesh_of, _, w2l = self.table.kernel_arrays()
+        rtc.occluded_crossings(np.uint64(rtc.OCCLUDED1), ray, inst, rank, tmax, mesh_of,
+                               self._scenes(), w2l, o, d, occluded)
         return occluded

@@ -106,20 +106,6 @@ class InstanceTable:
                                 np.array(origin, np.float64, order="C"),
                                 np.array(direction, np.float64, order="C"))
 
-    def pairs_by_mesh(self, ray: np.ndarray, inst: np.ndarray, origin: np.ndarray,
-                      direction: np.ndarray):
-        """Crossings grouped by base mesh, rays moved to local space (as `to_local`).
-
-        ray (p,) int64, inst (p,) int32 (as from `box_entries`); origin, direction (n, 3)
-        returns ray (p,) int64, inst (p,) int32, start (meshes + 1,) int64 (mesh g's rows
-        are start[g]:start[g + 1], each in the order given), local origin, direction
-        (p, 3) float32
-        """
-        return pair_kernels.pairs_by_mesh(
-            np.asarray(ray, np.int64), np.asarray(inst, np.int32), self._mesh, self.n_mesh,
-            self._world_to_local, np.array(origin, np.float64, order="C"),
-            np.array(direction, np.float64, order="C"))
-
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
         """Slab test of rays against a set of instance boxes, in float64.
 
