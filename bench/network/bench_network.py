@@ -10,9 +10,11 @@ against the node count).
 namespaces; or joins --ray-address, a cluster that netcluster.sh made) and renders each
 scene in exact and proxy mode with K = 2 shards, one per node, at every link bandwidth
 (re-shaped in place, the shard pool stays warm). Every render records the coordinator's
-trace (workers/runtime/calltrace.py) and each shard process's CPU seconds. `scaling` records traces
-with K = 2, 3, 4, 6, 8 shards on a local Ray (only bytes and compute time matter there) and
-replays them with bench/network/netmodel.py on K dedicated nodes. The model is validated against
+step trace (workers/runtime/calltrace.py: every wavefront step of every shard, with its CPU
+seconds and the parcels it took in and sent shard to shard), each shard process's CPU
+seconds and the coordinator's. `scaling` records traces with K = 2, 3, 4, 6, 8 shards (or
+`--ks`) on a local Ray (only bytes and each step's CPU seconds matter there) and replays
+them with bench/network/netmodel.py on K dedicated nodes. The model is validated against
 the real K = 2 renders first: see bench/network/network_report.py for every column.
 """
 
@@ -87,8 +89,8 @@ def film_bytes(s) -> dict[int, int]:
 
 def traced_render(scene, s, pools: PoolRegistry) -> dict:
     """One render on the registry's warm pool for (scene, s): wall time, statistics, shard
-    info, trace, and each shard process's CPU seconds over its busy seconds (how much of a
-    call's time it had a core)."""
+    info, step trace, the coordinator's CPU seconds, and each shard process's CPU seconds
+    over its busy seconds (how much of its steps' time it had a core)."""
     coord = Coordinator(scene, s, pools=pools, trace=True)
     pids = [i["pid"] for i in coord.shard_info]
     cpu0 = [cpu_seconds(p) for p in pids]
@@ -105,6 +107,7 @@ def traced_render(scene, s, pools: PoolRegistry) -> dict:
     return {"wall_s": round(wall, 4), "load_average": round(load, 2),
             "stats": result.stats.to_dict(), "shard_stats": info["shard_stats"],
             "window": coord.window, "cpu_s": [round(c, 3) for c in cpu],
+            "coordinator_cpu_s": info["coordinator_cpu_s"],
             "cpu_over_busy": [round(c / max(b, 1e-9), 4) for c, b in zip(cpu, busy,
                                                                              strict=True)],
             "trace": coord.trace.to_dict(), "film_bytes": film_bytes(s)}
@@ -216,6 +219,21 @@ def run_scaling(args) -> dict:
     return out
 
 
+def appended(old: dict, new: dict) -> dict:
+    """`new` scaling runs added to `old` (same settings; a (scene, mode, K) run in both is
+    taken from `new`), with the machine and load of each recording kept."""
+    if old["settings"] != new["settings"]:
+        raise SystemExit("--append: the recorded network_scaling.json has other settings "
+                         f"({old['settings']}); re-record it instead")
+    key = ("scene", "mode", "k")
+    fresh = {tuple(r[x] for x in key) for r in new["runs"]}
+    runs = [r for r in old["runs"] if tuple(r[x] for x in key) not in fresh] + new["runs"]
+    runs.sort(key=lambda r: (r["scene"], r["mode"], r["k"]))
+    return {**old, "ks": sorted({*old["ks"], *new["ks"]}), "runs": runs,
+            "appended": [*old.get("appended", []), {"ks": new["ks"],
+                                                    "machine": new["machine"]}]}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("what", choices=("bandwidth", "scaling", "report"), nargs="?")
@@ -224,6 +242,8 @@ def main(argv=None) -> int:
     ap.add_argument("--bandwidths", default=",".join(BANDWIDTHS))
     ap.add_argument("--ks", default=",".join(map(str, KS)))
     ap.add_argument("--repeat", type=int, default=2, help="renders per point; the fastest kept")
+    ap.add_argument("--append", action="store_true",
+                    help="scaling: add these K to the recorded network_scaling.json")
     ap.add_argument("--ray-address", default=None,
                     help="a cluster made by deploy/netcluster.sh (default: bring one up)")
     add_render_flags(ap, RESULTS)
@@ -244,7 +264,10 @@ def main(argv=None) -> int:
         shutil.copy(RECORDED / "network_bandwidth.json", args.out)
     if args.what != "report":
         res = run_bandwidth(args) if args.what == "bandwidth" else run_scaling(args)
-        (args.out / f"network_{args.what}.json").write_text(json.dumps(res))
+        path = args.out / f"network_{args.what}.json"
+        if args.append and args.what == "scaling" and path.exists():
+            res = appended(json.loads(path.read_text()), res)
+        path.write_text(json.dumps(res))
     return report(args.out, update_readme=not args.no_readme)
 
 

@@ -237,6 +237,18 @@ def cpu_corrected(trace: dict, cpu_over_busy: list[float]) -> np.ndarray:
                      for s in trace["steps"]])
 
 
+def step_cpu(trace: dict) -> np.ndarray:
+    """(n_steps,) compute time per step on a dedicated node: the step's own process CPU
+    seconds (its named phases) where it had less than its busy seconds (the rest was
+    waiting for a core on a shared host), else its busy seconds (threads in parallel)."""
+    return np.array([min(s["busy_s"], s["cpu_s"]) for s in trace["steps"]])
+
+
+def is_step_trace(trace: dict) -> bool:
+    """Whether `trace` is a StepTrace.to_dict() (the earlier runtime recorded calls)."""
+    return "steps" in trace and "admitted" in trace
+
+
 RPC_GRID_S = np.geomspace(1e-4, 0.5, 60)
 
 

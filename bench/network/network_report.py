@@ -12,10 +12,16 @@ Columns of the bandwidth table (one row per scene, link and mode):
 - *proxy / intersection / shading s*: phase seconds summed over both shards (intersection =
   local intersection + top level - proxy; shading = shading + camera rays). These are wall
   seconds on a host shared with other work; *CPU s* is what both shard processes used;
+- *steps*: wavefront steps summed over both shards (a step runs whatever parcels had
+  arrived; parcels go shard to shard, the coordinator only orders passes and collects
+  films);
 - *total s*: the render's wall time (fastest of the repeats); *speedup*: exact / proxy;
 - *model s*: the model replaying the best fast-link trace of the same scene and mode on
-  dedicated cores (each call's CPU seconds) and ideal links at the nominal rate: the
-  bandwidth's effect without this host's noise.
+  dedicated cores (each step's CPU seconds, `netmodel.step_cpu`) and ideal links at the
+  nominal rate: the bandwidth's effect without this host's noise.
+
+Results recorded before the step trace (the earlier runtime's call trace, {"k", "calls"})
+cannot be replayed: their tables are written without the model, with a note.
 """
 
 from __future__ import annotations
@@ -27,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.common import publish
-from bench.network.netmodel import cpu_corrected, fit_rpc_s, replay
+from bench.network.netmodel import fit_rpc_s, is_step_trace, replay, step_cpu
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +50,19 @@ PAPER_T2 = {"proxy": {2: 2.66, 3: 2.86, 4: 2.93, 6: 2.84, 8: 2.83},
             "exact": {2: 7.02, 3: 9.12, 4: 10.83, 6: 13.58, 8: 15.12}}
 SPEEDUP_TARGET, FLAT_TARGET = 2.3, 0.15
 FAST_BPS = 2e9  # links at least this fast: transfers cost nothing measurable here
+# The coordinator latency fitted on a quiet host (load 1.0: the call-trace recording of
+# 2026-11-25, bench/README.md before issue 20); under heavy load the fit absorbs queueing, so
+# B* is also given with this one.
+QUIET_RPC_S = 0.0057
+FLAT_K = (2, 8)  # the paper's Table 2 spans these node counts; larger K are shown beside
+OLD_TRACE_NOTE = ("recorded with the earlier runtime's call trace, which the model (step "
+                  "traces) cannot replay: model columns left out; re-run `python -m "
+                  "bench.network.bench_network {what}` to fill them")
+
+
+def replayable(res: dict) -> bool:
+    """Whether every run of a result carries a step trace."""
+    return all(is_step_trace(r["trace"]) for r in res["runs"])
 
 
 def _bits(bw: str) -> float:
@@ -78,18 +97,21 @@ def best_fast(bw_res: dict, scene: str, mode: str) -> dict | None:
 
 def model_s(run: dict, bps: float, rpc_s: float, dedicated: bool = True) -> float:
     """The model's render time for this run's trace on links of `bps`."""
-    cpu = cpu_corrected(run["trace"], run["cpu_over_busy"]) if dedicated else None
+    cpu = step_cpu(run["trace"]) if dedicated else None
     return replay(run["trace"], bps, rpc_s, run["window"], _films(run), cpu).makespan_s
 
 
 # -- the bandwidth runs -------------------------------------------------------------------------
 
 
-def validate(bw_res: dict) -> dict:
+def validate(bw_res: dict) -> dict | None:
     """Fit the one free parameter (coordinator latency) on the runs over fast links, where
     transfers cost nothing, then predict the runs over slower links from their own traces
-    (recorded compute times, the measured link rate) and compare with the measured walls."""
+    (recorded step times, the measured link rate) and compare with the measured walls.
+    None for results recorded before the step trace."""
     runs, links = bw_res["runs"], bw_res["links"]
+    if not replayable(bw_res):
+        return None
 
     def case(r):
         return (r["trace"], links[r["bandwidth"]], r["wall_s"], r["window"], _films(r))
@@ -108,10 +130,10 @@ def validate(bw_res: dict) -> dict:
             "max_abs_error": float(np.max(held)) if held else None}
 
 
-def share_and_speedup(bw_res: dict, rpc_s: float) -> dict:
+def share_and_speedup(bw_res: dict, rpc_s: float | None) -> dict:
     """Per scene: exact's exposed transfer share at each link (real runs, and the model on
-    dedicated cores), the link rate where it equals the paper's 1 GigE share, and the
-    proxy speedup there."""
+    dedicated cores unless rpc_s is None), the link rate where it equals the paper's 1 GigE
+    share, and the proxy speedup there."""
     out = {}
     for scene in dict.fromkeys(r["scene"] for r in bw_res["runs"]):
         runs = {(r["mode"], r["bandwidth"]): r for r in bw_res["runs"] if r["scene"] == scene}
@@ -123,6 +145,9 @@ def share_and_speedup(bw_res: dict, rpc_s: float) -> dict:
             if ("exact", bw) in runs and ("proxy", bw) in runs:
                 e, p = runs["exact", bw]["wall_s"], runs["proxy", bw]["wall_s"]
                 real.append((bw, max(0.0, 1 - ex["wall_s"] / e), e / p))
+        if rpc_s is None:
+            out[scene] = {"real": real, "real_b_star": _interp(real)}
+            continue
 
         def model_pair(bps, ex=ex, px=px):
             return model_s(ex, bps, rpc_s), model_s(px, bps, rpc_s)
@@ -153,24 +178,34 @@ def _interp(real: list) -> dict | None:
 
 def compute_per_path(bw_res: dict) -> dict:
     """CPU seconds of both shards per camera path (best fast-link run), beside the paper's
-    compute seconds per path (Sculpture, Table 4 at 20 GigE)."""
+    compute seconds per path (Sculpture, Table 4 at 20 GigE); and the coordinator's CPU
+    seconds per path where recorded."""
     s = bw_res["settings"]
     paths = s["width"] * s["height"] * s["spp"]
-    ours = {}
+    ours, coord = {}, {}
     for scene in dict.fromkeys(r["scene"] for r in bw_res["runs"]):
         for mode in ("exact", "proxy"):
             r = best_fast(bw_res, scene, mode)
             if r is not None:
                 ours[f"{scene} {mode}"] = sum(r["cpu_s"]) / paths
+                if "coordinator_cpu_s" in r:
+                    coord[f"{scene} {mode}"] = r["coordinator_cpu_s"] / paths
     paper = {m: PAPER_T4[m][20][1] / PAPER_PATHS for m in PAPER_T4}
-    return {"ours": ours, "paper": paper}
+    return {"ours": ours, "paper": paper, "coordinator": coord}
 
 
-def bandwidth_table(bw_res: dict, rpc_s: float) -> str:
+def steps(run: dict) -> int | None:
+    """Wavefront steps summed over the shards (None for the earlier runtime's calls)."""
+    if not is_step_trace(run["trace"]):
+        return None
+    return sum(int(sh.get("steps", 0)) for sh in run["shard_stats"])
+
+
+def bandwidth_table(bw_res: dict, rpc_s: float | None) -> str:
     s = bw_res["settings"]
     lines = ["| scene | link (measured) | mode | MB | wire s | exposed s | proxy / intersection "
-             "/ shading s | CPU s | total s | speedup | model s (speedup) |",
-             "| --- | --- | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: |"]
+             "/ shading s | CPU s | steps | total s | speedup | model s (speedup) |",
+             "| --- | --- | --- | ---: | ---: | ---: | --- | ---: | ---: | ---: | ---: | ---: |"]
     runs = {(r["scene"], r["mode"], r["bandwidth"]): r for r in bw_res["runs"]}
     for scene in dict.fromkeys(r["scene"] for r in bw_res["runs"]):
         for bw in bw_res["bandwidths"]:
@@ -178,7 +213,7 @@ def bandwidth_table(bw_res: dict, rpc_s: float) -> str:
             if None in pair:
                 continue
             models = [model_s(best_fast(bw_res, scene, m), _bits(bw), rpc_s)
-                      for m in ("exact", "proxy")]
+                      if rpc_s is not None else None for m in ("exact", "proxy")]
             for r, m in zip(pair, models, strict=True):
                 link = bw_res["links"][bw]
                 mb = r["stats"]["total_bytes"] / 1e6
@@ -186,13 +221,16 @@ def bandwidth_table(bw_res: dict, rpc_s: float) -> str:
                 ph = _phases(r)
                 speed = (f"{pair[0]['wall_s'] / pair[1]['wall_s']:.2f}x"
                          if r["mode"] == "proxy" else "")
-                mspeed = f" ({models[0] / models[1]:.2f}x)" if r["mode"] == "proxy" else ""
+                mspeed = (f" ({models[0] / models[1]:.2f}x)"
+                          if r["mode"] == "proxy" and m is not None else "")
+                n_steps = steps(r)
                 lines.append(
                     f"| {scene} | {bw} ({link / 1e6:,.0f} Mbit/s) | {r['mode']} | {mb:.2f} | "
                     f"{mb * 8e6 / link:.3f} | {r['wall_s'] - base:.2f} | "
                     + " / ".join(f"{x:.2f}" for x in ph)
-                    + f" | {sum(r['cpu_s']):.2f} | {r['wall_s']:.2f} | {speed} | "
-                    f"{m:.2f}{mspeed} |")
+                    + f" | {sum(r['cpu_s']):.2f} | {'' if n_steps is None else n_steps} | "
+                    f"{r['wall_s']:.2f} | {speed} | "
+                    f"{'n/a' if m is None else f'{m:.2f}'}{mspeed} |")
     head = (f"{s['width']}x{s['height']}, {s['spp']} spp, {s['bounces']} bounces, "
             f"{s['shadow_rays']} shadow rays, K = 2 shards on 2 nodes (network namespaces, "
             f"one CPU each by cgroup quota), fastest of {bw_res['repeat']}; load average "
@@ -204,38 +242,60 @@ def bandwidth_table(bw_res: dict, rpc_s: float) -> str:
 # -- the scaling model ------------------------------------------------------------------------
 
 
-def scaling_rows(sc_res: dict, rpc_s: float, bps_list: dict[str, float]) -> list[dict]:
+def scaling_rows(sc_res: dict, rpc_s: float | None, bps_list: dict[str, float]) -> list[dict]:
+    """One row per traced render: bytes, CPU (shards, coordinator), steps, parcels, and the
+    model's time at each labelled link rate (None where the model cannot replay it)."""
     rows = []
     for r in sc_res["runs"]:
+        ok = rpc_s is not None and is_step_trace(r["trace"])
         row = {"scene": r["scene"], "mode": r["mode"], "k": r["k"],
                "mb": r["stats"]["total_bytes"] / 1e6, "cpu_s": sum(r["cpu_s"]),
+               "coordinator_cpu_s": r.get("coordinator_cpu_s"), "steps": steps(r),
+               # shard_stats' "calls" count parcels received (calls, before step traces)
+               "parcels": (sum(int(sh.get("calls", 0)) for sh in r["shard_stats"])
+                           if is_step_trace(r["trace"]) else None),
                "local_wall_s": r["wall_s"]}
         for label, bps in bps_list.items():
-            row[label] = model_s(r, bps, rpc_s)
+            row[label] = model_s(r, bps, rpc_s) if ok else None
         rows.append(row)
     return rows
 
 
+def _opt(x, fmt: str) -> str:
+    return "" if x is None else format(x, fmt)
+
+
 def scaling_table(rows: list[dict], labels: list[str]) -> str:
-    lines = ["| scene | mode | K | MB moved | CPU s | " + " | ".join(
-        f"model s at {x}" for x in labels) + " | paper s (1 GigE) |",
-             "| --- | --- | ---: | ---: | ---: |" + " ---: |" * (len(labels) + 1)]
+    lines = ["| scene | mode | K | MB moved | shard CPU s | coordinator CPU s | steps | parcels | "
+             "local wall s | " + " | ".join(f"model s at {x}" for x in labels)
+             + " | paper s (1 GigE) |",
+             "| --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"
+             + " ---: |" * (len(labels) + 1)]
     for r in rows:
         paper = PAPER_T2[r["mode"]].get(r["k"])
         lines.append(f"| {r['scene']} | {r['mode']} | {r['k']} | {r['mb']:.2f} | "
-                     f"{r['cpu_s']:.2f} | " + " | ".join(f"{r[x]:.2f}" for x in labels)
+                     f"{r['cpu_s']:.2f} | {_opt(r['coordinator_cpu_s'], '.2f')} | "
+                     f"{_opt(r['steps'], 'd')} | {_opt(r['parcels'], 'd')} | "
+                     f"{r['local_wall_s']:.2f} | "
+                     + " | ".join("n/a" if r[x] is None else f"{r[x]:.2f}" for x in labels)
                      + f" | {paper if paper else ''} |")
     return "\n".join(lines)
 
 
 def flatness(rows: list[dict], label: str) -> dict:
-    """Per scene and mode: (model time at the largest K, and at the worst K) over the
-    time at the smallest K."""
+    """Per scene and mode, times over the time at the smallest K: at the largest K within
+    FLAT_K (the paper's span), the worst K within it, and the largest K recorded."""
     out = {}
     for r in rows:
-        out.setdefault((r["scene"], r["mode"]), {})[r["k"]] = r[label]
-    return {f"{sc} {m}": (v[max(v)] / v[min(v)], max(v.values()) / v[min(v)])
-            for (sc, m), v in out.items()}
+        if r[label] is not None:
+            out.setdefault((r["scene"], r["mode"]), {})[r["k"]] = r[label]
+    res = {}
+    for (sc, m), v in out.items():
+        span = {k: x for k, x in v.items() if FLAT_K[0] <= k <= FLAT_K[1]} or v
+        base = span[min(span)]
+        res[f"{sc} {m}"] = {"end": span[max(span)] / base, "worst": max(span.values()) / base,
+                            "end_k": max(span), "max_k": max(v), "at_max_k": v[max(v)] / base}
+    return res
 
 
 # -- plots ---------------------------------------------------------------------------------------
@@ -250,7 +310,7 @@ def _pyplot():
     return plt
 
 
-def plot_bandwidth(bw_res: dict, rpc_s: float, path: Path) -> None:
+def plot_bandwidth(bw_res: dict, rpc_s: float | None, path: Path) -> None:
     plt = _pyplot()
     scenes = list(dict.fromkeys(r["scene"] for r in bw_res["runs"]))
     fig, axes = plt.subplots(1, len(scenes) + 1, figsize=(5 * (len(scenes) + 1), 4.2))
@@ -260,6 +320,8 @@ def plot_bandwidth(bw_res: dict, rpc_s: float, path: Path) -> None:
             x = [_bits(r["bandwidth"]) / 1e9 for r in runs]
             ax.plot(x, [r["wall_s"] for r in runs], "o-", color=color, label=f"{mode} measured")
             base = best_fast(bw_res, scene, mode)
+            if rpc_s is None or base is None:
+                continue
             grid = np.geomspace(5e6, 2e10, 16)
             ax.plot(grid / 1e9, [model_s(base, b, rpc_s) for b in grid], "--", color=color,
                     alpha=0.6, label=f"{mode} model, dedicated cores")
@@ -290,7 +352,7 @@ def plot_scaling(rows: list[dict], label: str, path: Path) -> None:
     for si, scene in enumerate(scenes):
         for mode, color in styles.items():
             mine = sorted((r["k"], r[label]) for r in rows
-                          if r["scene"] == scene and r["mode"] == mode)
+                          if r["scene"] == scene and r["mode"] == mode and r[label] is not None)
             if not mine:
                 continue
             ks, t = zip(*mine, strict=True)
@@ -328,20 +390,27 @@ def report(out: Path, update_readme: bool = True) -> int:
         return 1
     bw_res = json.loads(bw_path.read_text())
     val = validate(bw_res)
-    rpc_s = val["rpc_s"]
+    rpc_s = None if val is None else val["rpc_s"]
     share = share_and_speedup(bw_res, rpc_s)
+    if rpc_s is not None:
+        for scene, v in share_and_speedup(bw_res, QUIET_RPC_S).items():
+            share[scene]["quiet"] = {x: v[x] for x in ("model_b_star_bps", "model_speedup",
+                                                      "model_exact_s", "model_proxy_s")}
     per_path = compute_per_path(bw_res)
     plot_bandwidth(bw_res, rpc_s, out / "network_bandwidth.png")
     parts = [section_bandwidth(bw_res, val, share, per_path)]
     summary = {"validation": val, "share": share, "compute_per_path": per_path}
     if sc_path.exists():
         sc_res = json.loads(sc_path.read_text())
-        b_star = float(np.median([v["model_b_star_bps"] for v in share.values()]))
-        labels = {"1 Gbit/s": 1e9, f"{_mbit(b_star)} (B*)": b_star}
+        labels = {"1 Gbit/s": 1e9}
+        b_stars = [v["model_b_star_bps"] for v in share.values() if "model_b_star_bps" in v]
+        if b_stars:
+            b_star = float(np.median(b_stars))
+            labels[f"{_mbit(b_star)} (B*)"] = b_star
         rows = scaling_rows(sc_res, rpc_s, labels)
-        plot_scaling(rows, list(labels)[1], out / "network_scaling.png")
+        plot_scaling(rows, list(labels)[-1], out / "network_scaling.png")
         flat = {x: flatness(rows, x) for x in labels}
-        parts.append(section_scaling(sc_res, rows, list(labels), flat))
+        parts.append(section_scaling(sc_res, rows, list(labels), flat, rpc_s))
         summary.update(scaling=rows, flatness=flat)
     (out / "network_summary.json").write_text(json.dumps(summary, indent=1, default=float))
     text = "\n\n".join(parts)
@@ -356,16 +425,21 @@ def section_bandwidth(bw_res, val, share, per_path) -> str:
     scenes = [sc for sc in dict.fromkeys(k.rsplit(" ", 1)[0] for k in ours)
               if f"{sc} exact" in ours and f"{sc} proxy" in ours]
     links = ", ".join(f"{bw}: {_mbit(v)}" for bw, v in bw_res["links"].items())
+    m = bw_res["machine"]
+    load = (f"load average {m['load_average_before'][0]:.1f} before the run and "
+            f"{m['load_average_after'][0]:.1f} after" if "load_average_after" in m else
+            f"load average {m['load_average_before'][0]:.1f} before the run")
     lines = [
         "## Shaped network links (`bench_network.py`)",
         "",
         "`python -m bench.network.bench_network bandwidth` brings up two Ray nodes on this "
-        "host with "
-        "`deploy/netcluster.sh` (one network namespace each, htb-shaped veth links, one "
-        "CPU each), renders with K = 2 shards, one per node, at each link rate, and records "
-        "every shard call (`Coordinator(trace=True)`). `scaling` records traces for K = 2 "
-        "to 8 and `report` writes this section; bench/network/network_report.py explains each "
-        "column. Plot: `results/network_bandwidth.png`.",
+        "host with `deploy/netcluster.sh` (one network namespace each, htb-shaped veth links, "
+        "one CPU each), renders with K = 2 shards, one per node, at each link rate, and "
+        "records every wavefront step of both shards (`Coordinator(trace=True)`: parcels go "
+        "shard to shard; the coordinator orders passes and collects films). `scaling` records "
+        "traces for K = 2 to 8 (and more with `--ks`) and `report` writes this section; "
+        "bench/network/network_report.py explains each column. Plot: "
+        f"`results/network_bandwidth.png`. Recorded on {m['cpus']} shared cores, {load}.",
         "",
         f"What one Ray object really reached between the nodes: {links}. The host (2 "
         f"shared cores, veth, Ray's object transfer) caps it near "
@@ -373,11 +447,14 @@ def section_bandwidth(bw_res, val, share, per_path) -> str:
         "and down to 1 Gbit/s these few MB cross in under 0.1 s, so those rows differ by "
         "the noise of a shared host only.",
         "",
-        bandwidth_table(bw_res, val["rpc_s"]),
+        bandwidth_table(bw_res, None if val is None else val["rpc_s"]),
         "",
         "**Our nodes compute far slower than the paper's GPUs.** CPU seconds of both shard "
         "processes per camera path: "
         + ", ".join(f"{k} {v * 1e6:.1f} µs" for k, v in per_path["ours"].items())
+        + (("; the coordinator's: " + ", ".join(
+            f"{k} {v * 1e6:.2f} µs" for k, v in per_path["coordinator"].items()))
+           if per_path.get("coordinator") else "")
         + "; the paper's Table 4 (Sculpture, two RTX 5000 nodes, compute columns at 20 GigE): "
         + ", ".join(f"{'Wald et al.' if k == 'exact' else 'proxy'} {v * 1e6:.2f} µs"
                     for k, v in per_path["paper"].items())
@@ -388,21 +465,29 @@ def section_bandwidth(bw_res, val, share, per_path) -> str:
         " (its GPU proxies are cheap next to the intersections they save; our CPU proxy "
         "inference is not), which bounds the speedup the network alone can add to.",
         "",
-        f"**Model validation.** The model (bench/network/netmodel.py) replays each run's own trace "
-        f"(recorded call times, measured link rate). Its one free parameter, the one-way "
-        f"coordinator latency, is fitted on the runs over links of 2 Gbit/s and more: "
-        f"{val['rpc_s'] * 1e3:.1f} ms. On the other "
-        f"{sum(not r['fitted'] for r in val['rows'])} runs the predicted wall time is off by "
-        f"{val['mean_abs_error']:.1%} on average, at most {val['max_abs_error']:.1%}:",
-        "",
-        "| scene | mode | link | measured s | model s | error |",
-        "| --- | --- | --- | ---: | ---: | ---: |",
     ]
-    for r in val["rows"]:
-        lines.append(f"| {r['scene']} | {r['mode']} | {r['bandwidth']}"
-                     f"{' (fitted)' if r['fitted'] else ''} | {r['measured_s']:.2f} | "
-                     f"{r['model_s']:.2f} | {r['error']:+.1%} |")
-    lines += ["", f"**Target: proxy >= {SPEEDUP_TARGET}x faster than exact where transfers "
+    if val is None:
+        note = OLD_TRACE_NOTE.format(what="bandwidth")
+        lines += [f"**Model: not run.** These renders were {note}.", ""]
+    else:
+        lines += [
+            "**Model validation.** The model (bench/network/netmodel.py) replays each run's own "
+            "trace (recorded step times, parcels shard to shard, measured link rate). Its one "
+            "free parameter, the one-way coordinator latency (a pass's order at admission; "
+            "its weight, collect and films at completion), is fitted on the runs over links of "
+            f"2 Gbit/s and more: {val['rpc_s'] * 1e3:.1f} ms. On the other "
+            f"{sum(not r['fitted'] for r in val['rows'])} runs the predicted wall time is off "
+            f"by {val['mean_abs_error']:.1%} on average, at most {val['max_abs_error']:.1%}:",
+            "",
+            "| scene | mode | link | measured s | model s | error |",
+            "| --- | --- | --- | ---: | ---: | ---: |",
+        ]
+        for r in val["rows"]:
+            lines.append(f"| {r['scene']} | {r['mode']} | {r['bandwidth']}"
+                         f"{' (fitted)' if r['fitted'] else ''} | {r['measured_s']:.2f} | "
+                         f"{r['model_s']:.2f} | {r['error']:+.1%} |")
+        lines.append("")
+    lines += [f"**Target: proxy >= {SPEEDUP_TARGET}x faster than exact where transfers "
               f"take the share of exact's time that they take in the paper at 1 GigE "
               f"({PAPER_SHARE:.0%}).**", ""]
     for scene, v in share.items():
@@ -410,50 +495,87 @@ def section_bandwidth(bw_res, val, share, per_path) -> str:
         real_txt = (f"measured: the share crosses {PAPER_SHARE:.0%} near {_mbit(real['bps'])}, "
                     f"speedup there {real['speedup']:.2f}x" if real else
                     "measured: the share never crosses it between the links run")
-        met = v["model_speedup"] >= SPEEDUP_TARGET
-        lines.append(f"- {scene}: model on dedicated cores: B* = {_mbit(v['model_b_star_bps'])}"
-                     f", exact {v['model_exact_s']:.2f} s, proxy {v['model_proxy_s']:.2f} s, "
-                     f"speedup **{v['model_speedup']:.2f}x ({'met' if met else 'NOT met'})**; "
-                     f"{real_txt}. Measured share by link: "
-                     + ", ".join(f"{b} {s:.0%} ({x:.2f}x)" for b, s, x in v["real"]) + ".")
+        if "model_b_star_bps" in v:
+            met = v["model_speedup"] >= SPEEDUP_TARGET
+            model_txt = (f"model on dedicated cores: B* = {_mbit(v['model_b_star_bps'])}, "
+                         f"exact {v['model_exact_s']:.2f} s, proxy {v['model_proxy_s']:.2f} s, "
+                         f"speedup **{v['model_speedup']:.2f}x "
+                         f"({'met' if met else 'NOT met'})**; ")
+        else:
+            model_txt = "model: not run (call trace); "
+        q = v.get("quiet")
+        quiet_txt = (f" With the quiet host's {QUIET_RPC_S * 1e3:.1f} ms latency instead: B* = "
+                     f"{_mbit(q['model_b_star_bps'])}, exact {q['model_exact_s']:.2f} s, proxy "
+                     f"{q['model_proxy_s']:.2f} s, speedup {q['model_speedup']:.2f}x." if q else "")
+        lines.append(f"- {scene}: {model_txt}{real_txt}. Measured share by link: "
+                     + ", ".join(f"{b} {s:.0%} ({x:.2f}x)" for b, s, x in v["real"]) + "."
+                     + quiet_txt)
     return "\n".join(lines)
 
 
-def section_scaling(sc_res, rows, labels, flat) -> str:
+def section_scaling(sc_res, rows, labels, flat, rpc_s) -> str:
     s = sc_res["settings"]
+    passes = -(-s["width"] // s["tile_size"]) * -(-s["height"] // s["tile_size"])
+    windows = sorted({r["window"] for r in sc_res["runs"]})
+    spp = f" --spp {s['spp']}" if s["spp"] != 4 else ""
+    def load(m: dict) -> str:
+        return (f"load average {m['load_average_before'][0]:.1f} before, "
+                f"{m['load_average_after'][0]:.1f} after" if "load_average_after" in m else
+                f"load average {m['load_average_before'][0]:.1f} before")
+
+    m, more = sc_res["machine"], sc_res.get("appended", [])
+    first = sorted(set(sc_res["ks"]) - {k for a in more for k in a["ks"]})
+    cmds = [f"`python -m bench.network.bench_network scaling --width {s['width']}{spp} --ks "
+            f"{','.join(map(str, first))}` ({load(m)})"]
+    cmds += [f"`... scaling --width {s['width']}{spp} --ks {','.join(map(str, a['ks']))} "
+             f"--append` ({load(a['machine'])})" for a in more]
     lines = [
         "### Node count (the paper's Table 2), by the model",
         "",
-        f"`python -m bench.network.bench_network scaling --width {s['width']}`: traces of real "
-        f"renders with K = {', '.join(map(str, sc_res['ks']))} shards on one "
-        f"local Ray ({s['width']}x{s['height']}, {s['spp']} spp), replayed on K dedicated "
-        "nodes (each call's CPU seconds) with links of 1 Gbit/s and of B*, the rate at which "
-        "exact's transfers take the paper's share of its time (scaled for our slower "
-        "compute). Unlike the paper, whose scene grew with the node count, the scene here "
-        "is fixed, so more nodes also split the compute. Plot: `results/network_scaling.png`"
-        " (the paper's times dashed). Every tile is one pass and all are in flight at "
-        "once, so the passes are what hides the coordinator's round trips: 320x240 has 20; "
-        "160x120 has 6, too few, and there three runs of the model had proxy grow 1.15-1.33x "
-        "from K = 2 to 8 at 1 Gbit/s (the paper renders full frames).",
+        f"{' then '.join(cmds)}: traces of real renders with K = "
+        f"{', '.join(map(str, sc_res['ks']))} shards on one local Ray ({s['width']}x"
+        f"{s['height']}, {s['spp']} spp; {m['cpus']} shared cores), replayed on K "
+        "dedicated nodes (each step's CPU seconds) with links of "
+        + " and of ".join(labels)
+        + (", B* the rate at which exact's transfers take the paper's share of its time "
+           "(scaled for our slower compute)" if len(labels) > 1 else "")
+        + ". Unlike the paper, whose scene grew with the node count, the scene here is "
+        "fixed, so more nodes also split the compute. *local wall s* is the render on this "
+        "host (K actors sharing its cores), not a cluster. Plot: `results/network_scaling.png`"
+        f" (the paper's times dashed). Every tile is one pass: {passes} passes, with up to "
+        f"{', '.join(map(str, windows))} live at once (the coordinator's window), so a "
+        "coordinator round trip is paid at a pass's admission and completion only.",
         "",
-        scaling_table(rows, labels),
-        "",
-        f"**Target: proxy flat within {FLAT_TARGET:.0%} from K = 2 to 8 while exact grows** "
-        "(time at K = 8 over K = 2; for proxy also the worst K over K = 2, which is what "
-        "the verdict uses):",
+    ]
+    if rpc_s is None:
+        lines += [f"**Model: not run**: the bandwidth results were "
+                  f"{OLD_TRACE_NOTE.format(what='bandwidth')}, and the coordinator latency "
+                  "the model needs is fitted on them.", ""]
+    elif not replayable(sc_res):
+        lines += [f"**Model: not run** for the traces {OLD_TRACE_NOTE.format(what='scaling')}.",
+                  ""]
+    lines += [scaling_table(rows, labels), ""]
+    if rpc_s is None or not any(flat[x] for x in labels):
+        return "\n".join(lines)
+    lines += [
+        f"**Target: proxy flat within {FLAT_TARGET:.0%} from K = {FLAT_K[0]} to {FLAT_K[1]} "
+        "while exact grows** (time at K = 8 over K = 2; for proxy also the worst K over "
+        "K = 2, which is what the verdict uses; beyond K = 8, the largest K over K = 2):",
         "",
     ]
     for label in labels:
-        f = flat[label]
         parts = []
-        for key, (end, worst) in f.items():
-            scene, mode = key.rsplit(" ", 1)
+        for key, f in flat[label].items():
+            mode = key.rsplit(" ", 1)[1]
+            beyond = (f"; K = {f['max_k']}: {f['at_max_k']:.2f}x" if f["max_k"] > f["end_k"]
+                      else "")
             if mode == "proxy":
-                ok = worst <= 1 + FLAT_TARGET
-                parts.append(f"{key} {end:.2f}x, worst {worst:.2f}x "
-                             f"({'met' if ok else 'NOT met'})")
+                ok = f["worst"] <= 1 + FLAT_TARGET
+                parts.append(f"{key} {f['end']:.2f}x, worst {f['worst']:.2f}x "
+                             f"({'met' if ok else 'NOT met'}){beyond}")
             else:
-                parts.append(f"{key} {end:.2f}x ({'met' if end > 1.0 else 'NOT met'})")
+                parts.append(f"{key} {f['end']:.2f}x ({'met' if f['end'] > 1.0 else 'NOT met'})"
+                             f"{beyond}")
         lines.append(f"- at {label}: " + ", ".join(parts))
     paper = {m: PAPER_T2[m][8] / PAPER_T2[m][2] for m in PAPER_T2}
     lines.append(f"- paper: proxy {paper['proxy']:.2f}x, exact {paper['exact']:.2f}x")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench.network.netmodel import cpu_corrected, replay
+from bench.network.netmodel import cpu_corrected, replay, step_cpu
 
 RPC = 0.01
 GBIT = 1e9
@@ -62,3 +62,10 @@ def test_cpu_correction_scales_each_shards_steps():
     trace = {"k": 2, "admitted": [0],
              "steps": [step(0, 0, 2.0, [0]), step(1, 0, 2.0, [0])]}
     assert cpu_corrected(trace, [0.5, 1.5]).tolist() == [1.0, 2.0]  # never above busy
+
+
+def test_dedicated_step_time_is_the_smaller_of_cpu_and_busy():
+    trace = {"k": 1, "admitted": [0], "steps": [
+        {**step(0, 0, 2.0, [0]), "cpu_s": 0.5},  # waited 1.5 s for a core
+        {**step(0, 1, 1.0, [0]), "cpu_s": 1.8}]}  # two threads at once
+    assert step_cpu(trace).tolist() == [0.5, 1.0]
