@@ -1,4 +1,5 @@
-"""Embree's C API from compiled code (`nprt.workers.traversal.rtc`) answers exactly as
+"""Embree's C API from compiled code (`nprt.workers.traversal.rtc`,
+`nprt.workers.kernels.crossings`) answers exactly as
 embreex does on the same triangles, ties on shared edges and vertices included."""
 
 from __future__ import annotations
@@ -8,30 +9,31 @@ import pytest
 from numba import njit
 
 from nprt.scene.demos.family import family_meshes
+from nprt.workers.kernels import crossings
 from nprt.workers.traversal import rtc
 from nprt.workers.traversal.geometry import MeshGeometry
 
 
 @njit
 def _closest_all(fn, scene, o, d, tfar):
-    rh = rtc.rayhit_buffer_nb()
+    rh = crossings.rayhit_buffer_nb()
     ri = rh.view(np.uint32)
     n = o.shape[0]
     t, prim = np.empty(n, np.float32), np.empty(n, np.int32)
     u, v = np.empty(n, np.float32), np.empty(n, np.float32)
     for i in range(n):
-        t[i], prim[i], u[i], v[i] = rtc.closest1(fn, scene, rh, ri, o[i, 0], o[i, 1],
+        t[i], prim[i], u[i], v[i] = crossings.closest1(fn, scene, rh, ri, o[i, 0], o[i, 1],
                                                  o[i, 2], d[i, 0], d[i, 1], d[i, 2], tfar[i])
     return t, prim, u, v
 
 
 @njit
 def _occluded_all(fn, scene, o, d, tfar):
-    rh = rtc.rayhit_buffer_nb()
+    rh = crossings.rayhit_buffer_nb()
     ri = rh.view(np.uint32)
     out = np.empty(o.shape[0], np.bool_)
     for i in range(o.shape[0]):
-        out[i] = rtc.occluded1_ray(fn, scene, rh, ri, o[i, 0], o[i, 1], o[i, 2], d[i, 0],
+        out[i] = crossings.occluded1_ray(fn, scene, rh, ri, o[i, 0], o[i, 1], o[i, 2], d[i, 0],
                                    d[i, 1], d[i, 2], tfar[i])
     return out
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from nprt.workers.kernels import crossings
 from nprt.workers.kernels import pairs as pair_kernels
 from nprt.workers.traversal import rtc
 from nprt.workers.traversal.geometry import MeshGeometry
@@ -84,9 +85,9 @@ class LocalGeometry:
         # hit's t: which of two triangles tied on a shared edge it reports depends on tfar,
         # and an exact render must not depend on the tmax a ray arrived with (nor on which
         # shard found the closer hit).
-        rtc.closest_crossings(np.uint64(rtc.INTERSECT1), ray, inst, rank, t_enter,
-                              BOX_TMAX_SLACK_REL, tmax, FAR_T, mesh_of, self._scenes(), w2l,
-                              o, d, run_t, run_inst, run_prim, run_u, run_v)
+        crossings.closest_crossings(np.uint64(rtc.INTERSECT1), ray, inst, rank, t_enter,
+                                    BOX_TMAX_SLACK_REL, tmax, FAR_T, mesh_of, self._scenes(),
+                                    w2l, o, d, run_t, run_inst, run_prim, run_u, run_v)
         t_best = tmax.copy()
         if hit_inst is None:
             better = (run_inst >= 0) & (run_t < t_best)
@@ -107,6 +108,6 @@ class LocalGeometry:
         occluded = np.zeros(len(origin), bool)
         ray, inst, _, rank, o, d = self._crossings(origin, direction, tmax)
         mesh_of, _, w2l = self.table.kernel_arrays()
-        rtc.occluded_crossings(np.uint64(rtc.OCCLUDED1), ray, inst, rank, tmax, mesh_of,
-                               self._scenes(), w2l, o, d, occluded)
+        crossings.occluded_crossings(np.uint64(rtc.OCCLUDED1), ray, inst, rank, tmax,
+                                     mesh_of, self._scenes(), w2l, o, d, occluded)
         return occluded
