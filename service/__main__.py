@@ -1,4 +1,5 @@
-"""`python -m service serve|submit ...`: the service subcommands without the full nprt CLI."""
+"""`python -m service serve|scheduler|submit ...`: the service subcommands without the full
+nprt CLI."""
 
 import sys
 
