@@ -77,22 +77,40 @@ class _Batch:
     def nbytes(self) -> int:
         return int(sum(getattr(self, name).nbytes for name in self._SPEC))
 
+    @classmethod
+    def _trusted(cls, cols: dict):
+        """A batch of columns already checked (rows of checked batches): no validation,
+        which costs more than the copy itself for small batches."""
+        batch = object.__new__(cls)
+        for name, arr in cols.items():
+            object.__setattr__(batch, name, arr)
+        return batch
+
     def take(self, index: np.ndarray):
         """Rows selected by a bool mask or an index array."""
-        return type(self)(**{name: getattr(self, name)[index] for name in self._SPEC})
+        index = np.asarray(index)
+        if index.dtype == bool:  # one nonzero scan, not one per column
+            index = np.flatnonzero(index)
+        return self._trusted({name: getattr(self, name)[index] for name in self._SPEC})
 
     def replace(self, **changes):
+        n = len(self)
+        for name, arr in changes.items():
+            width, dtype = self._SPEC[name]
+            _check(name, arr, n, width, dtype)
         d = {name: getattr(self, name) for name in self._SPEC}
         d.update(changes)
-        return type(self)(**d)
+        return self._trusted(d)
 
     @classmethod
     def concat(cls, batches: list):
-        batches = [b for b in batches if b is not None]
+        batches = [b for b in batches if b is not None and len(b)]
         if not batches:
             return cls.empty()
-        return cls(**{name: np.concatenate([getattr(b, name) for b in batches])
-                      for name in cls._SPEC})
+        if len(batches) == 1:
+            return batches[0]
+        return cls._trusted({name: np.concatenate([getattr(b, name) for b in batches])
+                             for name in cls._SPEC})
 
     @classmethod
     def empty(cls):
