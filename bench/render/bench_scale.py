@@ -105,15 +105,16 @@ def bench_warm_pool(scene_name: str, width: int) -> dict:
     """Two jobs on one scene through the job manager: time from submit() to the first
     tile event, cold pool and warm pool."""
     from nprt.service.config import ServiceSettings
-    from nprt.service.manager import JobManager
+    from nprt.service.jobapi import JobApi
     from nprt.service.scenes import SceneStore
+    from nprt.service.scheduler import Scheduler
 
     out = {}
     with tempfile.TemporaryDirectory() as d:
         cfg = ServiceSettings(data_dir=Path(d), max_concurrent_jobs=1, api_token=None,
                               ray_address=None)
-        manager = JobManager(cfg, SceneStore(cfg))
-        manager.start()
+        manager = JobApi(cfg, SceneStore(cfg)).start()  # stores and watches jobs
+        scheduler = Scheduler(cfg).start()  # renders them
         try:
             for label, seed in (("cold", 1), ("warm", 2)):
                 s = RenderSettings(width=width, height=width * 9 // 16, spp=8, shards=2,
@@ -139,6 +140,7 @@ def bench_warm_pool(scene_name: str, width: int) -> dict:
                               "film_bytes": s.width * s.height * 32,
                               "passes": done.passes_total}
         finally:
+            scheduler.stop()
             manager.stop()
     w = out["warm"]
     # Before: the manager wrote the whole film (sums + samples) after every pass.
