@@ -111,10 +111,10 @@ def finish(res: dict, path: Path, *, plot=None, markdown=None, section: str | No
            intro: str = "", readme: Path = BENCH_README, update_readme: bool = True,
            table_file: bool = False) -> str:
     """The epilogue of a benchmark: write res as JSON at path, its plot (plot(res, png)) as
-    the .png beside it, print the table (markdown(res); also as the .md beside it with
-    table_file) and, when `section` names a README
-    section and update_readme, replace it with intro + table. In intro, `{json}` and `{png}`
-    stand for the result files relative to the README. Returns the table."""
+    the .png beside it, print the table (markdown(res); also the .md beside it with
+    table_file) and, when `section` names a README section and update_readme, replace that
+    section with intro + table (`publish`). In intro, `{json}` and `{png}` stand for the
+    result files relative to the README. Returns the table."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(res, indent=1, default=str))
