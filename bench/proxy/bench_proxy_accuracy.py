@@ -177,7 +177,7 @@ def main(argv=None) -> int:
     ap.add_argument("--repeat", type=int, default=3, help="renders per row, the fastest kept")
     ap.add_argument("--tag", default="", help="results/proxy_accuracy_<tag>.json (and .png)")
     add_render_flags(ap, RESULTS)
-    args = smoke(ap.parse_args(argv), scenes=["foliage:tiny"], targets=[30.0, 40.0],
+    args = smoke(ap.parse_args(argv), scenes=["foliage:tiny"], targets=[30.0],
                  shards=2, width=32, height=24, spp=1, bounces=2, proxy_width=16,
                  proxy_steps=200, repeat=1)
     if args.smoke and args.proxy_dir is None:
