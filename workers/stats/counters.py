@@ -129,17 +129,25 @@ class SplitStats:
                 part.counters[name] += int(c)
 
     def count_rays(self, kind: np.ndarray) -> None:
-        """kind : (n,) uint8 of the bound batch."""
-        for i, part in enumerate(self.parts):
-            part.count_rays(kind[self.tok == i])
-        self._rays += self._per_part(None)
+        """kind : (n,) uint8 of the bound batch. One bincount over (pass, kind): O(n)
+        for any number of passes in the step."""
+        t = len(self.parts)
+        per = np.bincount(self.tok * 3 + kind, minlength=3 * t).reshape(t, 3)
+        for part, row in zip(self.parts, per, strict=True):
+            for k, c in enumerate(row):
+                if c:
+                    part.rays[KIND_NAMES[k]] += int(c)
+        self._rays += per.sum(axis=1)
 
     def count_hops(self, hops: np.ndarray, rows=None) -> None:
         """hops : (n,) of the bound batch; rows: which of them finished."""
         tok = self.tok if rows is None else self.tok[rows]
         hops = hops if rows is None else hops[rows]
-        for i, part in enumerate(self.parts):
-            part.count_hops(hops[tok == i])
+        width = MAX_HOPS + 1
+        per = np.bincount(tok * width + np.minimum(hops, MAX_HOPS),
+                          minlength=width * len(self.parts)).reshape(len(self.parts), width)
+        for part, row in zip(self.parts, per, strict=True):
+            part.hops += row
 
     def finish(self) -> None:
         share = self._rays / self._rays.sum() if self._rays.sum() else \

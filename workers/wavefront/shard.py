@@ -120,12 +120,19 @@ class _Step:
         """Keep rgb (n, 3) float64 for each pass's film."""
         if len(pixel) == 0:
             return
+        if len(self.states) == 1:
+            st = self.states[0]
+            st.index.append(st.pass_.local_index(pixel, self.s.width))
+            st.rgb.append(np.asarray(rgb, np.float64))
+            return
         tok = self.tok(pixel)
-        for i in np.unique(tok):
-            st = self.states[i]
-            mine = tok == i
-            st.index.append(st.pass_.local_index(pixel[mine], self.s.width))
-            st.rgb.append(np.asarray(rgb[mine], np.float64))
+        order = np.argsort(tok, kind="stable")  # rows grouped by pass, one sort for all
+        ends = np.cumsum(np.bincount(tok, minlength=len(self.states)))
+        for i, (a, b) in enumerate(zip(np.r_[0, ends[:-1]], ends, strict=True)):
+            if b > a:
+                st, rows = self.states[i], order[a:b]
+                st.index.append(st.pass_.local_index(pixel[rows], self.s.width))
+                st.rgb.append(np.asarray(rgb[rows], np.float64))
 
 
 class Shard:
@@ -408,21 +415,16 @@ class Shard:
 
     def _count_transfers(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch) -> None:
         """Transfers and bytes by kind, counted on each ray's pass."""
-        if len(rays):
-            per_row = rays.nbytes // len(rays)
-            tok = step.tok(rays.pixel)
-            for j, st in enumerate(step.states):
-                mine = tok == j
-                if mine.any():
-                    for kind, c in enumerate(np.bincount(rays.kind[mine], minlength=2)[:2]):
-                        if c:
-                            st.stats.count_transfer(KIND_NAMES[kind], int(c), int(c) * per_row)
-        if len(shadow):
-            per_row = shadow.nbytes // len(shadow)
-            counts = np.bincount(step.tok(shadow.pixel), minlength=len(step.states))
-            for st, c in zip(step.states, counts, strict=True):
+        t = len(step.states)
+        for batch, kinds in ((rays, None), (shadow, SHADOW)):
+            if not len(batch):
+                continue
+            per_row = batch.nbytes // len(batch)
+            kind = batch.kind if kinds is None else np.full(len(batch), kinds, np.int64)
+            per = np.bincount(step.tok(batch.pixel) * 3 + kind, minlength=3 * t)
+            for (j, k), c in np.ndenumerate(per.reshape(t, 3)):
                 if c:
-                    st.stats.count_transfer("shadow", int(c), int(c) * per_row)
+                    step.states[j].stats.count_transfer(KIND_NAMES[k], int(c), int(c) * per_row)
 
     def _send(self, batch, target: np.ndarray, out: list) -> None:
         """Bucket the rows of batch leaving for another shard by target, one hop more."""
