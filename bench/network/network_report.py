@@ -49,11 +49,18 @@ PAPER_SHARE = 3.505 / 8.762  # exact's transmission share of its total at 1 GigE
 PAPER_T2 = {"proxy": {2: 2.66, 3: 2.86, 4: 2.93, 6: 2.84, 8: 2.83},
             "exact": {2: 7.02, 3: 9.12, 4: 10.83, 6: 13.58, 8: 15.12}}
 SPEEDUP_TARGET, FLAT_TARGET = 2.3, 0.15
+MODES = ("exact", "proxy")
 FAST_BPS = 2e9  # links at least this fast: transfers cost nothing measurable here
 # The coordinator latency fitted on a quiet host (load 1.0: the call-trace recording of
 # 2026-11-25, bench/README.md before issue 20); under heavy load the fit absorbs queueing, so
 # B* is also given with this one.
 QUIET_RPC_S = 0.0057
+# That recording's figures (the coordinator on every hop; same settings), to say what moved:
+# shard CPU us per camera path, MB between the nodes, model B* (bit/s) and speedup there.
+BEFORE = {"forest": {"exact_us": 13.0, "proxy_us": 12.6, "exact_mb": 9.82, "proxy_mb": 2.48,
+                     "b_star": 119e6, "speedup": 1.40},
+          "sculpture": {"exact_us": 8.9, "proxy_us": 7.8, "exact_mb": 8.27, "proxy_mb": 0.57,
+                        "b_star": 123e6, "speedup": 2.12}}
 FLAT_K = (2, 8)  # the paper's Table 2 spans these node counts; larger K are shown beside
 OLD_TRACE_NOTE = ("recorded with the earlier runtime's call trace, which the model (step "
                   "traces) cannot replay: model columns left out; re-run `python -m "
@@ -503,13 +510,28 @@ def section_bandwidth(bw_res, val, share, per_path) -> str:
                          f"({'met' if met else 'NOT met'})**; ")
         else:
             model_txt = "model: not run (call trace); "
+        b = BEFORE.get(scene)
+        if b is not None and "model_b_star_bps" in v:
+            ex, px = best_fast(bw_res, scene, "exact"), best_fast(bw_res, scene, "proxy")
+            now = {m: per_path["ours"][f"{scene} {m}"] * 1e6 for m in MODES}
+            mb = {m: r["stats"]["total_bytes"] / 1e6 for m, r in zip(MODES, (ex, px),
+                                                                     strict=True)}
+            before_txt = (
+                f" Before the step runtime (call trace, load 1.0): CPU per path exact "
+                f"{b['exact_us']:.1f} -> {now['exact']:.1f} µs, proxy {b['proxy_us']:.1f} -> "
+                f"{now['proxy']:.1f} µs; MB between the nodes exact {b['exact_mb']:.2f} -> "
+                f"{mb['exact']:.2f}, proxy {b['proxy_mb']:.2f} -> {mb['proxy']:.2f}; B* "
+                f"{_mbit(b['b_star'])} -> {_mbit(v['model_b_star_bps'])}, speedup there "
+                f"{b['speedup']:.2f}x -> {v['model_speedup']:.2f}x.")
+        else:
+            before_txt = ""
         q = v.get("quiet")
         quiet_txt = (f" With the quiet host's {QUIET_RPC_S * 1e3:.1f} ms latency instead: B* = "
                      f"{_mbit(q['model_b_star_bps'])}, exact {q['model_exact_s']:.2f} s, proxy "
                      f"{q['model_proxy_s']:.2f} s, speedup {q['model_speedup']:.2f}x." if q else "")
         lines.append(f"- {scene}: {model_txt}{real_txt}. Measured share by link: "
                      + ", ".join(f"{b} {s:.0%} ({x:.2f}x)" for b, s, x in v["real"]) + "."
-                     + quiet_txt)
+                     + quiet_txt + before_txt)
     return "\n".join(lines)
 
 
@@ -524,11 +546,12 @@ def section_scaling(sc_res, rows, labels, flat, rpc_s) -> str:
                 f"load average {m['load_average_before'][0]:.1f} before")
 
     m, more = sc_res["machine"], sc_res.get("appended", [])
-    first = sorted(set(sc_res["ks"]) - {k for a in more for k in a["ks"]})
+    first = sc_res.get("recorded_ks", sc_res["ks"])
     cmds = [f"`python -m bench.network.bench_network scaling --width {s['width']}{spp} --ks "
             f"{','.join(map(str, first))}` ({load(m)})"]
     cmds += [f"`... scaling --width {s['width']}{spp} --ks {','.join(map(str, a['ks']))} "
-             f"--append` ({load(a['machine'])})" for a in more]
+             f"--scenes {','.join(a.get('scenes', []))} --append` ({load(a['machine'])}; "
+             "its runs replace those of the same scene, mode and K)" for a in more]
     lines = [
         "### Node count (the paper's Table 2), by the model",
         "",

@@ -38,7 +38,9 @@ def test_scaling_traces_replay_and_report(tmp_path):
         ("exact", 2), ("exact", 3), ("proxy", 2), ("proxy", 3)]
     for r in runs:
         steps = r["trace"]["steps"]
-        assert {s["shard"] for s in steps} == set(range(r["k"])) and len(r["cpu_s"]) == r["k"]
+        # a shard whose boxes no ray of this tiny image reaches runs no step
+        assert steps and {s["shard"] for s in steps} <= set(range(r["k"]))
+        assert len(r["cpu_s"]) == len(r["shard_stats"]) == r["k"]
         # every pass admitted was run by some step, and the shards' totals count the steps
         assert set(r["trace"]["admitted"]) <= {p for s in steps for p in s["passes"]}
         assert sum(sh["steps"] for sh in r["shard_stats"]) == len(steps)
