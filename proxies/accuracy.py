@@ -86,6 +86,14 @@ def mesh_bands(proxies: dict, accuracy) -> dict[int, tuple[float, float]]:
             for m, p in proxies.items()}
 
 
+def job_bands(proxies: dict, knobs) -> dict[int, tuple[float, float]]:
+    """mesh -> (secondary, shadow) band for a job's ProxySettings: chosen from each proxy's
+    curve for its accuracy target, or the hand-set band and shadow_band (accuracy None)."""
+    if knobs.accuracy is None:
+        return {int(m): (knobs.band, knobs.shadow_band) for m in proxies}
+    return mesh_bands(proxies, knobs.accuracy)
+
+
 def rate_at(curve: dict | None, kind: str, band: float) -> float:
     """Error rate per query at `band` (the curve's narrowest band at or above it); a proxy
     without a curve is counted as wrong on every answer it gives (the worst case)."""

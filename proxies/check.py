@@ -107,12 +107,7 @@ def _db(mse: float) -> float | None:
 def prediction(plan, proxies_settings, counters: dict, rays: dict, area: dict) -> dict:
     """Predicted PSNR before the render (prior query shares from box areas) and with the
     shares this render measured. plan: a ProxyPlan; area: mesh -> instance box area."""
-    target = proxies_settings.accuracy
-    if target is None:
-        k = proxies_settings
-        bands = {m: (k.band, k.shadow_band) for m in plan.proxies}
-    else:
-        bands = acc.mesh_bands(plan.proxies, target)
+    bands = acc.job_bands(plan.proxies, proxies_settings)
     before = acc.predict_error(plan.proxies, bands, acc.prior_queries(plan.proxies, area))
     after = acc.predict_error(plan.proxies, bands, acc.measured_queries(counters, rays))
     return {"before": before.to_dict(), "measured_shares": after.to_dict(),

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nprt.proxies.accuracy import counter_name, mesh_bands
+from nprt.proxies.accuracy import counter_name, job_bands
 from nprt.workers.routing.exact import DONE, hit_owner, route_exact, route_shadow_exact
 from nprt.workers.routing.proxy_query import QueryKnobs, predict
 from nprt.workers.runtime.protocol import EVERYWHERE
@@ -66,10 +66,7 @@ class ProxyPolicy(ExactPolicy):
         self.modeled = remote[~np.isin(remote, known.instances)]
         self.known, self.proxies = known, proxies
         k = settings.proxy
-        if k.accuracy is None:
-            chosen = {m: (k.band, k.shadow_band) for m in proxies}
-        else:
-            chosen = mesh_bands(proxies, k.accuracy)
+        chosen = job_bands(proxies, k)
         # (2, meshes) secondary and shadow band by mesh index; 1 where no proxy answers.
         band = np.ones((2, max(int(world.table.mesh.max(initial=-1)),
                                max(proxies, default=-1)) + 1))
