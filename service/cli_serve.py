@@ -9,6 +9,7 @@ import argparse
 import json
 import logging
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -121,14 +122,18 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from nprt.service.app import create_app
-    from nprt.service.processes import spawn_scheduler, stop_child
+    from nprt.service.processes import SchedulerChild
 
     level = getattr(args, "log_level", None) or "INFO"
     configure_logging(level, getattr(args, "log_json", False))
     settings = _settings(args)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     grpc_port = None if args.grpc_port < 0 else args.grpc_port
-    scheduler = None if args.api_only else spawn_scheduler(settings, _log_args(args))
+    scheduler = None if args.api_only else SchedulerChild(settings, _log_args(args))
+    # uvicorn re-raises SIGTERM/SIGINT once it has shut down: exit through `finally` then,
+    # so the scheduler stops gracefully (checkpointing) instead of dying with this process.
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda signum, _frame: sys.exit(128 + signum))
     # grpc.aio shares uvicorn's loop and supports only the standard asyncio one (not uvloop);
     # httptools parses HTTP when installed (a dependency: a fifth of the CPU per request).
     # log_config=None: uvicorn's records go through the root handler (text or JSON) too.
@@ -148,7 +153,7 @@ def cmd_serve(args: argparse.Namespace) -> int:
             uvicorn.Server(uvicorn.Config(app, **options)).run()
     finally:
         if scheduler is not None:
-            stop_child(scheduler)
+            scheduler.stop()
     return 0
 
 

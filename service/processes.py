@@ -23,6 +23,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 from nprt.service.config import ServiceSettings
 
@@ -57,6 +58,7 @@ def run_scheduler(settings: ServiceSettings) -> int:
         done.wait()
     finally:
         scheduler.stop()
+        log.info("scheduler stopped; unfinished jobs resume on the next start")
     return 0
 
 
@@ -77,6 +79,47 @@ def spawn_scheduler(settings: ServiceSettings, log_args: list[str]) -> subproces
         env[f"NPRT_{name.upper()}"] = str(value)
     cmd = [sys.executable, "-m", "nprt.service", "scheduler", *log_args]
     return subprocess.Popen(cmd, env=env, preexec_fn=_die_with_parent)
+
+
+class SchedulerChild:
+    """The scheduler child of `nprt serve`, started again whenever it exits (a crash, an
+    OOM kill): its jobs resume from their checkpoints, and the API never stops answering.
+    Restarts back off from RESPAWN_S up to RESPAWN_MAX_S while it keeps failing fast."""
+
+    RESPAWN_S = 1.0
+    RESPAWN_MAX_S = 60.0
+    HEALTHY_S = 30.0  # a run this long resets the back-off
+
+    def __init__(self, settings: ServiceSettings, log_args: list[str]):
+        self._spawn = lambda: spawn_scheduler(settings, log_args)
+        self._stop = threading.Event()
+        self._lock = threading.Lock()
+        self.proc = self._spawn()
+        self._thread = threading.Thread(target=self._watch, name="nprt-scheduler-watch",
+                                        daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        delay = self.RESPAWN_S
+        while not self._stop.is_set():
+            started = time.monotonic()
+            code = self.proc.wait()
+            if self._stop.is_set():
+                return
+            delay = self.RESPAWN_S if time.monotonic() - started > self.HEALTHY_S else delay
+            log.error("the scheduler (pid %d) exited with %s; starting it again in %.0f s",
+                      self.proc.pid, code, delay)
+            if self._stop.wait(delay):
+                return
+            with self._lock:
+                if not self._stop.is_set():
+                    self.proc = self._spawn()
+            delay = min(2 * delay, self.RESPAWN_MAX_S)
+
+    def stop(self, timeout_s: float = 30.0) -> None:
+        with self._lock:
+            self._stop.set()
+        stop_child(self.proc, timeout_s)
 
 
 def stop_child(proc: subprocess.Popen, timeout_s: float = 30.0) -> None:

@@ -79,7 +79,7 @@ def test_killed_scheduler_leaves_the_api_answering_and_the_job_resumes(tmp_path)
         job_id = job["id"]
         assert job["passes_total"] == PASSES
         wait_for(lambda: httpx.get(f"{url}/v1/jobs/{job_id}").json()["passes_done"] >= 3,
-                 30, interval_s=0.01, what="three finished passes")
+                 120, interval_s=0.01, what="three finished passes")
         scheduler.send_signal(signal.SIGKILL)
         scheduler.wait(10)
         assert (data / "jobs" / job_id / "checkpoint.json").exists(), "no checkpoint"
