@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -16,22 +14,18 @@ MB = 1_000_000
 
 @pytest.fixture(scope="module")
 def default_scenes():
-    out = {}
-    for name in DEMOS:
-        start = time.perf_counter()
-        out[name] = (make_demo(name, "default"), time.perf_counter() - start)
-    return out
+    # How long generation takes is a benchmark figure, not a test (machine load decides it).
+    return {name: make_demo(name, "default") for name in DEMOS}
 
 
 @pytest.mark.parametrize("name", list(DEMOS))
 def test_default_demo_is_massive_but_fits_the_byte_budget(default_scenes, name):
-    scene, seconds = default_scenes[name]
+    scene = default_scenes[name]
     s = scene.summary()
     assert s["base_meshes"] >= 3
     assert s["instances"] >= 20
     assert s["instanced_triangles"] >= 1_000_000
     assert s["mesh_bytes"] <= 50 * MB
-    assert seconds < 5.0, f"{name} took {seconds:.1f} s to generate"
 
 
 @pytest.mark.parametrize("name", list(DEMOS))
@@ -99,7 +93,7 @@ def test_demo_camera_looks_at_the_scene_from_outside(name):
 
 
 def test_forest_has_three_tree_shapes_of_many_leaf_quads(default_scenes):
-    scene, _ = default_scenes["forest"]
+    scene = default_scenes["forest"]
     trees = [m for m in scene.meshes if m.name != "ground"]
     assert len(trees) >= 3
     assert all(len(m.faces) >= 5_000 for m in trees)
@@ -108,7 +102,7 @@ def test_forest_has_three_tree_shapes_of_many_leaf_quads(default_scenes):
 
 
 def test_city_has_at_least_ten_building_meshes_with_windows(default_scenes):
-    scene, _ = default_scenes["city"]
+    scene = default_scenes["city"]
     buildings = [m for m in scene.meshes if m.name != "ground"]
     assert len(buildings) >= 10
     # A plain box has 10 triangles on its walls and roof; windows add thousands.
@@ -116,7 +110,7 @@ def test_city_has_at_least_ten_building_meshes_with_windows(default_scenes):
 
 
 def test_sculptures_are_high_poly_and_displaced(default_scenes):
-    scene, _ = default_scenes["sculpture"]
+    scene = default_scenes["sculpture"]
     shapes = [m for m in scene.meshes if m.name in ("blob", "torus", "column")]
     assert len(shapes) == 3
     for m in shapes:

@@ -43,11 +43,6 @@ def test_ray_line_patterns_match_what_ray_prints():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason=(
-    "the pool passes ObjectRefs as the shard actors' constructor arguments with "
-    "max_restarts > 0, and the driver's Ray core logs core_worker.cc:2465 about it at ERROR "
-    "(straight to fd 2, whatever ray.init's logging_level); passing the references nested "
-    "(the actor resolving them) would remove the cause"))
 def test_a_distributed_render_prints_no_line_of_ray(tmp_path):
     env = {**os.environ, "RAY_ADDRESS": "local", "NPRT_SCENE_CACHE": str(tmp_path / "scenes"),
            "PYTHONPATH": str(REPO)}

@@ -147,9 +147,11 @@ class ShardPool:
             self.pg = placement_group([{"CPU": per_shard_cpu}] * self.k, strategy="SPREAD")
             _wait_ready(self.pg.ready(), f"a placement group of {self.k} x "
                         f"{per_shard_cpu:g} CPU ({cpus:g} CPUs in the cluster)")
-        # A restarted actor re-reads its constructor arguments from the object store, so
-        # they must outlive the constructor (ray-project/ray#53727).
-        self._init_refs = [world_ref]
+        # The world and the proxies reach each actor as arguments of `load`, not of its
+        # constructor: a restarted actor (Ray re-runs only the constructor) is loaded again
+        # by `resync`, and no constructor argument lives in the object store (Ray warns
+        # about those on the console).
+        self._init_refs = []  # (world, proxies) per shard, kept for restarts
         for sid in range(self.k):
             held = set(shard_meshes[sid])
             # Only the proxies of meshes this shard does not hold.
@@ -161,11 +163,11 @@ class ShardPool:
                     self.pg, placement_group_bundle_index=sid)
             opts.update((shard_options or [{}] * self.k)[sid])
             actor = ray.remote(ShardActor).options(**opts).remote(
-                ShardConfig(sid, self.k, settings), world_ref,
-                MeshRequest(self.source, tuple(shard_meshes[sid])), proxies_ref, all_req)
+                ShardConfig(sid, self.k, settings),
+                MeshRequest(self.source, tuple(shard_meshes[sid])), all_req)
             self.actors.append(actor)
-            self._init_refs.append(proxies_ref)
-        self.shard_info = [_wait_ready(a.ready.remote(), f"shard {sid}")
+            self._init_refs.append((world_ref, proxies_ref))
+        self.shard_info = [_wait_ready(a.load.remote(*self._init_refs[sid]), f"shard {sid}")
                            for sid, a in enumerate(self.actors)]
         self.warm_s = [_wait_ready(a.warm.remote(), f"shard {sid} (warming its kernels)")
                        for sid, a in enumerate(self.actors)]
@@ -187,8 +189,10 @@ class ShardPool:
         self.shown = key
 
     def resync(self) -> None:
-        """Send the shown world to every shard again (a restarted shard comes back with
-        the one it was started with)."""
+        """Load a restarted shard again (a no-op for the others) and send every shard the
+        shown world (a restarted one comes back with the start-up world)."""
+        ray.get([a.load.remote(*refs) for a, refs in zip(self.actors, self._init_refs,
+                                                          strict=True)])
         if self._world_ref is not None:
             ray.get([a.set_world.remote(self._world_ref) for a in self.actors])
 

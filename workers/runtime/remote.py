@@ -20,6 +20,7 @@ compiled kernel, on a worker: the driver keeps only the reference to it."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 import uuid
@@ -35,11 +36,12 @@ class ShardActor:
     """Drives nprt.workers.wavefront.shard.Shard; tests/distributed/test_driver_imports.py
     checks that the calls the coordinator and pool make exist here."""
 
-    def __init__(self, *args):
-        from nprt.workers.wavefront.shard import Shard
-
-        self._shard = Shard(*args)
-        self.id = self._shard.id
+    def __init__(self, config, meshes, all_meshes=None):
+        """config: ShardConfig; meshes, all_meshes: as Shard's. The shard itself is made by
+        `load`, which brings the world and the proxies."""
+        self._args = (config, meshes, all_meshes)
+        self._shard = None
+        self.id = config.shard_id
         self.incarnation = uuid.uuid4().hex  # a restart by Ray makes a new one
         self._cv = threading.Condition()
         self._step_lock = threading.Lock()  # the Shard is run by one thread at a time
@@ -53,7 +55,8 @@ class ShardActor:
                          daemon=True).start()
 
     def __repr__(self) -> str:  # Ray prefixes the actor's log lines with it
-        return repr(self.__dict__.get("_shard", "Shard(not started)"))
+        shard = self.__dict__.get("_shard")
+        return repr(shard) if shard is not None else f"Shard({self.__dict__.get('id')}, not loaded)"
 
     def _reset_totals(self) -> None:
         self._returned: list = []
@@ -67,8 +70,20 @@ class ShardActor:
 
     # -- the pool ---------------------------------------------------------------------
 
+    def load(self, world, proxies) -> dict:
+        """Make the Shard (once: a no-op on a loaded actor); returns `ready()`."""
+        if self._shard is None:
+            from nprt.workers.wavefront.shard import Shard
+
+            config, meshes, all_meshes = self._args
+            self._shard = Shard(config, world, meshes, proxies, all_meshes)
+        return self.ready()
+
     def ready(self) -> dict:
-        return {**self._shard.ready(), "incarnation": self.incarnation}
+        if self._shard is None:  # restarted by Ray, not loaded again yet
+            return {"shard": self.id, "pid": os.getpid(), "loaded": False,
+                    "incarnation": self.incarnation}
+        return {**self._shard.ready(), "loaded": True, "incarnation": self.incarnation}
 
     def warm(self) -> float:
         with self._step_lock:
@@ -99,8 +114,9 @@ class ShardActor:
                 return
             self._epoch = None
             self._inbox.clear()
-        with self._step_lock:
-            self._shard.reset()
+        if self._shard is not None:  # a restarted actor not loaded again holds nothing
+            with self._step_lock:
+                self._shard.reset()
 
     def deliver(self, parcel: Parcel) -> None:
         with self._cv:
