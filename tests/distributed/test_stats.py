@@ -40,12 +40,20 @@ def test_hops_histogram_counts_every_finished_ray_once(stats_by_k, references, k
     assert hops == stats_by_k[k]["total_transfers"], (k, hops, stats_by_k[k]["transfers"])
 
 
+CAMERA_NAME_BYTES = 8  # pixel, sample: uint32 each
+
+
 @pytest.mark.parametrize("k", (1, 2, 4), ids=lambda k: f"k{k}")
 def test_bytes_by_kind_equal_transfers_times_row_bytes(stats_by_k, k):
     st = stats_by_k[k]
     per_row = {"primary": RAY_ROW_BYTES, "secondary": RAY_ROW_BYTES, "shadow": SHADOW_ROW_BYTES}
+    # Camera rays go to the owner of their first box by name: (pixel, sample), 8 bytes.
+    by_name = st["counters"].get("camera_rays_sent_by_name", 0)
+    assert (by_name > 0) == (k > 1)
     for kind in KIND_NAMES:
-        assert st["bytes"][kind] == st["transfers"][kind] * per_row[kind], (kind, st)
+        named = by_name if kind == "primary" else 0
+        want = (st["transfers"][kind] - named) * per_row[kind] + named * CAMERA_NAME_BYTES
+        assert st["bytes"][kind] == want, (kind, st)
     assert st["total_bytes"] == sum(st["bytes"].values())
     assert st["total_transfers"] == sum(st["transfers"].values())
 
@@ -58,3 +66,12 @@ def test_row_bytes_match_the_declared_layout():
     # origin 3 x f64; direction, contribution 3 x f32; tmax f32; pixel u32; visited u64;
     # hops u8.
     assert SHADOW_ROW_BYTES == 24 + 2 * 12 + 4 + 4 + 8 + 1
+
+
+@pytest.mark.parametrize("k", (1, 2, 4), ids=lambda k: f"k{k}")
+def test_camera_rays_are_generated_once_per_path(stats_by_k, k):
+    """One shard per pass makes its camera rays (others get them by name): over all
+    shards, as many as the pass has paths, none twice."""
+    c = stats_by_k[k]["counters"]
+    assert c["camera_rays_generated"] == c["paths"] > 0, c
+    assert c.get("camera_rays_sent_by_name", 0) <= c["paths"]

@@ -55,16 +55,23 @@ class Parcel:
     rays: object = None  # nprt.workers.wavefront.batch.RayBatch or None
     shadow: object = None  # nprt.workers.wavefront.batch.ShadowRayBatch or None
     orders: tuple[Pass, ...] = ()
+    # Camera rays by name: (pixel (n,) uint32, sample (n,) uint32), 8 bytes a ray instead
+    # of a RayBatch row's 92; the receiver makes the rays (a function of pixel, sample, seed).
+    camera: tuple | None = None
     source: tuple[int, int] | None = None
     sent_at: float = field(default_factory=time.time)  # wall clock, for transfer wait
 
+    def _parts(self):
+        return [b for b in (self.rays, self.shadow, *(self.camera or ())) if b is not None]
+
     @property
     def nbytes(self) -> int:
-        return sum(b.nbytes for b in (self.rays, self.shadow) if b is not None)
+        return sum(b.nbytes for b in self._parts())
 
     @property
     def n_rays(self) -> int:
-        return sum(len(b) for b in (self.rays, self.shadow) if b is not None)
+        return sum(len(b) for b in (self.rays, self.shadow) if b is not None) + \
+            (len(self.camera[0]) if self.camera is not None else 0)
 
 
 @dataclass

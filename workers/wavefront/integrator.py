@@ -75,8 +75,11 @@ class PathIntegrator:
         """Camera rays of one pass: every pixel of the tile times every sample of the chunk."""
         pix = p.pixels(self.s.width)
         samples = np.arange(p.sample0, p.sample1, dtype=np.uint32)
-        pixel = np.repeat(pix, len(samples))
-        sample = np.tile(samples, len(pix))
+        return self.camera_rays(np.repeat(pix, len(samples)), np.tile(samples, len(pix)))
+
+    def camera_rays(self, pixel: np.ndarray, sample: np.ndarray) -> RayBatch:
+        """The camera rays of (pixel, sample) pairs, (n,) uint32 each: a function of them
+        and the seed only, so any shard makes the same rays."""
         o, d = generate_primary(self.camera, self.s.width, self.s.height, self.s.seed,
                                 pixel, sample)
         n = len(pixel)

@@ -283,15 +283,21 @@ class Shard:
                 step = self._open(sorted(credits), times)
             out_rays = [[] for _ in range(self.k)]
             out_shadow = [[] for _ in range(self.k)]
-            if orders:
-                with times.phase("generate"):
-                    rays.append(self._generate(orders, step, out_rays))
+            out_camera = [[] for _ in range(self.k)]
+            with times.phase("generate"):
+                if orders:
+                    rays.append(self._generate(orders, step, out_camera))
+                for p in parcels:
+                    if p.camera is not None:  # camera rays sent by name: made here
+                        cam = self.integrator.camera_rays(*p.camera)
+                        rays.append(cam.replace(hops=np.ones(len(cam), np.uint8)))
             rays = RayBatch.concat(rays)
             shadow = ShadowRayBatch.concat(shadow)
             n_in = len(rays) + len(shadow)
             self._wavefront(step, rays, shadow, out_rays, out_shadow)
             with times.phase("send"):
-                parcels_out, returned = self._pack(step, out_rays, out_shadow, credits)
+                parcels_out, returned = self._pack(step, out_rays, out_shadow, out_camera,
+                                                   credits)
             step.stats.finish()
         return StepResult(parcels_out, returned, times, n_in, bytes_in)
 
@@ -312,10 +318,11 @@ class Shard:
         step.stats.times = times  # the step's phases are timed in `times`
         return step
 
-    def _generate(self, orders: list[Pass], step: _Step, out_rays: list) -> RayBatch:
+    def _generate(self, orders: list[Pass], step: _Step, out_camera: list) -> RayBatch:
         """The camera rays of each ordered pass, generated here once. Rays whose first
-        instance box is another shard's go there (into out_rays); the rest (first box
-        here, or none) start here and are returned."""
+        instance box is another shard's go there by name ((pixel, sample) into
+        out_camera, per target); the rest (first box here, or none) start here and are
+        returned."""
         out = []
         for p in orders:
             rays = self.integrator.primary(p)
@@ -328,7 +335,10 @@ class Shard:
         first = nearest_unvisited(self.world, self.owned, rays.origin, rays.direction,
                                   rays.tmax, np.zeros(len(rays), np.uint64))
         here = (first == self.id) | (first == DONE)
-        self._send(rays, np.where(here, DONE, first), out_rays)
+        away = np.flatnonzero(~here)
+        for dest in np.unique(first[away]):
+            rows = away[first[away] == dest]
+            out_camera[int(dest)].append((rays.pixel[rows], rays.sample[rows]))
         return rays.take(here)
 
     def _wavefront(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch,
@@ -379,7 +389,7 @@ class Shard:
                 step.splat(done.pixel, done.contribution.astype(np.float64))
                 shadow = ShadowRayBatch.empty()
 
-    def _pack(self, step: _Step, out_rays: list, out_shadow: list,
+    def _pack(self, step: _Step, out_rays: list, out_shadow: list, out_camera: list,
               credits: dict[int, Fraction]) -> tuple[list, dict]:
         """One parcel per target holding every pass's rays for it. A pass's weight is
         shared equally by the parcels that carry its rays; a pass with no ray leaving
@@ -389,13 +399,17 @@ class Shard:
         batches = []
         for t in range(self.k):
             r, sh = RayBatch.concat(out_rays[t]), ShadowRayBatch.concat(out_shadow[t])
-            batches.append((r, sh))
-            if len(r) + len(sh) == 0:
+            cam = None
+            if out_camera[t]:
+                cam = tuple(np.concatenate(c) for c in zip(*out_camera[t], strict=True))
+            batches.append((r, sh, cam))
+            cam_pixel = cam[0] if cam is not None else np.zeros(0, np.uint32)
+            if len(r) + len(sh) + len(cam_pixel) == 0:
                 continue
-            tok = np.concatenate([step.tok(r.pixel), step.tok(sh.pixel)])
+            tok = np.concatenate([step.tok(r.pixel), step.tok(sh.pixel), step.tok(cam_pixel)])
             for j in np.unique(tok):
                 targets[j].append(t)
-            self._count_transfers(step, r, sh)
+            self._count_transfers(step, r, sh, cam)
         parcels: list = [None] * self.k
         shares: list[dict] = [{} for _ in range(self.k)]
         returned = {}
@@ -407,15 +421,24 @@ class Shard:
             part = w / len(targets[j])
             for t in targets[j]:
                 shares[t][i] = part
-        for t, (r, sh) in enumerate(batches):
+        for t, (r, sh, cam) in enumerate(batches):
             if shares[t]:
                 parcels[t] = Parcel(-1, shares[t], r if len(r) else None,
-                                    sh if len(sh) else None)
+                                    sh if len(sh) else None, camera=cam)
         return parcels, returned
 
-    def _count_transfers(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch) -> None:
-        """Transfers and bytes by kind, counted on each ray's pass."""
+    def _count_transfers(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch,
+                         camera: tuple | None) -> None:
+        """Transfers and bytes by kind, counted on each ray's pass; camera rays sent by
+        name count as primary transfers of their 8 bytes."""
         t = len(step.states)
+        if camera is not None:
+            counts = np.bincount(step.tok(camera[0]), minlength=t)
+            per_row = sum(a.itemsize for a in camera)
+            for st, c in zip(step.states, counts, strict=True):
+                if c:
+                    st.stats.count_transfer(KIND_NAMES[0], int(c), int(c) * per_row)
+                    st.stats.counters["camera_rays_sent_by_name"] += int(c)
         for batch, kinds in ((rays, None), (shadow, SHADOW)):
             if not len(batch):
                 continue
