@@ -31,9 +31,9 @@ DRIVER = ("nprt.workers", "nprt.workers.*", "nprt.scene", "nprt.scene.*", "nprt.
 # when a scene is loaded from glTF or generated, not when a stored scene is rendered, and
 # no driver module may import them at module level (the transitive check sees to that).
 SCENE_BUILDERS = ("nprt.scene.gltf", "nprt.scene.gltf_anim", "nprt.scene.demos.?*")
-# Shard-side modules the driver may import: the ray batch is the wire format (numpy only;
-# the statistics name ray kinds by its KIND_NAMES). Their own imports are still checked.
-ALLOWED = ("nprt.workers.wavefront", "nprt.workers.wavefront.batch")
+# Shard-side modules the driver may import (their own imports are still checked): none
+# but the package itself, a docstring.
+ALLOWED = ("nprt.workers.wavefront",)
 
 
 def _matches(name: str, patterns) -> bool:

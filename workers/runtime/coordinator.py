@@ -113,7 +113,6 @@ class Coordinator:
         self.pool.show(scene)  # a warm pool may still show another frame of its scene
         self.warm = self.pool.jobs > 1  # the pool was started for an earlier job
         self.window = max(MIN_WINDOW, WINDOW_PER_SHARD * self.k)
-        self.fetched: set[type] = set()  # types this coordinator read back (never a batch)
         self.totals: list[PollReply | None] = [None] * self.k  # shards' totals, last run
         self._done_totals = [dict() for _ in range(self.k)]  # summed over earlier runs
         self.wall_s = self.wait_s = self.cpu_s = 0.0
@@ -152,9 +151,7 @@ class Coordinator:
     # -- seams: every call the coordinator makes (tests wrap them) ------------------------
 
     def _get(self, ref):
-        out = ray.get(ref)
-        self.fetched.add(type(out))
-        return out
+        return ray.get(ref)
 
     def _order(self, shard: int, passes: list[Pass], epoch: int) -> None:
         """Have `shard` generate these passes' camera rays, each with weight 1."""

@@ -16,6 +16,9 @@ from nprt.workers.passes import Pass
 from nprt.workers.settings import RenderSettings
 
 EVERYWHERE = -1  # owner of an instance whose mesh is replicated on every shard
+# Ray kinds, as stored in RayBatch.kind (uint8) and named in every statistic.
+PRIMARY, SECONDARY, SHADOW = 0, 1, 2
+KIND_NAMES = ("primary", "secondary", "shadow")
 
 
 @dataclass(frozen=True)

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from nprt.workers.wavefront.batch import KIND_NAMES
+from nprt.workers.runtime.protocol import KIND_NAMES
 
 MAX_HOPS = 64
 

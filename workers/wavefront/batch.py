@@ -18,8 +18,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 # Ray kinds, stored in RayBatch.kind (uint8).
-PRIMARY, SECONDARY, SHADOW = 0, 1, 2
-KIND_NAMES = ("primary", "secondary", "shadow")
+from nprt.workers.runtime.protocol import KIND_NAMES, PRIMARY, SECONDARY, SHADOW  # noqa: F401
 
 # Hit record sentinels in `hit_inst` (int32): no hit yet, or a quad light (-2 - light index).
 NO_HIT = -1

@@ -23,7 +23,7 @@ import numpy as np
 
 from nprt.scene.model import Mesh
 from nprt.workers.passes import Pass, count_tiles, pass_at, tile_of
-from nprt.workers.routing.exact import DONE, nearest_unvisited, visited_bit
+from nprt.workers.routing.exact import DONE, hit_owner, nearest_unvisited, visited_bit
 from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
 from nprt.workers.runtime.protocol import EVERYWHERE, MeshRequest, Parcel, ShardConfig
 from nprt.workers.settings import RenderSettings
@@ -360,8 +360,7 @@ class Shard:
                     rays, target = self.policy.route_rays(rays, stats)
                 # Rays going to their hit's owner only to be shaded are not re-intersected:
                 # a second Embree call with tmax == t may pick a different triangle on an edge.
-                final = (target != DONE) & (rays.hit_inst >= 0) & \
-                    (target == self.world.owner[np.maximum(rays.hit_inst, 0)])
+                final = (target != DONE) & (target == hit_owner(self.world, rays.hit_inst))
                 rays = rays.replace(flags=rays.flags | (final * FLAG_SHADE).astype(np.uint8))
                 self._send(rays, target, out_rays)
                 done = RayBatch.concat([arrived, rays.take(target == DONE)])
