@@ -86,6 +86,7 @@ class JobRunner:
                                 on_pass=lambda p: self.on_pass(job_id, job_dir, live, p))
             renderer.close()
             renderer = None
+            self._check_accuracy(scene, settings, result)
             self._finish(job_id, job_dir, result, live)
         except RenderCanceled as e:
             if self.sched.stopping and not self.store.get(job_id).cancel_requested:
@@ -108,6 +109,24 @@ class JobRunner:
             if renderer is not None:
                 renderer.close()
         return False
+
+    def _check_accuracy(self, scene, settings: RenderSettings, result) -> None:
+        """The exact check of a proxy job's error (render() defers it when it is handed a
+        renderer): scattered blocks rendered exactly on a warm pool, after the job's pool
+        is back in the registry."""
+        acc = result.info.get("accuracy")
+        if not isinstance(acc, dict) or acc.get("check") != "deferred":
+            return
+        from nprt.proxies.check import run_check
+
+        try:
+            result.info["accuracy"] = run_check(scene, settings, result.film, acc,
+                                                self.settings.ray_address,
+                                                self.settings.proxies_dir,
+                                                pools=self.sched.pools)
+        except Exception as e:  # the image is done: a check that fails says so, the job stands
+            log.exception("accuracy check failed")
+            result.info["accuracy"] = {**acc, "check": f"failed: {type(e).__name__}: {e}"}
 
     def _frames(self, rec: JobRecord, job_dir: Path, settings: RenderSettings,
                 live: LiveJob, scene, renderer):
