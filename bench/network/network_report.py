@@ -573,7 +573,10 @@ def section_scaling(sc_res, rows, labels, flat, rpc_s) -> str:
         "host (K actors sharing its cores), not a cluster. Plot: `results/network_scaling.png`"
         f" (the paper's times dashed). Every tile is one pass: {passes} passes, with up to "
         f"{', '.join(map(str, windows))} live at once (the coordinator's window), so a "
-        "coordinator round trip is paid at a pass's admission and completion only.",
+        "coordinator round trip is paid at a pass's admission and completion only."
+        + (f" The rows come from {len(more) + 1} recordings, each with the code as it stood "
+           "then: compare K within one recording before reading trends across them."
+           if more else ""),
         "",
     ]
     if rpc_s is None:
