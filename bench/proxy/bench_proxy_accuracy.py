@@ -175,7 +175,8 @@ def main(argv=None) -> int:
     ap.add_argument("--proxy-dir", default=None, help="user proxy cache (default: nprt's)")
     ap.add_argument("--fit", action="store_true", help="print the sensitivity fit")
     ap.add_argument("--repeat", type=int, default=3, help="renders per row, the fastest kept")
-    ap.add_argument("--tag", default="", help="results/proxy_accuracy_<tag>.json (and .png)")
+    ap.add_argument("--tag", default="", help="results/proxy_accuracy_<tag>.json (and .png);"
+                    " the README table is left alone")
     add_render_flags(ap, RESULTS)
     args = smoke(ap.parse_args(argv), scenes=["foliage:tiny"], targets=[30.0],
                  shards=2, width=32, height=24, spp=1, bounces=2, proxy_width=16,
@@ -202,8 +203,10 @@ def main(argv=None) -> int:
              "*within 2 dB*: check against the whole image's PSNR.\n\n"
              "![]({png})\n\n")
     name = "proxy_accuracy" + (f"_{args.tag}" if args.tag else "")
+    # A tagged run (one scene, a side-by-side) keeps its own files; the README table is the
+    # untagged run's.
     finish(res, args.out / f"{name}.json", plot=plot, markdown=markdown,
-           section=SECTION, intro=intro, update_readme=not args.no_readme)
+           section=SECTION, intro=intro, update_readme=not (args.no_readme or args.tag))
     return 0
 
 
