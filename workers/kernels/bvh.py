@@ -61,6 +61,17 @@ def _node_hit(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2, tmax):
     return t_exit >= max(t_enter, 0.0) and t_enter < tmax
 
 
+@njit(inline="always", **JIT)
+def _push(node_box, first, count, stack, top, o0, o1, o2, i0, i1, i2, s0, s1, s2, tmax):
+    """Push nodes first .. first + count - 1 that the ray may enter before tmax onto the
+    traversal stack; returns the new top."""
+    for c in range(first, first + count):
+        if _node_hit(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2, tmax):
+            stack[top] = c
+            top += 1
+    return top
+
+
 def _buffers(n: int, k: int):
     """Output rows: ray (c,) int64, col (c,) int32, t_enter, t_exit (c,) float64, with
     room for four crossings per ray (scenes of overlapping boxes average about three, and
@@ -312,22 +323,14 @@ def _bvh_fill(origin, direction, tmax, boxes, node_box, node_child, node_start, 
         h = 0
         if (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2) and np.isfinite(d0)
                 and np.isfinite(d1) and np.isfinite(d2)):
-            top = 0
-            if _node_hit(node_box, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm):
-                stack[0] = 0
-                top = 1
+            top = _push(node_box, 0, 1, stack, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm)
             while top > 0:
                 top -= 1
                 node = stack[top]
                 c = node_child[node]
                 if c >= 0:
-                    if _node_hit(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm):
-                        stack[top] = c
-                        top += 1
-                    if _node_hit(node_box, c + 1, o0, o1, o2, i0, i1, i2, s0, s1, s2,
-                                 tm):
-                        stack[top] = c + 1
-                        top += 1
+                    top = _push(node_box, c, 2, stack, top, o0, o1, o2, i0, i1, i2, s0, s1,
+                                s2, tm)
                     continue
                 for x in range(node_start[node], node_start[node] + node_count[node]):
                     b = prim[x]

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from nprt.workers.kernels.bvh import JIT, _node_hit, _slab
+from nprt.workers.kernels.bvh import JIT, _push, _slab
 
 NONE = -1  # no unvisited box before tmax
 
@@ -39,10 +39,7 @@ def bvh_nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node
                                            i0, i1, i2, tm, best_t, best_o)
             out[r] = best_o
             continue
-        top = 0
-        if _node_hit(node_box, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm):
-            stack[0] = 0
-            top = 1
+        top = _push(node_box, 0, 1, stack, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm)
         while top > 0:
             top -= 1
             node = stack[top]
@@ -51,12 +48,8 @@ def bvh_nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node
             cull = min(tm, np.nextafter(best_t, np.inf))
             c = node_child[node]
             if c >= 0:
-                if _node_hit(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2, cull):
-                    stack[top] = c
-                    top += 1
-                if _node_hit(node_box, c + 1, o0, o1, o2, i0, i1, i2, s0, s1, s2, cull):
-                    stack[top] = c + 1
-                    top += 1
+                top = _push(node_box, c, 2, stack, top, o0, o1, o2, i0, i1, i2, s0, s1, s2,
+                            cull)
                 continue
             for x in range(node_start[node], node_start[node] + node_count[node]):
                 best_t, best_o = _consider(boxes, prim[x], in_set, box_owner, seen, o0, o1,
