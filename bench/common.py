@@ -37,13 +37,13 @@ def machine(ray_cpus: int) -> dict:
 
 
 def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1):
-    """Start a Coordinator (timed as prepare: plan, proxies, actors), render `repeat`
-    times and keep the fastest. Returns (row, image (h, w, 3) float32, coordinator info)."""
-    from nprt.workers.render import render
-    from nprt.workers.runtime.coordinator import Coordinator
+    """Start a renderer (a Coordinator, or the reference for shards=0; timed as prepare:
+    plan, proxies, actors), render `repeat` times and keep the fastest. Returns (row,
+    image (h, w, 3) float32, renderer info)."""
+    from nprt.workers.render import make_renderer, render
 
     t0 = time.perf_counter()
-    coord = Coordinator(scene, s)
+    coord = make_renderer(scene, s)
     prepare_s = time.perf_counter() - t0
     try:
         best = None
@@ -58,11 +58,13 @@ def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1)
         coord.close()
     wall, result = best
     st = result.stats.to_dict()
-    row = {"mode": s.mode, "k": s.shards, "prepare_s": round(prepare_s, 3),
+    row = {"mode": s.mode if s.shards else "reference", "k": s.shards,
+           "prepare_s": round(prepare_s, 3),
            "render_s": round(wall, 3), "transfers": st["transfers"], "bytes": st["bytes"],
            "total_transfers": st["total_transfers"], "total_bytes": st["total_bytes"],
            "rays": st["rays"], "hops_histogram": st["hops_histogram"],
-           "phase_s": st["phase_s"], "counters": st["counters"]}
+           "phase_s": st["phase_s"], "phase_cpu_s": st["phase_cpu_s"],
+           "counters": st["counters"]}
     return row, result.film.image(), info
 
 

@@ -25,10 +25,8 @@ from pathlib import Path
 import numpy as np
 import ray
 
-from bench.common import RESULTS, finish, machine, quality, smoke
+from bench.common import RESULTS, finish, machine, quality, smoke, timed_render
 from nprt.scene.io import load_any
-from nprt.workers.render import render
-from nprt.workers.runtime.coordinator import Coordinator
 from nprt.workers.runtime.pool import ShardPool
 from nprt.workers.settings import RenderSettings
 
@@ -38,28 +36,12 @@ TARGETS = {"exact_ratio": 0.8, "proxy_ratio": 0.65, "busy_k2": 0.8, "setup_s": 5
 
 def timed(scene, s: RenderSettings) -> dict:
     """Prepare (pool start, or reference set-up) then one timed render."""
-    t0 = time.perf_counter()
-    if s.shards == 0:
-        from nprt.workers.wavefront.reference import ReferenceRenderer
-
-        renderer = ReferenceRenderer(scene, s)
-    else:
-        renderer = Coordinator(scene, s)
-    prepare = time.perf_counter() - t0
-    try:
-        t0 = time.perf_counter()
-        result = render(scene, s, renderer=renderer)
-        wall = time.perf_counter() - t0
-        info = renderer.info()
-    finally:
-        renderer.close()
-    st = result.stats.to_dict()
-    return {"mode": s.mode if s.shards else "reference", "k": s.shards,
-            "prepare_s": round(prepare, 3), "render_s": round(wall, 3),
-            "total_bytes": st["total_bytes"], "phase_s": st["phase_s"],
-            "busy": [x["busy_fraction"] for x in info.get("shard_stats", [])],
-            "calls": [x["calls"] for x in info.get("shard_stats", [])],
-            "image": result.film.image()}
+    row, image, info = timed_render(scene, s)
+    shards = info.get("shard_stats", [])
+    return {**{k: row[k] for k in ("mode", "k", "prepare_s", "render_s", "total_bytes",
+                                   "phase_s")},
+            "busy": [x["busy_fraction"] for x in shards],
+            "calls": [x["calls"] for x in shards], "image": image}
 
 
 def bench_renders(name: str, args) -> list[dict]:

@@ -18,13 +18,11 @@ import argparse
 import json
 import os
 import platform
-import time
 
 import numpy as np
 
-from bench.common import add_output_flags, finish, machine, quality, smoke
+from bench.common import add_output_flags, finish, machine, quality, smoke, timed_render
 from nprt.scene.store import open_scene
-from nprt.workers.render import render
 from nprt.workers.settings import RenderSettings
 
 TARGETS = {"proxy_k8_wall": 0.3, "exact_k8_wall": 0.5, "proxy_cpu": 2.0, "exact_cpu": 3.0,
@@ -43,31 +41,17 @@ def cpu_model() -> str:
 
 def run_one(scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
     """Prepare a renderer (pool start or reference set-up), then one timed render."""
-    from nprt.workers.render import make_renderer
-
-    t0 = time.perf_counter()
-    renderer = make_renderer(scene, s)
-    prepare = time.perf_counter() - t0
-    try:
-        t0 = time.perf_counter()
-        result = render(scene, s, renderer=renderer)
-        wall = time.perf_counter() - t0
-        info = renderer.info()
-    finally:
-        renderer.close()
-    st = result.stats.to_dict()
+    base, image, info = timed_render(scene, s)
     shards = info.get("shard_stats", [])
-    row = {"mode": s.mode if s.shards else "reference", "k": s.shards,
-           "prepare_s": round(prepare, 3), "render_s": round(wall, 3),
+    row = {**{k: base[k] for k in ("mode", "k", "prepare_s", "render_s", "phase_cpu_s")},
            "cpu_s": info.get("cpu_s"),
            "coordinator_cpu_s": info.get("coordinator_cpu_s", 0.0),
            "shard_cpu_s": [x["cpu_s"] for x in shards],
            "busy_fraction": [x["busy_fraction"] for x in shards],
            "named_cpu_fraction": [x["cpu_named_fraction"] for x in shards],
            "steps": sum(x["steps"] for x in shards), "parcels": sum(x["calls"] for x in shards),
-           "ray_bytes": st["total_bytes"], "transfers": st["total_transfers"],
-           "phase_cpu_s": st["phase_cpu_s"]}
-    return row, result.film.image()
+           "ray_bytes": base["total_bytes"], "transfers": base["total_transfers"]}
+    return row, image
 
 
 def bench(args) -> dict:

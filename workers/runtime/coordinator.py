@@ -388,7 +388,7 @@ class Coordinator:
                 "geometry_bytes": i["geometry_bytes"], "meshes": i.get("meshes"),
                 "load_s": i.get("load_s"), "busy_s": round(busy, 4),
                 "busy_fraction": round(busy / wall, 4), "cpu_s": round(cpu, 4),
-                "cpu_named_fraction": round(named / cpu, 4) if cpu else None,
+                "cpu_named_fraction": round(named / cpu, 4) if cpu and t.get("steps") else None,
                 "phase_cpu_s": {k: round(v, 4) for k, v in
                                 sorted(t.get("phase_cpu_s", {}).items())},
                 "steps": int(t.get("steps", 0)), "calls": int(t.get("parcels_in", 0)),
