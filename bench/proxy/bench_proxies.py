@@ -149,10 +149,16 @@ def _fmt(v, spec: str) -> str:
 
 def markdown(res: dict) -> str:
     s, m = res["settings"], res["machine"]
+    px = s["proxy"]
+    # With an accuracy target (the default since issue 21) the bands come from each proxy's
+    # error curve and the band / shadow_band fields are not used (proxies.accuracy.job_bands).
+    bands = (f"band {px['band']}, shadow band {px['shadow_band']}"
+             if px.get("accuracy") is None else
+             f"accuracy {px['accuracy']} dB (per-mesh bands from the proxies' error curves)")
     lines = [f"Size `{res['size']}`, {s['width']}x{s['height']}, {s['spp']} spp, "
              f"{s['bounces']} bounces, {s['shadow_rays']} shadow rays, seed {s['seed']}; proxy "
-             f"knobs: threshold calibrated per proxy, band {s['proxy']['band']}, shadow band "
-             f"{s['proxy']['shadow_band']}, accuracy target {s['proxy']['accuracy_target']}; "
+             f"knobs: threshold calibrated per proxy, {bands}, width accuracy target "
+             f"{px['accuracy_target']}; "
              f"{m['cpus']} cores, Ray {m['ray']} with {m['ray_cpus']} logical CPUs, load "
              f"average {m['load_average_before'][0]:.1f} before the run. MB = 10^6 bytes of "
              "ray batches sent shard to shard. Quality is against exact at the same K and "
