@@ -22,6 +22,8 @@ def test_demo_renders_exact_and_proxy_side_by_side(ray_local, tmp_path, capsys):
     runs = json.loads((tmp_path / "comparison.json").read_text())["runs"]
     assert runs["exact"]["quality_vs_exact"]["flip"] == 0.0
     proxy = runs["proxy"]
-    assert proxy["transfers"]["shadow"] == 0
+    # At the default accuracy target uncertain shadow rays fall back to exact forwarding;
+    # the proxies answer most of them where they are made.
+    assert proxy["transfers"]["shadow"] < runs["exact"]["transfers"]["shadow"] / 4
     assert proxy["total_bytes"] < runs["exact"]["total_bytes"]
     assert proxy["proxy_plan"]["counts"]["proxy"] > 0
