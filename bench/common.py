@@ -36,14 +36,17 @@ def machine(ray_cpus: int) -> dict:
             "load_average_before": os.getloadavg()}
 
 
-def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1):
+def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1,
+                 trace: bool = False):
     """Start a renderer (a Coordinator, or the reference for shards=0; timed as prepare:
     plan, proxies, actors), render `repeat` times and keep the fastest. Returns (row,
-    image (h, w, 3) float32, renderer info)."""
+    image (h, w, 3) float32, renderer info). trace: a Coordinator records its steps, and
+    info gains "trace" (StepTrace.to_dict(), every repeat's steps: use repeat=1) and
+    "window"."""
     from nprt.workers.render import make_renderer, render
 
     t0 = time.perf_counter()
-    coord = make_renderer(scene, s)
+    coord = make_renderer(scene, s, trace=trace and s.shards > 0)
     prepare_s = time.perf_counter() - t0
     try:
         best = None
@@ -54,6 +57,8 @@ def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1)
             if best is None or wall < best[0]:
                 best = (wall, result)
         info = coord.info()
+        if getattr(coord, "trace", None) is not None:
+            info |= {"trace": coord.trace.to_dict(), "window": coord.window}
     finally:
         coord.close()
     wall, result = best

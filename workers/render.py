@@ -81,7 +81,7 @@ class RenderResult:
 
 
 def make_renderer(scene, settings: RenderSettings, ray_address: str | None = None,
-                  proxy_dir=None, pools=None, on_progress=None):
+                  proxy_dir=None, pools=None, on_progress=None, trace: bool = False):
     """The reference renderer for shards == 0 (a stored scene's metadata is loaded whole
     here), else a coordinator (on a warm pool from the PoolRegistry `pools` if given).
     scene: a Scene, or a SceneMeta from nprt.scene.store.open_scene (the driver then holds no
@@ -96,7 +96,7 @@ def make_renderer(scene, settings: RenderSettings, ray_address: str | None = Non
     from nprt.workers.runtime.coordinator import Coordinator
 
     return Coordinator(scene, settings, ray_address=ray_address, proxy_dir=proxy_dir,
-                       pools=pools, on_progress=on_progress)
+                       pools=pools, on_progress=on_progress, trace=trace)
 
 
 def render(scene: Scene | SceneMeta, settings: RenderSettings, *,

@@ -7,6 +7,13 @@ shard and in total (process CPU of every shard plus the coordinator's), coordina
 busy fraction, the share of shard CPU in named phases, wavefront steps, parcels, ray bytes,
 and PSNR of proxy against exact at the same K.
 
+Where the machine has fewer cores than K + 1, the walls measure oversubscription. So every
+distributed run also records its step trace, and bench/network/netmodel.py replays it on K
+dedicated cores (each step takes its own recorded CPU seconds, parcels cross links of
+MODEL_LINK_BPS, one free parameter: the coordinator's one-way latency, fitted on this run's
+K = 1 renders, where one shard and the coordinator each had a core). The model's wall is
+compared with the reference's CPU seconds (its wall on a dedicated core).
+
     python -m bench.render.bench_strong_scaling                      # forest, city; 640x360 16 spp
     python -m bench.render.bench_strong_scaling --scenes forest --ks 1 2 --width 320 --spp 4
     python -m bench.render.bench_strong_scaling --smoke              # CI: tiny, no README
@@ -22,11 +29,15 @@ import platform
 import numpy as np
 
 from bench.common import add_output_flags, finish, machine, quality, smoke, timed_render
+from bench.network.bench_network import film_bytes
+from bench.network.netmodel import fit_rpc_s, replay, step_cpu
 from nprt.scene.store import open_scene
 from nprt.workers.settings import RenderSettings
 
 TARGETS = {"proxy_k8_wall": 0.3, "exact_k8_wall": 0.5, "proxy_cpu": 2.0, "exact_cpu": 3.0,
            "coordinator_cpu_share": 0.05, "exact_k2_wall_2core": 0.8, "proxy_k2_wall_2core": 0.65}
+MODEL_LINK_BPS = 25e9  # the model's links: a cluster's network (one host's object store is faster)
+FALLBACK_RPC_S = 0.0057  # coordinator latency when no K = 1 run fits it (bench_network's)
 
 
 def cpu_model() -> str:
@@ -39,9 +50,10 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
-def run_one(scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
-    """Prepare a renderer (pool start or reference set-up), then one timed render."""
-    base, image, info = timed_render(scene, s)
+def run_one(scene, s: RenderSettings) -> tuple[dict, np.ndarray, dict | None]:
+    """Prepare a renderer (pool start or reference set-up), then one timed render. Returns
+    (row, image, model input: trace, window and film bytes; None for the reference)."""
+    base, image, info = timed_render(scene, s, trace=True)
     shards = info.get("shard_stats", [])
     row = {**{k: base[k] for k in ("mode", "k", "prepare_s", "render_s", "phase_cpu_s")},
            "cpu_s": info.get("cpu_s"),
@@ -51,23 +63,48 @@ def run_one(scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
            "named_cpu_fraction": [x["cpu_named_fraction"] for x in shards],
            "steps": sum(x["steps"] for x in shards), "parcels": sum(x["calls"] for x in shards),
            "ray_bytes": base["total_bytes"], "transfers": base["total_transfers"]}
-    return row, image
+    run = ({"trace": info["trace"], "window": info["window"], "film_bytes": film_bytes(s),
+            "wall_s": row["render_s"]} if "trace" in info else None)
+    return row, image, run
+
+
+def model_walls(rows: list[dict], runs: list[dict], ref_cpu_s: float, cores: int) -> dict:
+    """Replay each distributed row's trace on K dedicated cores (adds model_render_s and
+    model_ratio, against the reference's CPU seconds, to each row). The coordinator latency
+    is fitted on the K = 1 rows; rows with K + 1 <= cores (a core each, the coordinator's
+    too) are where the model can be checked against the measured wall."""
+    ones = [(r["trace"], MODEL_LINK_BPS, r["wall_s"], r["window"], r["film_bytes"])
+            for row, r in zip(rows, runs, strict=True) if row["k"] == 1]
+    rpc_s, fit_err = fit_rpc_s(ones) if ones else (FALLBACK_RPC_S, None)
+    checks = []
+    for row, r in zip(rows, runs, strict=True):
+        rep = replay(r["trace"], MODEL_LINK_BPS, rpc_s, r["window"], r["film_bytes"],
+                     step_cpu(r["trace"]))
+        row["model_render_s"] = round(rep.makespan_s, 3)
+        row["model_ratio"] = round(rep.makespan_s / ref_cpu_s, 3)
+        if row["k"] + 1 <= cores:
+            checks.append({"mode": row["mode"], "k": row["k"], "measured_s": row["render_s"],
+                           "model_s": row["model_render_s"], "fitted": row["k"] == 1,
+                           "error": round(rep.makespan_s / row["render_s"] - 1, 4)})
+    return {"rpc_s": rpc_s, "fit_log_error": fit_err, "link_bps": MODEL_LINK_BPS,
+            "checks": checks}
 
 
 def bench(args) -> dict:
-    rows = []
+    rows, models = [], {}
     for name in args.scenes:
         scene = open_scene(name if args.size == "default" else f"{name}:{args.size}")
         base = dict(width=args.width, height=args.height, spp=args.spp, seed=0,
                     spp_per_pass=args.spp_per_pass)
-        ref, ref_img = run_one(scene.load(), RenderSettings(**base, shards=0))
+        ref, ref_img, _ = run_one(scene.load(), RenderSettings(**base, shards=0))
         ref.update(scene=name, wall_ratio=1.0, cpu_ratio=1.0)
         rows.append(ref)
         print(_line(ref), flush=True)
+        dist, runs = [], []
         for k in args.ks:
             exact_img = None
             for mode in args.modes:
-                row, img = run_one(scene, RenderSettings(**base, shards=k, mode=mode))
+                row, img, run = run_one(scene, RenderSettings(**base, shards=k, mode=mode))
                 row.update(scene=name, wall_ratio=round(row["render_s"] / ref["render_s"], 3),
                            cpu_ratio=round(row["cpu_s"] / ref["cpu_s"], 3),
                            coordinator_share=round(row["coordinator_cpu_s"] / row["cpu_s"], 4))
@@ -77,11 +114,20 @@ def bench(args) -> dict:
                 elif exact_img is not None:
                     row["psnr_vs_exact_db"] = quality(exact_img, img)["psnr_db"]
                 rows.append(row)
+                dist.append(row)
+                runs.append(run)
                 print(_line(row), flush=True)
                 _partial(args, rows)
+        models[name] = model_walls(dist, runs, ref["cpu_s"], os.cpu_count() or 1)
+        del runs  # traces of a large K run to tens of MB
+        for row in dist:
+            print(f"{name} {row['mode']:9s} K={row['k']:2d} model on K dedicated cores "
+                  f"{row['model_render_s']:7.2f} s = {row['model_ratio']:.2f}x the reference's "
+                  "CPU", flush=True)
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count(),
                         "cpu_model": cpu_model()},
-            "settings": vars(args) | {"out": str(args.out)}, "targets": TARGETS, "rows": rows}
+            "settings": vars(args) | {"out": str(args.out)}, "targets": TARGETS, "rows": rows,
+            "model": models}
 
 
 def _partial(args, rows: list[dict]) -> None:
@@ -101,8 +147,8 @@ def markdown(res: dict) -> str:
     out = [f"Machine: {m['nproc']} cores ({m['cpu_model']}), Ray {m['ray']}.", "",
            "| scene | renderer | K | render s | vs reference | CPU s (all) | CPU vs ref | "
            "coordinator CPU s (share) | shard CPU s | busy | named CPU | steps | parcels | "
-           "ray MB | PSNR dB |",
-           "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|"]
+           "ray MB | PSNR dB | model s, K cores | model vs ref |",
+           "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"]
     for r in res["rows"]:
         named = [x for x in r["named_cpu_fraction"] if x is not None]
         psnr = r.get("psnr_vs_exact_db", r.get("psnr_vs_reference_db", ""))
@@ -113,8 +159,22 @@ def markdown(res: dict) -> str:
             f"{', '.join(f'{c:.1f}' for c in r['shard_cpu_s'])} | "
             f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | "
             f"{min(named) if named else 1.0:.3f} | {r['steps']} | {r['parcels']} | "
-            f"{r['ray_bytes'] / 1e6:.1f} | {psnr if psnr != '' else ''} |")
+            f"{r['ray_bytes'] / 1e6:.1f} | {psnr if psnr != '' else ''} | "
+            f"{_fmt(r.get('model_render_s'), '.2f')} | {_fmt(r.get('model_ratio'), '.2f', 'x')} |")
+    for name, m in res.get("model", {}).items():
+        checks = ", ".join(f"{c['mode']} K={c['k']} {c['measured_s']:.2f} s measured, "
+                           f"{c['model_s']:.2f} s model ({100 * c['error']:+.0f} %"
+                           f"{', fitted' if c['fitted'] else ''})" for c in m["checks"])
+        fitted = "fitted on the K = 1 runs" if m["fit_log_error"] is not None else "not fitted"
+        out += ["", f"Model ({name}): coordinator latency {1e3 * m['rpc_s']:.1f} ms one way "
+                    f"({fitted}), "
+                    f"links {m['link_bps'] / 1e9:.0f} Gbit/s. Against the walls measured where "
+                    f"each shard and the coordinator had a core: {checks or 'none'}."]
     return "\n".join(out)
+
+
+def _fmt(x, spec: str, unit: str = "") -> str:
+    return "" if x is None else f"{x:{spec}}{unit}"
 
 
 def plot(res: dict, png) -> None:
@@ -132,6 +192,9 @@ def plot(res: dict, png) -> None:
             if rs:
                 ks = [r["k"] for r in rs]
                 axes[0, j].plot(ks, [r["wall_ratio"] for r in rs], style, label=mode)
+                if all("model_ratio" in r for r in rs):
+                    axes[0, j].plot(ks, [r["model_ratio"] for r in rs], style[0] + "--",
+                                    label=f"{mode}, model on K cores")
                 axes[1, j].plot(ks, [r["cpu_ratio"] for r in rs], style, label=mode)
         for i, what in enumerate(("render wall / 1-core reference",
                                   "total CPU / reference CPU")):
