@@ -86,10 +86,13 @@ class _Batch:
         return batch
 
     def take(self, index: np.ndarray):
-        """Rows selected by a bool mask or an index array."""
+        """Rows selected by a bool mask or an index array. A mask that keeps every row
+        gives this batch itself: batches are immutable, so their rows may be shared."""
         index = np.asarray(index)
         if index.dtype == bool:  # one nonzero scan, not one per column
             index = np.flatnonzero(index)
+            if len(index) == len(self):
+                return self
         return self._trusted({name: getattr(self, name)[index] for name in self._SPEC})
 
     def replace(self, **changes):
@@ -113,8 +116,13 @@ class _Batch:
 
     @classmethod
     def empty(cls):
-        return cls(**{name: np.zeros((0,) if w is None else (0, w), dtype=dt)
-                      for name, (w, dt) in cls._SPEC.items()})
+        """The batch of no rows (one per class: batches are immutable)."""
+        made = cls.__dict__.get("_EMPTY")
+        if made is None:
+            made = cls(**{name: np.zeros((0,) if w is None else (0, w), dtype=dt)
+                          for name, (w, dt) in cls._SPEC.items()})
+            cls._EMPTY = made
+        return made
 
 
 _RAY_SPEC = {

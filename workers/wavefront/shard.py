@@ -351,7 +351,9 @@ class Shard:
         while len(rays) or len(shadow):
             if len(rays):
                 settled = (rays.flags & FLAG_SHADE) != 0
-                arrived, rays = rays.take(settled), rays.take(~settled)
+                arrived = None
+                if settled.any():
+                    arrived, rays = rays.take(settled), rays.take(~settled)
                 stats.bind(step.tok(rays.pixel)).count_rays(rays.kind)
                 rays = rays.replace(visited=rays.visited | self.bit)
                 with stats.phase("local_intersect"):
@@ -361,10 +363,12 @@ class Shard:
                 # Rays going to their hit's owner only to be shaded are not re-intersected:
                 # a second Embree call with tmax == t may pick a different triangle on an edge.
                 final = (target != DONE) & (target == hit_owner(self.world, rays.hit_inst))
-                rays = rays.replace(flags=rays.flags | (final * FLAG_SHADE).astype(np.uint8))
+                if final.any():
+                    rays = rays.replace(flags=rays.flags | (final * FLAG_SHADE).astype(np.uint8))
                 self._send(rays, target, out_rays)
                 done = RayBatch.concat([arrived, rays.take(target == DONE)])
-                done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
+                if arrived is not None:
+                    done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
                 stats.bind(step.tok(done.pixel)).count_hops(done.hops)
                 with stats.phase("shade"):
                     shaded = self.integrator.shade(done)
