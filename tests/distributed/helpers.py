@@ -78,6 +78,17 @@ def assert_matches(tmp_path: Path, name: str, img: np.ndarray, ref: np.ndarray) 
                              f"image, reference and error map in {where}")
 
 
+def assert_identical(tmp_path: Path, name: str, result: RenderResult,
+                     ref: RenderResult) -> None:
+    """The film sums (float64) are the same bits: exact mode's promise at any K."""
+    got, want = result.film.sums, ref.film.sums
+    if not np.array_equal(got, want):
+        where = dump_images(tmp_path, name, result.film.image(), ref.film.image())
+        diff = np.abs(got - want)
+        raise AssertionError(f"{name}: {np.count_nonzero(diff)} film sums differ from the "
+                             f"reference (largest {diff.max():.3g}); images in {where}")
+
+
 def reference(scene, s: RenderSettings) -> RenderResult:
     return render(scene, s.model_copy(update={"shards": 0}))
 

@@ -15,9 +15,10 @@ Design:
 - Pipelining: up to `window` passes are live, at most one per tile (a ray's pixel then
   names its pass on every shard, without a column on the wire). Shards merge whatever has
   arrived into one wavefront, so steps grow with load instead of calls with K.
-- Films are collected from every shard once a pass is done, summed in shard order, and
-  handed on; `nprt.workers.render` adds them to the image per tile in pass order, so the
-  bytes of an image never depend on timing.
+- Films are collected from every shard once a pass is done as exact integers
+  (nprt.workers.filmsum), summed, converted once and handed on (so exact mode equals the
+  reference bit for bit at any K); `nprt.workers.render` adds them to the image per tile
+  in pass order, so the bytes of an image never depend on timing.
 - Failure: a shard that dies (a failed call) or restarted unseen (a new incarnation in a
   poll or collect reply) may have lost rays, weight or film of any live pass. Every live
   pass is re-run in a new epoch; parcels of the old epoch are dropped where they arrive.
@@ -47,6 +48,7 @@ from ray.exceptions import ActorUnavailableError, RayActorError
 
 from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
+from nprt.workers.filmsum import FilmSums
 from nprt.workers.passes import Pass, count_tiles
 from nprt.workers.runtime.calltrace import StepTrace
 from nprt.workers.runtime.pool import (  # noqa: F401 (ShardStartError re-exported)
@@ -298,14 +300,14 @@ class Coordinator:
                 continue
             del live[i]
             p = a.pass_
-            total = np.zeros((p.n_pixels, 3))
+            total = FilmSums.zeros(p.n_pixels)
             st = RenderStats()
-            for s in range(self.k):  # a fixed order: the sums do not depend on timing
+            for s in range(self.k):  # integers: the sum depends on neither order nor K
                 part, pst = a.parts[s]
                 if part is not None:
                     total += part
                     st.merge(RenderStats.from_dict(pst))
-            yield p, total, st
+            yield p, total.to_float(), st
 
     def _check(self, shard: int, incarnation: str) -> None:
         if incarnation != self._incarnations[shard]:

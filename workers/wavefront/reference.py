@@ -58,7 +58,7 @@ class ReferenceRenderer:
             raise RuntimeError(f"pass {p.index}: one shard holding everything sent rays away")
         ((_, sums, stats),) = self.shard.collect([p.index])
         self.cpu_s += time.process_time() - c0
-        return sums, RenderStats.from_dict(stats)
+        return sums.to_float(), RenderStats.from_dict(stats)
 
     def render_passes(self, passes: Iterator[Pass], cancel: threading.Event | None = None):
         """Yield (pass, tile sums, stats) one pass after another."""

@@ -6,9 +6,10 @@ drives it inside a Ray actor (mailbox, direct sends), so the driver never import
 `step` is the unit of work: whatever has arrived (rays of any pass, from any sender, and
 orders to generate the camera rays of passes) runs as one wavefront as far as it goes
 here, and comes out as at most one parcel per target shard. Film contributions and
-statistics are kept per pass until `collect`; a pass's contributions are summed in fixed
-point (`fixed_point_sums`), so its film does not depend on how its rays were grouped into
-steps (timing), and any run, faulted or not, gives the same bytes.
+statistics are kept per pass until `collect`; a pass's contributions are summed as exact
+integers (nprt.workers.filmsum), so its film depends neither on how its rays were grouped
+into steps (timing) nor on how they were split over shards: any run, faulted or not, at
+any K, gives the same bytes.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ from fractions import Fraction
 import numpy as np
 
 from nprt.scene.model import Mesh
+from nprt.workers.filmsum import MAX_EXP, FilmSums
+from nprt.workers.kernels.filmsum import accumulate
 from nprt.workers.passes import Pass, count_tiles, pass_at, tile_of
 from nprt.workers.routing.exact import DONE, hit_owner, nearest_unvisited, visited_bit
 from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
@@ -37,9 +40,6 @@ from nprt.workers.wavefront.world import ShardWorld
 
 log = logging.getLogger(__name__)
 
-FIXED_POINT_BITS = 62  # film sums: a pixel's bound is 2^62 quanta (int64 never overflows)
-HALF_BITS = 31
-
 
 @dataclass
 class _PassState:
@@ -51,40 +51,23 @@ class _PassState:
     index: list = field(default_factory=list)  # (n,) int64 pixel index within the tile
     rgb: list = field(default_factory=list)  # (n, 3) float64 radiance
 
-    def sums(self) -> np.ndarray:
-        """(n_pixels, 3) float64, the same bytes in whatever order the contributions came."""
+    def sums(self) -> FilmSums:
+        """This shard's share of the pass's film as exact integers (nprt.workers.filmsum):
+        the same for any order of the contributions and any split of them over shards."""
         n = self.pass_.n_pixels
+        out = FilmSums.zeros(n)
         if not self.index:
-            return np.zeros((n, 3))
+            return out
         idx, rgb = np.concatenate(self.index), np.concatenate(self.rgb)
-        if not np.isfinite(rgb).all():  # rare: sort into a canonical order, then add
-            order = np.lexsort((rgb[:, 2], rgb[:, 1], rgb[:, 0], idx))
-            return np.stack([np.bincount(idx[order], weights=rgb[order, c], minlength=n)
-                             for c in range(3)], axis=1)
-        return fixed_point_sums(idx, rgb, n)
-
-
-def fixed_point_sums(idx: np.ndarray, rgb: np.ndarray, n: int) -> np.ndarray:
-    """Order-independent sums: idx (m,) int64 pixel, rgb (m, 3) finite float64 -> (n, 3).
-
-    Each value is scaled by a power of two (exact) to an integer multiple of a quantum and
-    the integers are added, which is associative: the result cannot depend on the order.
-    The quantum of a pixel is 2^-62 of a power of two above count * max |value|, so no sum
-    overflows int64, and it is at most 2 * count * max / 2^62 absolute (2e-16 relative
-    at a count of 1e3): below float64 rounding of the sum for any pixel near the pass's
-    brightest. Integers are added in two 31-bit halves through float64 bincounts (exact
-    below 2^53, i.e. for fewer than 2^22 values per pixel)."""
-    count = np.bincount(idx, minlength=n)
-    exponent = np.frexp(count[:, None] * np.abs(rgb).max(axis=0))[1]  # (n, 3) int
-    quantum = np.ldexp(1.0, exponent - FIXED_POINT_BITS)  # (n, 3) float64
-    q = np.rint(rgb / quantum[idx]).astype(np.int64)
-    hi, lo = q >> HALF_BITS, q & ((1 << HALF_BITS) - 1)
-    out = np.empty((n, 3))
-    for c in range(3):
-        h = np.bincount(idx, weights=hi[:, c], minlength=n).astype(np.int64)
-        low = np.bincount(idx, weights=lo[:, c], minlength=n).astype(np.int64)
-        out[:, c] = ((h << HALF_BITS) + low) * quantum[:, c]
-    return out
+        outside = np.zeros(len(idx), bool)
+        if accumulate(idx, rgb, out.words, outside):
+            # Rare (not finite, or beyond 2^MAX_EXP): float sums in a canonical order.
+            rows = np.flatnonzero(outside)
+            i, v = idx[rows], np.where(np.abs(rgb[rows]) < 2.0 ** MAX_EXP, 0.0, rgb[rows])
+            order = np.lexsort((v[:, 2], v[:, 1], v[:, 0], i))
+            out.rest = np.stack([np.bincount(i[order], weights=v[order, c], minlength=n)
+                                 for c in range(3)], axis=1)
+        return out
 
 
 @dataclass
@@ -253,7 +236,7 @@ class Shard:
         self.passes.clear()
 
     def collect(self, indices: list[int]) -> list[tuple]:
-        """[(pass index, film sums (n_pixels, 3) float64 or None, stats dict)] of finished
+        """[(pass index, FilmSums of n_pixels or None, stats dict)] of finished
         passes (None: this shard never saw the pass); their state is dropped here."""
         out = []
         for i in indices:

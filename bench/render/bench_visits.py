@@ -1,0 +1,213 @@
+"""The cost of a shard visit, without Ray: K Shards in this one process, stepped in turn, each
+step's parcels handed straight to their target, passes admitted as the coordinator admits
+them (one live pass per tile, a window of WINDOW_PER_SHARD x K) and completed by weight
+throwing. Everything is one thread, so process CPU is exact and nothing waits.
+
+It splits the distributed renderer's extra CPU in two: what the wavefront itself costs for
+K shards (rays visit several shards in exact forwarding, every visit walks the top level,
+intersects, routes and copies the ray again: the glue grows with visits) and, by difference
+with bench_strong_scaling's CPU at the same K, what Ray adds (calls, serialization, threads).
+
+Per row: CPU seconds over all shards and per camera path, shard visits per camera ray
+(rays entering steps / camera rays), CPU per visit, the phase split, and the ratio to the
+one-shard CPU of the same image (the reference's wavefront).
+
+    python -m bench.render.bench_visits                          # forest, city; 320x180 8 spp
+    python -m bench.render.bench_visits --scenes forest --ks 1 4 --modes exact
+    python -m bench.render.bench_visits --smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from fractions import Fraction
+
+import numpy as np
+
+from bench.common import add_output_flags, finish, machine, smoke
+from nprt.scene.store import open_scene
+from nprt.workers.filmsum import FilmSums
+from nprt.workers.passes import count_tiles, iter_passes, pass_at
+from nprt.workers.runtime.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
+from nprt.workers.runtime.placement import plan_placement
+from nprt.workers.runtime.protocol import ShardConfig
+from nprt.workers.settings import RenderSettings
+from nprt.workers.stats.counters import RenderStats
+from nprt.workers.wavefront.shard import Shard
+from nprt.workers.wavefront.world import ShardWorld
+
+
+def make_shards(scene, s: RenderSettings) -> list[Shard]:
+    """The K shards of `s`'s placement, warmed (kernels compiled or loaded)."""
+    placed = plan_placement(scene, s)
+    world = ShardWorld.build(scene, placed.owner)
+    shards = []
+    for sid in range(s.shards):
+        held = placed.shard_meshes[sid]
+        proxies = {m: p for m, p in placed.proxies.items() if m not in held}
+        sh = Shard(ShardConfig(sid, s.shards, s), world, {m: scene.meshes[m] for m in held},
+                   proxies)
+        sh.warm()
+        sh.begin(s)
+        shards.append(sh)
+    return shards
+
+
+def run(shards: list[Shard], s: RenderSettings) -> dict:
+    """Render every pass of `s` on `shards`; returns CPU, visits, phases and the film."""
+    k, tiles = len(shards), count_tiles(s)
+    window = max(MIN_WINDOW, WINDOW_PER_SHARD * k)
+    inbox: list[list] = [[] for _ in range(k)]  # per shard: (orders, parcel or None, credits)
+    waiting = list(iter_passes(s))
+    live: dict[int, Fraction] = {}  # pass index -> weight back so far
+    film = np.zeros((s.height * s.width, 3))
+    times, steps, rays_in, camera = RenderStats(), 0, 0, 0
+    c0 = time.process_time()
+    while waiting or live:
+        busy_tiles = {i % tiles for i in live}
+        for p in [p for p in waiting if len(live) < window]:
+            if p.index % tiles in busy_tiles or len(live) >= window:
+                continue
+            waiting.remove(p)
+            busy_tiles.add(p.index % tiles)
+            live[p.index] = Fraction(0)
+            inbox[p.index % k].append(((p,), None, {p.index: Fraction(1)}))
+            camera += p.n_paths
+        for sid, sh in enumerate(shards):
+            if not inbox[sid]:
+                continue
+            work, inbox[sid] = inbox[sid], []
+            credits: dict[int, Fraction] = {}
+            for _, _, c in work:
+                for i, w in c.items():
+                    credits[i] = credits.get(i, 0) + w
+            parcels = [x for _, x, _ in work if x is not None]
+            res = sh.step([o for os_, _, _ in work for o in os_], parcels, credits)
+            steps += 1
+            rays_in += res.rays_in
+            times.merge(res.times)
+            for target, out in enumerate(res.parcels):
+                if out is not None:
+                    inbox[target].append(((), out, out.credits))
+            for i, w in res.returned.items():
+                live[i] += w
+        for i in [i for i, w in live.items() if w == 1]:
+            del live[i]
+            p = pass_at(s, i)
+            total = FilmSums.zeros(p.n_pixels)
+            for sh in shards:
+                for _, sums, _ in sh.collect([i]):
+                    if sums is not None:
+                        total += sums
+            film[p.pixels(s.width)] += total.to_float()
+    cpu = time.process_time() - c0
+    return {"cpu_s": cpu, "steps": steps, "camera_rays": camera, "rays_in": rays_in,
+            "phase_cpu_s": {n: round(v, 4) for n, v in sorted(times.phase_cpu_s.items())},
+            "film": film}
+
+
+def bench(args) -> dict:
+    rows = []
+    for name in args.scenes:
+        scene = open_scene(name if args.size == "default" else f"{name}:{args.size}").load()
+        base = dict(width=args.width, height=args.height, spp=args.spp, seed=0,
+                    spp_per_pass=args.spp_per_pass)
+        one = None
+        for mode in args.modes:
+            for k in args.ks:
+                s = RenderSettings(**base, shards=k, mode=mode)
+                r = run(make_shards(scene, s), s)
+                if k == 1 and one is None:
+                    one = r
+                elif k == 1:
+                    one = min(one, r, key=lambda x: x["cpu_s"])
+                row = {"scene": name, "mode": mode, "k": k, "cpu_s": round(r["cpu_s"], 3),
+                       "us_per_path": round(1e6 * r["cpu_s"] / r["camera_rays"], 2),
+                       "visits_per_path": round(r["rays_in"] / r["camera_rays"], 3),
+                       "us_per_visit": round(1e6 * r["cpu_s"] / max(r["rays_in"], 1), 3),
+                       "steps": r["steps"], "phase_cpu_s": r["phase_cpu_s"]}
+                if one is not None:
+                    row["cpu_vs_one_shard"] = round(r["cpu_s"] / one["cpu_s"], 3)
+                    if mode == "exact" or k == 1:
+                        row["same_film_as_one_shard"] = bool(np.array_equal(r["film"],
+                                                                             one["film"]))
+                rows.append(row)
+                print(_line(row), flush=True)
+    return {"machine": machine(os.cpu_count()), "settings": vars(args) | {"out": str(args.out)},
+            "rows": rows}
+
+
+def _line(r: dict) -> str:
+    return (f"{r['scene']} {r['mode']:6s} K={r['k']:2d} cpu {r['cpu_s']:7.2f} s  "
+            f"{r['us_per_path']:6.2f} us/path  {r['visits_per_path']:5.2f} visits/path  "
+            f"{r['us_per_visit']:6.3f} us/visit  x{r.get('cpu_vs_one_shard', 1.0):.2f}")
+
+
+PHASES = ("receive", "generate", "top_level", "local_intersect", "proxy", "shade", "send",
+          "bookkeeping")
+
+
+def markdown(res: dict) -> str:
+    out = ["| scene | mode | K | CPU s | vs 1 shard | us / path | visits / path | us / visit | "
+           + " | ".join(PHASES) + " | same film |",
+           "|---|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(PHASES) + "---|"]
+    for r in res["rows"]:
+        ph = " | ".join(f"{r['phase_cpu_s'].get(p, 0.0):.2f}" for p in PHASES)
+        same = r.get("same_film_as_one_shard")
+        out.append(f"| {r['scene']} | {r['mode']} | {r['k']} | {r['cpu_s']:.2f} | "
+                   f"{r.get('cpu_vs_one_shard', 1.0):.2f}x | {r['us_per_path']:.2f} | "
+                   f"{r['visits_per_path']:.2f} | {r['us_per_visit']:.3f} | {ph} | "
+                   f"{'' if same is None else ('yes' if same else 'NO')} |")
+    return "\n".join(out)
+
+
+def plot(res: dict, png) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for (scene, mode), style in zip(sorted({(r["scene"], r["mode"]) for r in res["rows"]}),
+                                    ("o-", "s-", "^-", "v-", "d-", "x-"), strict=False):
+        rs = [r for r in res["rows"] if (r["scene"], r["mode"]) == (scene, mode)]
+        ks = [r["k"] for r in rs]
+        axes[0].plot(ks, [r.get("cpu_vs_one_shard", 1.0) for r in rs], style,
+                     label=f"{scene} {mode}")
+        axes[1].plot(ks, [r["visits_per_path"] for r in rs], style, label=f"{scene} {mode}")
+    for ax, what in zip(axes, ("CPU / one shard's CPU", "shard visits per camera path"),
+                        strict=True):
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("shards K (one process, no Ray)")
+        ax.set_ylabel(what)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench.render.bench_visits",
+                                 description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="+", default=["forest", "city"])
+    ap.add_argument("--size", default="default")
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=180)
+    ap.add_argument("--spp", type=int, default=8)
+    ap.add_argument("--spp-per-pass", type=int, default=4)
+    ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
+    ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8])
+    add_output_flags(ap)
+    args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
+                 spp=1, spp_per_pass=1, ks=[1, 2], modes=["exact"])
+    res = bench(args)
+    finish(res, args.out / "bench_visits.json", plot=plot, markdown=markdown,
+           section="bench_visits", update_readme=not args.no_readme,
+           intro="`python -m bench.render.bench_visits` (`{json}`):\n\n![]({png})\n\n")
+
+
+if __name__ == "__main__":
+    main()
