@@ -84,7 +84,7 @@ def cpu_seconds(pid: int) -> float:
 def film_bytes(s) -> dict[int, int]:
     """Token -> bytes of one shard's partial film of that pass (tokens follow pass order
     when nothing is retried)."""
-    return {p.index: p.n_pixels * 3 * 8 for p in iter_passes(s)}
+    return {p.index: p.n_pixels * 3 * 2 * 8 for p in iter_passes(s)}  # FilmSums: 2 int64 words
 
 
 def traced_render(scene, s, pools: PoolRegistry) -> dict:
