@@ -53,8 +53,7 @@ async def _admit(api, headers: dict, body: bytes) -> Response | None:
         return None
     frames = None if job.frames is None else (job.frames.first, job.frames.last)
     try:
-        rec, created = await api.in_writer(api.submit, job.scene, job.render_settings(), key,
-                                           frames)
+        rec, created = await api.submit_async(job.scene, job.render_settings(), key, frames)
     except ServiceError:
         return None
     out = {"location": f"/v1/jobs/{rec.id}"}

@@ -37,6 +37,7 @@ from nprt.service.errors import (
     UnknownScene,
     redact_paths,
 )
+from nprt.service.fastreads import FastReads
 from nprt.service.jobapi import JobApi
 from nprt.service.problems import describe_fields, document_problems, problem_response, type_name
 from nprt.service.routers import jobs, operations, scenes
@@ -79,14 +80,20 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
                 await grpc_server.stop(1.0)
             api.stop()
 
+    # FastAPI's OpenTelemetry hooks asked for the global providers on every request (a
+    # quarter of a polled read's CPU); the service exports Prometheus metrics instead.
     app = FastAPI(title="nprt render service", version="1", lifespan=lifespan,
+                  telemetry={"tracing": False, "metrics": False, "logs": False,
+                             "operation_spans": False},
                   description="Distributed path tracing jobs: upload scenes, submit renders, "
                               "follow tiles over SSE, fetch PNG/EXR. gRPC: protos/nprt.proto.")
     app.state.settings = settings
-    # The last added runs first: the token is checked before the body guard reads a byte.
+    # The last added runs first: the token is checked before the body guard reads a byte;
+    # the polled reads (no token, no body) are answered before either.
     app.add_middleware(FastAdmission)
     app.add_middleware(JsonGuard)
     app.add_middleware(TokenMiddleware, token=settings.api_token)
+    app.add_middleware(FastReads)
     app.include_router(scenes.router)
     app.include_router(jobs.router)
     app.include_router(operations.router)

@@ -7,6 +7,10 @@ a newer pending tile of the same rectangle supersedes goes first (the newer one 
 sample so far), then the oldest. A watcher that keeps up gets every tile, even when the
 feed hands over a burst of them at once; a slow one costs bounded memory and gets the
 latest image rather than every tile.
+
+Fan-out cost is paid once per event, not once per watcher, where it can be: `encoded`
+keeps an event's wire form (SSE text, gRPC message) for every watcher of the process, and
+the watchers on one event loop are woken with one cross-thread call per batch.
 """
 
 from __future__ import annotations
@@ -15,6 +19,7 @@ import asyncio
 import itertools
 import logging
 import threading
+import weakref
 from collections import OrderedDict
 from collections.abc import Callable
 
@@ -147,21 +152,61 @@ class EventBroker:
             return len(self._subs.get(job_id, ()))
 
 
+def encoded(event: dict, key, encode: Callable[[dict], object]):
+    """encode(event), computed once per event and key for all the watchers that get it (a
+    race on two threads at worst encodes twice)."""
+    cache = event.setdefault("_encoded", {})
+    if key not in cache:
+        cache[key] = encode(event)
+    return cache[key]
+
+
+class _LoopWaker:
+    """Sets the asyncio.Events of many watchers on one loop from another thread with one
+    call_soon_threadsafe (one write to the loop's wake-up pipe) per batch."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop):
+        self._loop = loop
+        self._lock = threading.Lock()
+        self._due: set[asyncio.Event] = set()
+
+    def wake(self, event: asyncio.Event) -> None:
+        with self._lock:
+            first = not self._due
+            self._due.add(event)
+        if first:
+            try:
+                self._loop.call_soon_threadsafe(self._flush)
+            except RuntimeError:  # the loop closed under a late event
+                pass
+
+    def _flush(self) -> None:
+        with self._lock:
+            due, self._due = self._due, set()
+        for event in due:
+            event.set()
+
+
+_wakers: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+_wakers_lock = threading.Lock()
+
+
+def _waker(loop: asyncio.AbstractEventLoop) -> _LoopWaker:
+    with _wakers_lock:
+        waker = _wakers.get(loop)
+        if waker is None:
+            waker = _wakers[loop] = _LoopWaker(loop)
+        return waker
+
+
 class AsyncWatch:
     """A Subscription for a coroutine on the running loop (SSE, grpc.aio): no thread is
     held while it waits. Use as an async context manager."""
 
     def __init__(self, subscribe: Callable[[Notify], Subscription]):
-        loop = asyncio.get_running_loop()
         self._wake = asyncio.Event()
-
-        def notify() -> None:
-            try:
-                loop.call_soon_threadsafe(self._wake.set)
-            except RuntimeError:  # the loop closed under a late event
-                pass
-
-        self.sub = subscribe(notify)
+        waker = _waker(asyncio.get_running_loop())
+        self.sub = subscribe(lambda: waker.wake(self._wake))
 
     async def next_events(self) -> list[dict]:
         """The pending events, waiting for at least one."""

@@ -7,6 +7,7 @@ thread."""
 from __future__ import annotations
 
 import asyncio
+import inspect
 
 import grpc
 from pydantic import ValidationError
@@ -23,7 +24,7 @@ from nprt.service.errors import (
     StoreBusy,
     TooManyWatchers,
 )
-from nprt.service.events import AsyncWatch
+from nprt.service.events import AsyncWatch, encoded
 from nprt.service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
 from nprt.service.grpc_logs import JobLogServicer
 from nprt.service.jobapi import JobApi
@@ -41,10 +42,13 @@ _FORMATS = {pb.IMAGE_FORMAT_PNG: "png", pb.IMAGE_FORMAT_EXR: "exr"}
 
 
 async def _call(context: grpc.aio.ServicerContext, fn, *args, thread: bool = False):
-    """fn(*args), on a worker thread if `thread`; a ServiceError ends the rpc with its
-    status code."""
+    """fn(*args), on a worker thread if `thread`, awaited if it is a coroutine; a
+    ServiceError ends the rpc with its status code."""
     try:
-        return await asyncio.to_thread(fn, *args) if thread else fn(*args)
+        if thread:
+            return await asyncio.to_thread(fn, *args)
+        out = fn(*args)
+        return await out if inspect.isawaitable(out) else out
     except ServiceError as e:
         code = next((c for t, c in _CODES.items() if isinstance(e, t)),
                     grpc.StatusCode.INVALID_ARGUMENT)
@@ -71,8 +75,8 @@ class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "scene is required (got '')")
         frames = (request.frames.first, request.frames.last) \
             if request.HasField("frames") else None
-        rec, _ = await _call(context, self.api.submit, request.scene, settings, None,
-                             frames, thread=True)
+        rec, _ = await _call(context, self.api.submit_async, request.scene, settings, None,
+                             frames)
         return job_to_pb(rec)
 
     async def GetJob(self, request, context):
@@ -87,7 +91,8 @@ class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
         return pb.ListJobsResponse(jobs=[job_to_pb(r) for r in recs], total=total)
 
     async def CancelJob(self, request, context):
-        return job_to_pb(await _call(context, self.api.cancel, request.job_id, thread=True))
+        return job_to_pb(await _call(context, self.api.in_writer, self.api.cancel,
+                                     request.job_id))
 
     async def GetImage(self, request, context):
         fmt = await self._format(request, context)
@@ -132,12 +137,22 @@ class RenderServicer(JobLogServicer, nprt_pb2_grpc.RenderServiceServicer):
             while rec.state not in TERMINAL:
                 for ev in await watch.next_events():
                     if ev["type"] == "tile":
-                        args = (ev, request.tile_format, self.max_message_bytes)
-                        tile = (await asyncio.to_thread(tile_to_pb, *args)
-                                if request.tile_format == pb.TILE_FORMAT_PNG else tile_to_pb(*args))
-                        yield pb.JobEvent(tile=tile)
+                        yield await self._tile_event(ev, request.tile_format)
                     else:
                         rec = ev["job"]
-                        yield pb.JobEvent(job=job_to_pb(rec))
+                        # One message per event for every stream of this process.
+                        yield encoded(ev, "grpc", lambda e: pb.JobEvent(job=job_to_pb(e["job"])))
                         if rec.state in TERMINAL:
                             break
+
+    async def _tile_event(self, ev: dict, fmt: int) -> pb.JobEvent:
+        """The event's message in `fmt`, built once for every stream of this process (PNG
+        encoding on a thread)."""
+        cache = ev.setdefault("_encoded", {})
+        key = ("grpc", fmt)
+        if key not in cache:
+            args = (ev, fmt, self.max_message_bytes)
+            tile = (await asyncio.to_thread(tile_to_pb, *args) if fmt == pb.TILE_FORMAT_PNG
+                    else tile_to_pb(*args))
+            cache[key] = pb.JobEvent(tile=tile)
+        return cache[key]

@@ -5,12 +5,10 @@ jobs up, so any number of API workers can share one store."""
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import shutil
 import sqlite3
 import uuid
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from nprt.service import checkpoint, images
@@ -21,6 +19,7 @@ from nprt.service.feed import EventFeed
 from nprt.service.scenes import SceneStore
 from nprt.service.store import TERMINAL, JobRecord, JobStore
 from nprt.service.store import QueueFull as StoreQueueFull
+from nprt.service.storewriter import StoreWriter
 from nprt.workers.passes import count_passes
 from nprt.workers.settings import RenderSettings
 
@@ -37,8 +36,8 @@ class JobApi:
         # Its own connection: the feed's reads never wait on this worker's requests.
         self._feed = EventFeed(JobStore(settings.db_path), self.broker)
         # One thread for the store's writes: they serialise on its connection anyway, and
-        # a plain executor hop costs less than anyio's worker threads.
-        self._writer = ThreadPoolExecutor(1, thread_name_prefix="nprt-store-writer")
+        # admissions that queue up meanwhile share one commit.
+        self._writer = StoreWriter(self.store)
         settings.jobs_dir.mkdir(parents=True, exist_ok=True)
 
     def start(self) -> JobApi:
@@ -46,7 +45,7 @@ class JobApi:
         return self
 
     def stop(self) -> None:
-        self._writer.shutdown(wait=True)
+        self._writer.stop()
         self._feed.stop()
         self._feed.store.close()
         self.store.close()
@@ -56,7 +55,7 @@ class JobApi:
     async def in_writer(self, fn, *args):
         """fn(*args) on the writer thread: a write may wait for another process's, and
         must not hold the event loop meanwhile."""
-        return await asyncio.get_running_loop().run_in_executor(self._writer, fn, *args)
+        return await self._writer.call(fn, *args)
 
     def submit(self, scene: str, settings: RenderSettings,
                idempotency_key: str | None = None,
@@ -66,24 +65,42 @@ class JobApi:
         against the scene when the job loads it). A stored idempotency key returns its
         job again (created False), Conflict if the request differs; QueueFull past
         max_queued_jobs."""
+        row = self._row(scene, settings, idempotency_key, frames)
+        try:
+            return self._created(row, self.store.insert(*row))
+        except (StoreQueueFull, sqlite3.OperationalError) as e:
+            raise _refusal(e) from None
+
+    async def submit_async(self, scene: str, settings: RenderSettings,
+                           idempotency_key: str | None = None,
+                           frames: tuple[int, int] | None = None) -> tuple[JobRecord, bool]:
+        """submit() from the event loop: checked here, stored on the writer thread in one
+        transaction with the admissions queued beside it."""
+        row = self._row(scene, settings, idempotency_key, frames)
+        try:
+            return self._created(row, await self._writer.insert(*row))
+        except (StoreQueueFull, sqlite3.OperationalError) as e:
+            raise _refusal(e) from None
+
+    def _row(self, scene: str, settings: RenderSettings, idempotency_key: str | None,
+             frames: tuple[int, int] | None) -> tuple:
+        """The store row of a valid job (InvalidJob, UnknownScene otherwise)."""
         frames = None if frames is None else [int(frames[0]), int(frames[1])]
         n_frames = 1 if frames is None else frames[1] - frames[0] + 1
         if n_frames < 1:
             raise InvalidJob("frames", f"last frame {frames[1]} is before first {frames[0]}")
         self._check_cost(settings, n_frames)
         self.scenes.check(scene)
-        stored = settings.model_dump(mode="json")
-        job_id = uuid.uuid4().hex
-        try:
-            rec = self.store.insert(job_id, scene, stored, count_passes(settings) * n_frames,
-                                    idempotency_key, frames, self.settings.max_queued_jobs)
-        except StoreQueueFull as e:
-            raise QueueFull(str(e)) from None
-        except sqlite3.OperationalError as e:  # another process held the write lock too long
-            raise StoreBusy(f"the job store is busy ({e}); try again") from None
+        return (uuid.uuid4().hex, scene, settings.model_dump(mode="json"),
+                count_passes(settings) * n_frames, idempotency_key, frames,
+                self.settings.max_queued_jobs)
+
+    @staticmethod
+    def _created(row: tuple, rec: JobRecord) -> tuple[JobRecord, bool]:
+        job_id, scene, stored, _, key, frames, _ = row
         if rec.id != job_id:  # the key was stored already
             if (rec.scene, rec.settings, rec.frames) != (scene, stored, frames):
-                raise Conflict(f"Idempotency-Key {idempotency_key!r} was used for job {rec.id} "
+                raise Conflict(f"Idempotency-Key {key!r} was used for job {rec.id} "
                                "with a different request")
             return rec, False
         return rec, True
@@ -170,3 +187,10 @@ class JobApi:
 
     def job_dir(self, job_id: str) -> Path:
         return self.settings.jobs_dir / job_id
+
+
+def _refusal(e: Exception) -> Exception:
+    if isinstance(e, StoreQueueFull):
+        return QueueFull(str(e))
+    # another process held the write lock too long
+    return StoreBusy(f"the job store is busy ({e}); try again")

@@ -147,24 +147,45 @@ class JobStore:
         inserted and the stored job is returned (compare its id to tell). With max_queued,
         QueueFull when that many jobs are queued (checked in the same statement, so
         concurrent inserts from any process never overshoot it; O(1), a counter)."""
+        out = self.insert_many([(job_id, scene, settings, passes_total, idempotency_key,
+                                 frames, max_queued)])[0]
+        if isinstance(out, QueueFull):
+            raise out
+        return out
+
+    def insert_many(self, rows: list[tuple]) -> list[JobRecord | QueueFull]:
+        """insert(*row) for every row, in one write transaction (one commit for a burst of
+        admissions); a row refused for the queue depth gets its QueueFull in the list, the
+        others are stored."""
+        with self._lock:
+            self._db.execute("BEGIN IMMEDIATE")
+            try:
+                out = [self._insert(*row) for row in rows]
+                self._db.execute("COMMIT")
+            except BaseException:
+                self._db.execute("ROLLBACK")
+                raise
+        return out
+
+    def _insert(self, job_id: str, scene: str, settings: dict, passes_total: int,
+                idempotency_key: str | None, frames: list[int] | None,
+                max_queued: int | None) -> JobRecord | QueueFull:
         now = time.time()
         depth = -1 if max_queued is None else max_queued
-        with self._lock:
-            cur = self._db.execute(
-                "INSERT INTO jobs (id, scene, settings, state, created_at, passes_total, "
-                "idempotency_key, frames) SELECT ?, ?, ?, 'queued', ?, ?, ?, ? WHERE ? < 0 OR "
-                "(SELECT n FROM counters WHERE name = 'queued') < ? "
-                "ON CONFLICT (idempotency_key) DO NOTHING",
-                (job_id, scene, json.dumps(settings), now, passes_total, idempotency_key,
-                 None if frames is None else json.dumps(list(frames)), depth, depth))
-            if cur.rowcount == 0:
-                row = None if idempotency_key is None else self._db.execute(
-                    "SELECT * FROM jobs WHERE idempotency_key = ?",
-                    (idempotency_key,)).fetchone()
-                if row is None:
-                    raise QueueFull(f"{max_queued} jobs are queued, the limit "
-                                    "(NPRT_MAX_QUEUED_JOBS)")
-                return _record(row)  # the key was stored already
+        cur = self._db.execute(
+            "INSERT INTO jobs (id, scene, settings, state, created_at, passes_total, "
+            "idempotency_key, frames) SELECT ?, ?, ?, 'queued', ?, ?, ?, ? WHERE ? < 0 OR "
+            "(SELECT n FROM counters WHERE name = 'queued') < ? "
+            "ON CONFLICT (idempotency_key) DO NOTHING",
+            (job_id, scene, json.dumps(settings), now, passes_total, idempotency_key,
+             None if frames is None else json.dumps(list(frames)), depth, depth))
+        if cur.rowcount == 0:
+            row = None if idempotency_key is None else self._db.execute(
+                "SELECT * FROM jobs WHERE idempotency_key = ?", (idempotency_key,)).fetchone()
+            if row is None:
+                return QueueFull(f"{max_queued} jobs are queued, the limit "
+                                 "(NPRT_MAX_QUEUED_JOBS)")
+            return _record(row)  # the key was stored already
         return JobRecord(seq=cur.lastrowid, id=job_id, scene=scene, settings=settings,
                          state="queued", created_at=now, started_at=None, finished_at=None,
                          passes_done=0, passes_total=passes_total, error=None, stats=None,

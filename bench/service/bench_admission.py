@@ -1,6 +1,7 @@
-"""CPU per admission: POST /v1/jobs through the ASGI app of one API worker, in process
-(no HTTP parsing, no client in the figure), against GET /healthz as the floor of any
-request. Process CPU includes the writer thread that stores the job and the event feed.
+"""CPU per request through the ASGI app of one API worker, in process (no HTTP parsing, no
+client in the figure): POST /v1/jobs one at a time and as a burst of concurrent ones, the
+polled reads, and GET /healthz as the floor of any request. Process CPU includes the
+writer thread that stores the jobs and the event feed.
 
     python -m bench.service.bench_admission [--requests 2000] [--smoke]
 """
@@ -25,8 +26,9 @@ WARMUP = 50
 
 async def _call(app, method: str, path: str, body: bytes = b"") -> int:
     """One request straight into the ASGI app; returns the status code."""
+    path, _, query = path.partition("?")
     scope = {"type": "http", "method": method, "path": path, "raw_path": path.encode(),
-             "query_string": b"", "http_version": "1.1", "scheme": "http",
+             "query_string": query.encode(), "http_version": "1.1", "scheme": "http",
              "headers": [(b"content-type", b"application/json"), (b"host", b"bench")],
              "server": ("bench", 80), "client": ("bench", 1), "root_path": ""}
     sent = False
@@ -49,21 +51,29 @@ async def _call(app, method: str, path: str, body: bytes = b"") -> int:
 
 async def _measure(n: int) -> dict:
     data = Path(tempfile.mkdtemp(prefix="nprt-admission-"))
-    app = create_app(ServiceSettings(data_dir=data, max_queued_jobs=n + WARMUP + 1,
+    app = create_app(ServiceSettings(data_dir=data, max_queued_jobs=3 * n + WARMUP + 500,
                                      api_token=None))
     body = json.dumps(JOB).encode()
     out = {}
     async with app.router.lifespan_context(app):
         for _ in range(WARMUP):
             assert await _call(app, "POST", "/v1/jobs", body) == 202
+        job_id = app.state.api.list(0, 1)[0][0].id
         for name, method, path, payload, want in (
                 ("GET /healthz", "GET", "/healthz", b"", 200),
-                ("POST /v1/jobs", "POST", "/v1/jobs", body, 202)):
+                ("GET /v1/jobs/{id}", "GET", f"/v1/jobs/{job_id}", b"", 200),
+                ("GET /v1/jobs?limit=20", "GET", "/v1/jobs?limit=20", b"", 200),
+                ("POST /v1/jobs", "POST", "/v1/jobs", body, 202),
+                ("POST /v1/jobs, a burst of 500", "POST", "/v1/jobs", body, 202)):
+            burst = 500 if "burst" in name else 1
             c0, t0 = time.process_time(), time.perf_counter()
-            for _ in range(n):
-                assert await _call(app, method, path, payload) == want
-            out[name] = {"cpu_ms": round((time.process_time() - c0) / n * 1e3, 4),
-                         "wall_ms": round((time.perf_counter() - t0) / n * 1e3, 4)}
+            for _ in range(max(1, n // burst)):
+                codes = await asyncio.gather(*(_call(app, method, path, payload)
+                                               for _ in range(burst)))
+                assert set(codes) == {want}, codes
+            done = max(1, n // burst) * burst
+            out[name] = {"cpu_ms": round((time.process_time() - c0) / done * 1e3, 4),
+                         "wall_ms": round((time.perf_counter() - t0) / done * 1e3, 4)}
     return out
 
 

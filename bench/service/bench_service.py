@@ -1,14 +1,16 @@
 """Service load benchmark: a burst of concurrent job submissions while SSE watchers and
 gRPC WatchJob streams follow running jobs (one of them a K = 2 render) and clients poll.
 Checks every job is accepted once and completed, and reports p50 / p99 per route and for
-gRPC health during the burst, plus the API processes' CPU. The client is aiohttp (httpx
-spent 4x the service's CPU per request, and client and service share the machine).
+gRPC health during the burst, plus the CPU of the API processes and of this load
+generator. The REST client is bench.service.rawhttp: client and service share the
+machine, and aiohttp spent more CPU per request than the service did.
 
     python -m bench.service.bench_service [--label after] [--jobs 500] [--smoke]
     python -m bench.service.bench_service --label before --service-root /tmp/before
 
 --service-root runs the service of another checkout (the commit before a change) with this
-client, so "before" and "after" are measured the same way.
+client, so "before" and "after" are measured the same way. --profile DIR writes py-spy
+stacks of every API process and of the client over the burst.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import json
 import os
 import platform
 import random
-import socket
+import re
 import subprocess
 import sys
 import tempfile
@@ -28,118 +30,52 @@ import uuid
 from collections import defaultdict
 from pathlib import Path
 
-import aiohttp
 import grpc
-import httpx
-import numpy as np
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
+from bench.service.harness import (
+    REPO,
+    Latency,
+    Rest,
+    api_cpu_s,
+    niceness,
+    start_profilers,
+    start_service,
+    stop_profilers,
+)
+from bench.service.rawhttp import request_bytes
 from nprt.protos import nprt_pb2 as pb
 from nprt.protos import nprt_pb2_grpc
 
-REPO = Path(__file__).resolve().parents[2]
 RESULTS = REPO / "bench" / "results"
 TERMINAL = {"succeeded", "failed", "canceled"}
 HEALTH_INTERVAL_S = 0.02
 LABELS = ("before", "after", "after_2_workers")
+_EVENT = re.compile(rb"event: (\w+)\r\n")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+async def sse_watch(rest: Rest, job_id: str, counts: dict) -> None:
+    """Follow one job's SSE stream to its `end` event, counting events by name."""
+    conn = rest.connection()
+    ended = asyncio.get_running_loop().create_future()
+    tail = b""
 
+    def on_chunk(data: bytes) -> None:
+        nonlocal tail
+        data = tail + data
+        cut = data.rfind(b"\n") + 1  # whole lines only; the rest waits for the next chunk
+        tail = data[cut:]
+        for name in _EVENT.findall(data[:cut]):
+            counts[name.decode()] += 1
+            if name == b"end" and not ended.done():
+                ended.set_result(None)
 
-def _pythonpath(root: Path) -> str:
-    """A checkout's folders importable as nprt.* ahead of the editable install of this one."""
-    if root.resolve() == REPO:
-        return str(REPO)
-    shim = Path(tempfile.mkdtemp(prefix="nprt-shim-")) / "nprt"
-    shim.mkdir()
-    for name in ("scene", "workers", "proxies", "protos", "service"):
-        (shim / name).symlink_to(root / name)
-    return f"{shim.parent}{os.pathsep}{root}"
-
-
-def start_service(root: Path, data_dir: Path, args) -> tuple[subprocess.Popen, str, str]:
-    """`nprt serve` of the checkout at root in its own process group, as deployed. Returns
-    (process, REST url, gRPC target)."""
-    port, grpc_port = _free_port(), _free_port()
-    env = {**os.environ, "PYTHONPATH": _pythonpath(root),
-           "NPRT_MAX_CONCURRENT_JOBS": str(args.max_jobs)}
-    env.pop("NPRT_API_TOKEN", None)
-    cmd = [sys.executable, "-m", "service", "serve", "--data-dir", str(data_dir), "--port",
-           str(port), "--grpc-port", str(grpc_port), "--log-level", "warning"]
-    if args.api_workers > 1:
-        cmd += ["--workers", str(args.api_workers)]
-    proc = subprocess.Popen(cmd, cwd=root, env=env, start_new_session=True)
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"{url}/healthz", timeout=1).status_code == 200:
-                return proc, url, f"127.0.0.1:{grpc_port}"
-        except httpx.TransportError:
-            time.sleep(0.1)
-    proc.kill()
-    raise RuntimeError("service did not start within 60 s")
-
-
-def _children(pid: int) -> list[int]:
-    try:
-        tasks = Path(f"/proc/{pid}/task").iterdir()
-        return [int(c) for t in tasks for c in (t / "children").read_text().split()]
-    except OSError:
-        return []
-
-
-def _cpu_s(pid: int) -> float:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return 0.0
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _is_scheduler(pid: int) -> bool:
-    try:
-        return b"scheduler" in Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return False
-
-
-def api_cpu_s(pid: int) -> float:
-    """CPU seconds of the serving processes so far: `pid` and its descendants, except a
-    scheduler process and everything under it (renders, Ray). Linux only."""
-    total, todo = 0.0, [pid]
-    while todo:
-        p = todo.pop()
-        if _is_scheduler(p):
-            continue
-        total += _cpu_s(p)
-        todo += _children(p)
-    return total
-
-
-class Latency:
-    def __init__(self):
-        self.samples_s: dict[str, list[float]] = defaultdict(list)
-
-    async def timed(self, kind: str, coro):
-        t0 = time.perf_counter()
-        out = await coro
-        self.samples_s[kind].append(time.perf_counter() - t0)
-        return out
-
-
-async def sse_watch(session: aiohttp.ClientSession, job_id: str, counts: dict) -> None:
-    """Follow one job's SSE stream to its `end` event, counting events."""
-    async with session.get(f"/v1/jobs/{job_id}/events",
-                           timeout=aiohttp.ClientTimeout(total=None, sock_read=600)) as r:
-        counts["opened"] += r.status == 200
-        async for line in r.content:
-            if line.startswith(b"event:"):
-                counts[line[6:].strip().decode()] += 1
+    head = await conn.stream(request_bytes("GET", f"/v1/jobs/{job_id}/events", rest.host),
+                             on_chunk)
+    counts["opened"] += head.status == 200
+    await asyncio.wait([ended, asyncio.ensure_future(conn.closed())],
+                       return_when=asyncio.FIRST_COMPLETED)
+    conn.close()
     counts["closed"] += 1
 
 
@@ -151,66 +87,41 @@ async def grpc_watch(stub, job_id: str, counts: dict) -> None:
     counts["closed"] += 1
 
 
-async def request(session: aiohttp.ClientSession, method: str, path: str,
-                  retries: dict | None = None, **kw) -> tuple[int, dict, float | None]:
-    """(status, JSON body, Retry-After s). A pooled connection the server closed as idle is
-    retried on a fresh one, twice at most (POSTs carry an Idempotency-Key: no duplicate
-    job)."""
-    for attempt in range(3):
-        try:
-            async with session.request(method, path, **kw) as r:
-                after = r.headers.get("Retry-After")
-                return r.status, await r.json(), None if after is None else float(after)
-        except (aiohttp.ServerDisconnectedError, aiohttp.ClientOSError):
-            if attempt == 2:
-                raise
-            if retries is not None:
-                retries[method] = retries.get(method, 0) + 1
-    raise AssertionError("unreachable")
-
-
-async def list_all(session: aiohttp.ClientSession) -> list[dict]:
+async def list_all(rest: Rest, conn) -> list[dict]:
     jobs, offset = [], 0
     while True:
-        _, page, _ = await request(session, "GET", "/v1/jobs",
-                                   params={"limit": 500, "offset": offset})
+        _, page, _ = await rest.call(conn, "GET", "/v1/jobs",
+                                     params={"limit": 500, "offset": offset})
         jobs += page["data"]
         offset += len(page["data"])
         if not page["data"] or offset >= page["count"]:
             return jobs
 
 
-async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: dict,
-              watched: list[dict]) -> dict:
+async def run(host: str, port: int, target: str, pid: int, args: argparse.Namespace,
+              job: dict, watched: list[dict]) -> dict:
     lat = Latency()
     stop = asyncio.Event()
     sse_counts: dict = defaultdict(int)
     grpc_counts: dict = defaultdict(int)
     refused: dict = defaultdict(int)
-    # Idle connections are dropped before uvicorn's 5 s keep-alive closes them under us.
-    connector = aiohttp.TCPConnector(limit=args.jobs + args.pollers + args.sse_watchers + 16,
-                                     keepalive_timeout=2.0)
-    async with aiohttp.ClientSession(url, connector=connector,
-                                     timeout=aiohttp.ClientTimeout(total=120)) as session, \
-            grpc.aio.insecure_channel(target) as channel:
+    rest = Rest(host, port)
+    control = rest.connection()
+    async with grpc.aio.insecure_channel(target) as channel:
         stub = nprt_pb2_grpc.RenderServiceStub(channel)
         health = health_pb2_grpc.HealthStub(channel)
-        retries: dict = {}
-
-        def call(method: str, path: str, **kw):
-            return request(session, method, path, retries, **kw)
 
         # Long jobs already rendering (one of them sharded), watched by every stream, so the
         # burst lands on a busy service that fans tiles out; canceled after the burst.
-        warm = [(await call("POST", "/v1/jobs", json=w))[1]["id"] for w in watched]
-        watchers = [asyncio.create_task(sse_watch(session, warm[i % len(warm)], sse_counts))
+        warm = [(await rest.call(control, "POST", "/v1/jobs", w))[1]["id"] for w in watched]
+        watchers = [asyncio.create_task(sse_watch(rest, warm[i % len(warm)], sse_counts))
                     for i in range(args.sse_watchers)]
         watchers += [asyncio.create_task(grpc_watch(stub, warm[i % len(warm)], grpc_counts))
                      for i in range(args.grpc_streams)]
         # Steady state: every stream open and every long job streaming tiles (the sharded
         # one once Ray and its shards are up).
         while True:
-            running = [(await call("GET", f"/v1/jobs/{j}"))[1] for j in warm]
+            running = [(await rest.call(control, "GET", f"/v1/jobs/{j}"))[1] for j in warm]
             if (sse_counts["opened"] + grpc_counts["opened"] == len(watchers)
                     and all(r["passes_done"] > 0 for r in running)):
                 break
@@ -218,65 +129,74 @@ async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: di
         ids: list[str] = list(warm)
 
         async def poller() -> None:
+            conn = rest.connection()
             while not stop.is_set():
                 if random.random() < 0.8:
-                    await lat.timed("GET /v1/jobs/{id}", call(
-                        "GET", f"/v1/jobs/{random.choice(ids)}"))
+                    await lat.timed("GET /v1/jobs/{id}", rest.call(
+                        conn, "GET", f"/v1/jobs/{random.choice(ids)}"))
                 else:
-                    await lat.timed("GET /v1/jobs", call("GET", "/v1/jobs",
-                                                         params={"limit": 20}))
+                    await lat.timed("GET /v1/jobs", rest.call(conn, "GET", "/v1/jobs",
+                                                              params={"limit": 20}))
                 await asyncio.sleep(0.005)
+            conn.close()
 
         async def health_loop() -> None:
+            conn = rest.connection()
             while not stop.is_set():
                 reply = await lat.timed("gRPC Health.Check", health.Check(
                     health_pb2.HealthCheckRequest(service=""), timeout=30))
                 assert reply.status == health_pb2.HealthCheckResponse.SERVING
-                await lat.timed("GET /healthz", call("GET", "/healthz"))
+                await lat.timed("GET /healthz", rest.call(conn, "GET", "/healthz"))
                 await asyncio.sleep(HEALTH_INTERVAL_S)
+            conn.close()
 
         async def submit() -> tuple[int, dict]:
-            """One submission, honouring Retry-After; its latency is the first answer's."""
-            key = uuid.uuid4().hex
+            """One submission on a connection of its own, honouring Retry-After; its
+            latency is the first answer's."""
+            conn = rest.connection()
+            key = {"Idempotency-Key": uuid.uuid4().hex}
             t0 = time.perf_counter()
-            status, body, after = await call("POST", "/v1/jobs", json=job,
-                                             headers={"Idempotency-Key": key})
+            status, body, after = await rest.call(conn, "POST", "/v1/jobs", job, key)
             lat.samples_s["POST /v1/jobs"].append(time.perf_counter() - t0)
             while status in (429, 503) and after is not None:
                 refused[status] += 1
                 await asyncio.sleep(after)
-                status, body, after = await call("POST", "/v1/jobs", json=job,
-                                                 headers={"Idempotency-Key": key})
+                status, body, after = await rest.call(conn, "POST", "/v1/jobs", job, key)
+            conn.close()
             return status, body
 
         background = [asyncio.create_task(poller()) for _ in range(args.pollers)]
         background.append(asyncio.create_task(health_loop()))
+        profilers = [] if args.profile is None else start_profilers(pid, args.profile)
         await asyncio.sleep(0.5)  # pollers and health running before the burst
-        cpu0 = api_cpu_s(pid)
+        cpu0, client0 = api_cpu_s(pid), time.process_time()
         t_burst = time.perf_counter()
         burst = await asyncio.gather(*(submit() for _ in range(args.jobs)))
         burst_s = time.perf_counter() - t_burst
-        cpu1 = api_cpu_s(pid)
+        cpu1, client1 = api_cpu_s(pid), time.process_time()
+        stop_profilers(profilers)
         open_after_burst = {"sse": sse_counts["opened"] - sse_counts["closed"],
                             "grpc": grpc_counts["opened"] - grpc_counts["closed"]}
+        nice = niceness(pid)
         stop.set()
         await asyncio.gather(*background)
         for job_id in warm:
-            await call("POST", f"/v1/jobs/{job_id}/cancel")
+            await rest.call(control, "POST", f"/v1/jobs/{job_id}/cancel")
         statuses = [status for status, _ in burst]
         accepted = [body for status, body in burst if status == 202]
         ids += [j["id"] for j in accepted]
 
         t_drain = time.perf_counter()
         while True:
-            jobs = await list_all(session)
+            jobs = await list_all(rest, control)
             states = {j["id"]: j["state"] for j in jobs}
             if all(states.get(i) in TERMINAL for i in ids):
                 break
             await asyncio.sleep(0.5)
         drain_s = time.perf_counter() - t_drain
         await asyncio.gather(*watchers)
-        post_cpu_ms = await sequential_post_cpu_ms(call, pid, job, args.cpu_posts)
+        post_cpu_ms = await sequential_post_cpu_ms(rest, control, pid, job, args.cpu_posts)
+        control.close()
 
     burst_ids = [j["id"] for j in accepted]
     return {
@@ -288,32 +208,26 @@ async def run(url: str, target: str, pid: int, args: argparse.Namespace, job: di
         "succeeded": sum(states.get(i) == "succeeded" for i in burst_ids),
         "burst_s": round(burst_s, 3), "drain_s": round(drain_s, 2),
         "api_cpu_s_during_burst": round(cpu1 - cpu0, 2),
+        "client_cpu_s_during_burst": round(client1 - client0, 2),
         "api_cpu_ms_per_sequential_post": post_cpu_ms,
         "streams_open_after_burst": open_after_burst,
-        "client_retries_after_idle_disconnect": retries,
+        "client_retries_after_idle_disconnect": rest.retries,
+        "nice_by_process": nice,
         "sse_events": dict(sse_counts), "grpc_events": dict(grpc_counts),
-        "latency_ms": {k: _percentiles(v) for k, v in sorted(lat.samples_s.items())},
+        "latency_ms": lat.summary(),
     }
 
 
-async def sequential_post_cpu_ms(call, pid: int, job: dict, n: int) -> float:
+async def sequential_post_cpu_ms(rest: Rest, conn, pid: int, job: dict, n: int) -> float:
     """The serving processes' CPU per POST /v1/jobs, one request at a time, each job
     canceled at once so nothing renders in between (the cancels are timed apart)."""
-    posts = cancels = 0.0
+    posts = 0.0
     for _ in range(n):
         c0 = api_cpu_s(pid)
-        _, body, _ = await call("POST", "/v1/jobs", json=job)
-        c1 = api_cpu_s(pid)
-        await call("POST", f"/v1/jobs/{body['id']}/cancel")
-        posts += c1 - c0
-        cancels += api_cpu_s(pid) - c1
+        _, body, _ = await rest.call(conn, "POST", "/v1/jobs", job)
+        posts += api_cpu_s(pid) - c0
+        await rest.call(conn, "POST", f"/v1/jobs/{body['id']}/cancel")
     return round(posts / n * 1e3, 3)
-
-
-def _percentiles(samples_s: list[float]) -> dict:
-    ms = np.asarray(samples_s) * 1e3
-    return {"n": int(len(ms)), "p50": round(float(np.percentile(ms, 50)), 2),
-            "p99": round(float(np.percentile(ms, 99)), 2), "max": round(float(ms.max()), 2)}
 
 
 def markdown(r: dict, label: str, args: dict) -> str:
@@ -344,6 +258,8 @@ def markdown(r: dict, label: str, args: dict) -> str:
              f"{r['streams_open_after_burst']['grpc']} | all |",
              f"| burst wall time | {r['burst_s']} s | |",
              f"| API process CPU during the burst | {r['api_cpu_s_during_burst']} s | |",
+             f"| load generator CPU during the burst | "
+             f"{r.get('client_cpu_s_during_burst', '-')} s | |",
              f"| API CPU per POST, one at a time | {r['api_cpu_ms_per_sequential_post']} ms "
              "| < 1 ms |",
              f"| drain time | {r['drain_s']} s | |", "",
@@ -416,6 +332,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--long-shards", type=int, default=2,
                     help="K of the long sharded render running during the burst")
     ap.add_argument("--scene", default="forest:tiny")
+    ap.add_argument("--profile", type=Path, metavar="DIR",
+                    help="py-spy each API worker over the burst (collapsed stacks in DIR)")
     ap.add_argument("--smoke", action="store_true",
                     help="a few jobs and watchers; writes nothing under bench/results")
     args = ap.parse_args(argv)
@@ -431,9 +349,10 @@ def main(argv: list[str] | None = None) -> int:
 
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
-        proc, url, target = start_service(args.service_root, Path(tmp) / "data", args)
+        proc, host, port, target = start_service(args.service_root, Path(tmp) / "data",
+                                                 args.max_jobs, args.api_workers)
         try:
-            result = asyncio.run(run(url, target, proc.pid, args, job, watched))
+            result = asyncio.run(run(host, port, target, proc.pid, args, job, watched))
         finally:
             os.killpg(proc.pid, 15)
             proc.wait(60)

@@ -9,12 +9,13 @@ from fastapi import APIRouter, Header, Query, Response, status
 from fastapi.concurrency import run_in_threadpool
 from fastapi.encoders import jsonable_encoder
 from fastapi.exceptions import RequestValidationError
+from sse_starlette.event import ServerSentEvent
 from sse_starlette.sse import EventSourceResponse
 
 from nprt.service import images
 from nprt.service.deps import ApiDep, TokenDep
 from nprt.service.errors import InvalidJob, TooManyWatchers
-from nprt.service.events import AsyncWatch
+from nprt.service.events import AsyncWatch, encoded
 from nprt.service.schemas import (
     JobCreate,
     JobPublic,
@@ -29,6 +30,7 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"])
 
 _MEDIA = {"png": "image/png", "exr": "image/x-exr"}
 SSE_PING_S = 15
+SSE_SEP = "\r\n"
 # Reads are SQLite rows on the store's reading connection (WAL: a read never waits for a
 # writer), well under a millisecond: they run on the event loop, where a thread hop would
 # cost more. Writes (submit, cancel) can wait for another process's write, so they go to
@@ -49,8 +51,8 @@ async def create_job(body: JobCreate, api: ApiDep,
     Idempotency-Key)."""
     try:
         frames = None if body.frames is None else (body.frames.first, body.frames.last)
-        rec, created = await api.in_writer(api.submit, body.scene, body.render_settings(),
-                                           idempotency_key, frames)
+        rec, created = await api.submit_async(body.scene, body.render_settings(),
+                                              idempotency_key, frames)
     except InvalidJob as e:
         # Same answer as FastAPI's own validation errors, so clients see the field.
         raise RequestValidationError([
@@ -64,20 +66,26 @@ async def create_job(body: JobCreate, api: ApiDep,
                     headers, media_type="application/json")
 
 
-@router.get("")
+@router.get("", response_model=JobsPublic)
 async def list_jobs(api: ApiDep,
                     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
                     limit: Annotated[int, Query(ge=1, le=500)] = 50,
-                    state: JobState | None = None) -> JobsPublic:
+                    state: JobState | None = None) -> Response:
     """Jobs, newest first."""
     recs, count = api.list(offset, limit, state)
-    return JobsPublic(data=[JobPublic.from_record(r) for r in recs], count=count,
-                      offset=offset, limit=limit)
+    return _json(JobsPublic(data=[JobPublic.from_record(r) for r in recs], count=count,
+                            offset=offset, limit=limit))
 
 
-@router.get("/{job_id}", responses=error_responses(404))
-async def get_job(job_id: str, api: ApiDep) -> JobPublic:
-    return JobPublic.from_record(api.get(job_id))
+@router.get("/{job_id}", response_model=JobPublic, responses=error_responses(404))
+async def get_job(job_id: str, api: ApiDep) -> Response:
+    return _json(JobPublic.from_record(api.get(job_id)))
+
+
+def _json(model) -> Response:
+    """The model serialized once: returning it would have FastAPI validate it again
+    against the response model (half the CPU of a polled read)."""
+    return Response(model.model_dump_json(), media_type="application/json")
 
 
 @router.post("/{job_id}/cancel", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep],
@@ -124,33 +132,47 @@ async def job_events(job_id: str, api: ApiDep,
                      ) -> EventSourceResponse:
     api.get(job_id)  # 404 before the stream starts
     api.broker.check_capacity()  # 503 likewise
-    return EventSourceResponse(_events(api, job_id, pixels == "f16"), ping=SSE_PING_S)
+    return EventSourceResponse(_events(api, job_id, pixels == "f16"), ping=SSE_PING_S,
+                               sep=SSE_SEP)
 
 
 async def _events(api, job_id: str, with_pixels: bool = False):
+    """The stream's chunks: every batch the feed hands over goes out as one write, each
+    event encoded once for all this process's watchers (nprt.service.events.encoded)."""
     try:
         # Subscribe before the snapshot so nothing falls between them (duplicates are harmless).
         watch = AsyncWatch(lambda notify: api.watch(job_id, notify))
     except TooManyWatchers as e:  # the limit filled up since the check
-        yield {"event": "error", "data": str(e)}
+        yield _sse("error", str(e))
         return
     async with watch:
         rec = api.get(job_id)
         yield _state(rec)
         while rec.state not in TERMINAL:
+            chunk = []
             for ev in await watch.next_events():
                 if ev["type"] == "tile":
-                    tile = TileEvent(**{k: ev[k] for k in TileEvent.model_fields if k in ev})
-                    if with_pixels:
-                        tile.pixels = base64.b64encode(images.f16_bytes(ev["rgb"])).decode()
-                    yield {"event": "tile", "data": tile.model_dump_json()}
+                    chunk.append(encoded(ev, ("sse", with_pixels),
+                                         lambda e: _tile(e, with_pixels)))
                 else:
                     rec = ev["job"]
-                    yield _state(rec)
+                    chunk.append(encoded(ev, "sse", lambda e: _state(e["job"])))
                     if rec.state in TERMINAL:
                         break
-        yield {"event": "end", "data": rec.state}
+            yield b"".join(chunk)
+        yield _sse("end", rec.state)
 
 
-def _state(rec) -> dict:
-    return {"event": "state", "data": JobPublic.from_record(rec).model_dump_json()}
+def _sse(event: str, data: str) -> bytes:
+    return ServerSentEvent(data, event=event, sep=SSE_SEP).encode()
+
+
+def _state(rec) -> bytes:
+    return _sse("state", JobPublic.from_record(rec).model_dump_json())
+
+
+def _tile(ev: dict, with_pixels: bool) -> bytes:
+    tile = TileEvent(**{k: ev[k] for k in TileEvent.model_fields if k in ev})
+    if with_pixels:
+        tile.pixels = base64.b64encode(images.f16_bytes(ev["rgb"])).decode()
+    return _sse("tile", tile.model_dump_json())

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import asyncio
+import json
 import time
 
 import numpy as np
@@ -245,3 +247,25 @@ def test_cancel_of_a_running_job_is_stored_and_reported(client):
     final = wait_for(lambda: (j := client.get(f"/v1/jobs/{job_id}").json())["state"]
                      in ("succeeded", "failed", "canceled") and j, 30, what="job stopped")
     assert final["state"] == "canceled" and final["cancel_requested"]
+
+
+def test_fast_reads_answer_what_the_routes_answer(client, live):
+    """GET /healthz and GET /v1/jobs/{id} are answered before FastAPI routes them
+    (nprt.service.fastreads): same status, body and media type as the routes."""
+    from nprt.service.routers.jobs import get_job
+
+    job_id = client.post("/v1/jobs", json={"scene": "forest:tiny", **TINY}).json()["id"]
+    fast = client.get(f"/v1/jobs/{job_id}")
+    routed = asyncio.run(get_job(job_id, live.app.state.api))
+    assert (fast.status_code, fast.headers["content-type"]) == (200, routed.media_type)
+    # The job may move on between the two reads; everything else is the same.
+    moving = {"state", "progress", "passes_done", "started_at", "finished_at", "stats",
+              "pixel_samples"}
+    routed_body = json.loads(routed.body)
+    assert {k: v for k, v in fast.json().items() if k not in moving} == \
+        {k: v for k, v in routed_body.items() if k not in moving}
+    health = client.get("/healthz")
+    assert (health.status_code, health.json()) == (200, {"status": "ok"})
+    assert health.headers["content-type"] == "application/json"
+    missing = client.get("/v1/jobs/" + "0" * 32)  # falls through to the route's 404
+    assert missing.status_code == 404 and "no job with id" in problem_detail(missing)

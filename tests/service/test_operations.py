@@ -108,6 +108,9 @@ def test_pixels_before_the_first_pass_are_404_and_tile_events_carry_pixels(live,
 def test_delete_refuses_a_live_job_and_forgets_a_finished_one(live, client):
     held = HeldSlots(live.url, live.settings.max_concurrent_jobs)
     job_id = held.ids[0]
+    # Running, so it has its folder (the previous test's job may still hold the slot).
+    wait_for(lambda: client.get(f"/v1/jobs/{job_id}").json()["state"] == "running", 60,
+             what=f"blocker {job_id} running")
     r = client.delete(f"/v1/jobs/{job_id}")
     assert r.status_code == 409 and "cancel it before deleting" in problem_detail(r)
     held.release()
