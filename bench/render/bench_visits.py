@@ -12,6 +12,12 @@ Per row: CPU seconds over all shards and per camera path, shard visits per camer
 (rays entering steps / camera rays), CPU per visit, the phase split, and the ratio to the
 one-shard CPU of the same image (the reference's wavefront).
 
+The steps are recorded as a step trace and replayed on K dedicated cores by
+bench/network/netmodel.py, each step taking its in-process CPU plus Ray's CPU for the
+parcels it sent and received (measured at the start of the run, bench/render/raycalls.py):
+a render wall for K cores that neither this host's two cores nor Ray's threads on them
+distort. It is a model: the grouping of rays into steps is this loop's, not a live run's.
+
     python -m bench.render.bench_visits                          # forest, city; 320x180 8 spp
     python -m bench.render.bench_visits --scenes forest --ks 1 4 --modes exact
     python -m bench.render.bench_visits --smoke
@@ -27,6 +33,10 @@ from fractions import Fraction
 import numpy as np
 
 from bench.common import add_output_flags, finish, machine, smoke
+from bench.network.bench_network import film_bytes
+from bench.network.netmodel import replay
+from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
+from bench.render.raycalls import parcel_cost, with_ray_cost
 from nprt.scene.store import open_scene
 from nprt.workers.filmsum import FilmSums
 from nprt.workers.passes import count_tiles, iter_passes, pass_at
@@ -64,6 +74,8 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
     live: dict[int, Fraction] = {}  # pass index -> weight back so far
     film = np.zeros((s.height * s.width, 3))
     times, steps, rays_in, camera = RenderStats(), 0, 0, 0
+    trace = {"k": k, "steps": [], "admitted": []}  # calltrace.StepTrace's format
+    step_of = [0] * k
     c0 = time.process_time()
     while waiting or live:
         busy_tiles = {i % tiles for i in live}
@@ -73,6 +85,7 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
             waiting.remove(p)
             busy_tiles.add(p.index % tiles)
             live[p.index] = Fraction(0)
+            trace["admitted"].append(p.index)
             inbox[p.index % k].append(((p,), None, {p.index: Fraction(1)}))
             camera += p.n_paths
         for sid, sh in enumerate(shards):
@@ -84,13 +97,24 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
                 for i, w in c.items():
                     credits[i] = credits.get(i, 0) + w
             parcels = [x for _, x, _ in work if x is not None]
-            res = sh.step([o for os_, _, _ in work for o in os_], parcels, credits)
+            orders = [o for os_, _, _ in work for o in os_]
+            t0 = time.process_time()
+            res = sh.step(orders, parcels, credits)
+            dt = time.process_time() - t0
             steps += 1
             rays_in += res.rays_in
             times.merge(res.times)
+            sent = []
             for target, out in enumerate(res.parcels):
                 if out is not None:
+                    out.source = (sid, step_of[sid])
                     inbox[target].append(((), out, out.credits))
+                    sent.append((target, out.n_rays, out.nbytes))
+            trace["steps"].append({
+                "shard": sid, "step": step_of[sid], "cpu_s": dt, "busy_s": dt,
+                "orders": [o.index for o in orders], "passes": sorted(credits),
+                "inputs": [(*x.source, x.n_rays, x.nbytes) for x in parcels], "outputs": sent})
+            step_of[sid] += 1
             for i, w in res.returned.items():
                 live[i] += w
         for i in [i for i, w in live.items() if w == 1]:
@@ -105,10 +129,20 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
     cpu = time.process_time() - c0
     return {"cpu_s": cpu, "steps": steps, "camera_rays": camera, "rays_in": rays_in,
             "phase_cpu_s": {n: round(v, 4) for n, v in sorted(times.phase_cpu_s.items())},
-            "film": film}
+            "film": film, "trace": trace, "window": window}
+
+
+def model_wall(r: dict, s: RenderSettings, cost: dict) -> float:
+    """The run's steps replayed on K dedicated cores, Ray's per-parcel CPU added."""
+    return replay(r["trace"], MODEL_LINK_BPS, FALLBACK_RPC_S, r["window"], film_bytes(s),
+                  with_ray_cost(r["trace"], cost)).makespan_s
 
 
 def bench(args) -> dict:
+    cost = parcel_cost(calls=20 if args.smoke else 300, repeats=1 if args.smoke else 3)
+    print(f"Ray per parcel: send {1e3 * cost['send_s']:.3f} ms + "
+          f"{1e9 * cost['send_s_per_byte']:.2f} ms/MB, receive {1e3 * cost['receive_s']:.3f} "
+          f"ms + {1e9 * cost['receive_s_per_byte']:.2f} ms/MB", flush=True)
     rows = []
     for name in args.scenes:
         scene = open_scene(name if args.size == "default" else f"{name}:{args.size}").load()
@@ -127,22 +161,25 @@ def bench(args) -> dict:
                        "us_per_path": round(1e6 * r["cpu_s"] / r["camera_rays"], 2),
                        "visits_per_path": round(r["rays_in"] / r["camera_rays"], 3),
                        "us_per_visit": round(1e6 * r["cpu_s"] / max(r["rays_in"], 1), 3),
-                       "steps": r["steps"], "phase_cpu_s": r["phase_cpu_s"]}
+                       "steps": r["steps"], "phase_cpu_s": r["phase_cpu_s"],
+                       "model_s": round(model_wall(r, s, cost), 3)}
                 if one is not None:
                     row["cpu_vs_one_shard"] = round(r["cpu_s"] / one["cpu_s"], 3)
+                    row["model_vs_one_shard"] = round(row["model_s"] / one["cpu_s"], 3)
                     if mode == "exact" or k == 1:
                         row["same_film_as_one_shard"] = bool(np.array_equal(r["film"],
                                                                              one["film"]))
                 rows.append(row)
                 print(_line(row), flush=True)
     return {"machine": machine(os.cpu_count()), "settings": vars(args) | {"out": str(args.out)},
-            "rows": rows}
+            "ray_parcel_cost": cost, "rows": rows}
 
 
 def _line(r: dict) -> str:
     return (f"{r['scene']} {r['mode']:6s} K={r['k']:2d} cpu {r['cpu_s']:7.2f} s  "
             f"{r['us_per_path']:6.2f} us/path  {r['visits_per_path']:5.2f} visits/path  "
-            f"{r['us_per_visit']:6.3f} us/visit  x{r.get('cpu_vs_one_shard', 1.0):.2f}")
+            f"{r['us_per_visit']:6.3f} us/visit  x{r.get('cpu_vs_one_shard', 1.0):.2f}  "
+            f"model on K cores {r['model_s']:.2f} s = x{r.get('model_vs_one_shard', 1.0):.2f}")
 
 
 PHASES = ("receive", "generate", "top_level", "local_intersect", "proxy", "shade", "send",
@@ -150,16 +187,23 @@ PHASES = ("receive", "generate", "top_level", "local_intersect", "proxy", "shade
 
 
 def markdown(res: dict) -> str:
-    out = ["| scene | mode | K | CPU s | vs 1 shard | us / path | visits / path | us / visit | "
-           + " | ".join(PHASES) + " | same film |",
-           "|---|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(PHASES) + "---|"]
+    c = res["ray_parcel_cost"]
+    out = [f"Ray per parcel (this run): send {1e3 * c['send_s']:.2f} ms + "
+           f"{1e9 * c['send_s_per_byte']:.2f} ms/MB, receive {1e3 * c['receive_s']:.2f} ms + "
+           f"{1e9 * c['receive_s_per_byte']:.2f} ms/MB. *model* is the render wall on K "
+           "dedicated cores (steps replayed with Ray's cost added), against the one-shard CPU.",
+           "",
+           "| scene | mode | K | CPU s | vs 1 shard | us / path | visits / path | us / visit | "
+           + " | ".join(PHASES) + " | same film | model s | model vs 1 shard |",
+           "|---|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(PHASES) + "---|---:|---:|"]
     for r in res["rows"]:
         ph = " | ".join(f"{r['phase_cpu_s'].get(p, 0.0):.2f}" for p in PHASES)
         same = r.get("same_film_as_one_shard")
         out.append(f"| {r['scene']} | {r['mode']} | {r['k']} | {r['cpu_s']:.2f} | "
                    f"{r.get('cpu_vs_one_shard', 1.0):.2f}x | {r['us_per_path']:.2f} | "
                    f"{r['visits_per_path']:.2f} | {r['us_per_visit']:.3f} | {ph} | "
-                   f"{'' if same is None else ('yes' if same else 'NO')} |")
+                   f"{'' if same is None else ('yes' if same else 'NO')} | "
+                   f"{r['model_s']:.2f} | {r.get('model_vs_one_shard', 1.0):.2f}x |")
     return "\n".join(out)
 
 
@@ -169,7 +213,7 @@ def plot(res: dict, png) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4))
     for (scene, mode), style in zip(sorted({(r["scene"], r["mode"]) for r in res["rows"]}),
                                     ("o-", "s-", "^-", "v-", "d-", "x-"), strict=False):
         rs = [r for r in res["rows"] if (r["scene"], r["mode"]) == (scene, mode)]
@@ -177,8 +221,12 @@ def plot(res: dict, png) -> None:
         axes[0].plot(ks, [r.get("cpu_vs_one_shard", 1.0) for r in rs], style,
                      label=f"{scene} {mode}")
         axes[1].plot(ks, [r["visits_per_path"] for r in rs], style, label=f"{scene} {mode}")
-    for ax, what in zip(axes, ("CPU / one shard's CPU", "shard visits per camera path"),
-                        strict=True):
+        axes[2].plot(ks, [r.get("model_vs_one_shard", 1.0) for r in rs], style,
+                     label=f"{scene} {mode}")
+    axes[2].plot([1, 16], [1, 1 / 16], ":", color="gray", label="ideal")
+    axes[2].set_yscale("log", base=2)
+    for ax, what in zip(axes, ("CPU / one shard's CPU", "shard visits per camera path",
+                               "model wall on K cores / one shard's CPU"), strict=True):
         ax.set_xscale("log", base=2)
         ax.set_xlabel("shards K (one process, no Ray)")
         ax.set_ylabel(what)
@@ -199,7 +247,7 @@ def main(argv=None) -> None:
     ap.add_argument("--spp", type=int, default=8)
     ap.add_argument("--spp-per-pass", type=int, default=4)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
-    ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8])
+    ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     add_output_flags(ap)
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
                  spp=1, spp_per_pass=1, ks=[1, 2], modes=["exact"])
