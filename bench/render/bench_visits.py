@@ -88,10 +88,14 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
             trace["admitted"].append(p.index)
             inbox[p.index % k].append(((p,), None, {p.index: Fraction(1)}))
             camera += p.n_paths
+        # Every shard steps on what arrived by the end of the last round, as K shards on K
+        # cores would at once: a parcel sent this round waits for the next (no chain of
+        # steps within a round, which the model would replay as serial).
+        arrived, inbox = inbox, [[] for _ in range(k)]
         for sid, sh in enumerate(shards):
-            if not inbox[sid]:
+            if not arrived[sid]:
                 continue
-            work, inbox[sid] = inbox[sid], []
+            work = arrived[sid]
             credits: dict[int, Fraction] = {}
             for _, _, c in work:
                 for i, w in c.items():
