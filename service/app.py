@@ -4,6 +4,7 @@ nothing: the scheduler process does (nprt.service.processes says who owns what).
 
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import os
@@ -66,18 +67,18 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
         scene_store = SceneStore(settings)
         api = JobApi(settings, scene_store).start()
         app.state.settings, app.state.scenes, app.state.api = settings, scene_store, api
-        grpc_server = None
+        grpc_thread = None
         if grpc_port is not None:
-            from nprt.service.grpc_server import start_grpc_server
+            from nprt.service.grpc_server import GrpcThread
 
-            grpc_server, app.state.grpc_port = await start_grpc_server(api, settings,
-                                                                       grpc_host, grpc_port)
+            grpc_thread = GrpcThread(api, settings, grpc_host, grpc_port)
+            app.state.grpc_port = await asyncio.to_thread(grpc_thread.start)
         log.info("nprt API worker %d up: data dir %s", os.getpid(), settings.data_dir)
         try:
             yield
         finally:
-            if grpc_server is not None:
-                await grpc_server.stop(1.0)
+            if grpc_thread is not None:
+                await asyncio.to_thread(grpc_thread.stop)
             api.stop()
 
     # FastAPI's OpenTelemetry hooks asked for the global providers on every request (a

@@ -134,11 +134,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # so the scheduler stops gracefully (checkpointing) instead of dying with this process.
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, _frame: sys.exit(128 + signum))
-    # grpc.aio shares uvicorn's loop and supports only the standard asyncio one (not uvloop);
-    # httptools parses HTTP when installed (a dependency: a fifth of the CPU per request).
+    # uvloop and httptools (dependencies) for the HTTP loop: accepting, reading and writing
+    # in C. gRPC runs on a standard asyncio loop of its own (nprt.service.grpc_server).
     # log_config=None: uvicorn's records go through the root handler (text or JSON) too.
     options = {"host": args.host, "port": args.port, "log_level": level.lower(),
-               "log_config": None, "timeout_graceful_shutdown": 3, "loop": "asyncio"}
+               "log_config": None, "timeout_graceful_shutdown": 3, "loop": "uvloop",
+               "http": "httptools"}
     try:
         if args.workers > 1:  # each worker builds its app from NPRT_* (app_from_env)
             for name, value in settings.model_dump(exclude_none=True).items():

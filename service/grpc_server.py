@@ -1,11 +1,16 @@
-"""The gRPC server (grpc.aio, on the service's event loop): RenderService, the standard
-health service, bearer-token checks on the writing rpcs, and message size limits that fit
-tiles and images. A WatchJob stream is a coroutine, not a thread, so open streams cannot
-starve Health.Check or GetJob; NPRT_MAX_WATCHERS bounds them (RESOURCE_EXHAUSTED beyond)."""
+"""The gRPC server (grpc.aio): RenderService, the standard health service, bearer-token
+checks on the writing rpcs, and message size limits that fit tiles and images. In an API
+worker it runs on a thread of its own with its own asyncio loop (GrpcThread): a burst of
+HTTP requests queued on uvicorn's loop does not hold a health check back, and uvicorn can
+use uvloop, on which grpc.aio answers several times slower. A WatchJob stream is a
+coroutine, not a thread, so open streams cannot starve Health.Check or GetJob;
+NPRT_MAX_WATCHERS bounds them (RESOURCE_EXHAUSTED beyond)."""
 
 from __future__ import annotations
 
+import asyncio
 import logging
+import threading
 
 import grpc
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
@@ -63,3 +68,52 @@ async def start_grpc_server(api: JobApi, settings: ServiceSettings, host: str,
         await health_servicer.set(name, health_pb2.HealthCheckResponse.SERVING)
     log.info("gRPC %s listening on %s:%d", SERVICE_NAME, host, bound)
     return server, bound
+
+
+class GrpcThread:
+    """start_grpc_server on a daemon thread running its own asyncio loop until stop()."""
+
+    def __init__(self, api: JobApi, settings: ServiceSettings, host: str, port: int):
+        self._args = (api, settings, host, port)
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._server: grpc.aio.Server | None = None
+        self.port: int | None = None
+        self._thread = threading.Thread(target=self._run, name="nprt-grpc", daemon=True)
+
+    def start(self) -> int:
+        """Serve; returns the bound port once it is bound (or raises why not)."""
+        self._thread.start()
+        self._ready.wait()
+        if self._error is not None:
+            raise self._error
+        return self.port
+
+    def _run(self) -> None:
+        loop = self._loop = asyncio.new_event_loop()
+        try:
+            self._server, self.port = loop.run_until_complete(start_grpc_server(*self._args))
+        except BaseException as e:  # handed to start()
+            self._error = e
+            self._ready.set()
+            loop.close()
+            return
+        self._ready.set()
+        try:
+            loop.run_until_complete(self._server.wait_for_termination())
+            left = asyncio.all_tasks(loop)
+            for task in left:
+                task.cancel()
+            loop.run_until_complete(asyncio.gather(*left, return_exceptions=True))
+            loop.run_until_complete(loop.shutdown_default_executor())
+        finally:
+            loop.close()
+
+    def stop(self, grace_s: float = 1.0) -> None:
+        """Stop serving (streams are canceled after grace_s) and end the thread."""
+        if self._server is None or not self._thread.is_alive():
+            return
+        asyncio.run_coroutine_threadsafe(self._server.stop(grace_s),
+                                         self._loop).result(grace_s + 10)
+        self._thread.join(10)

@@ -20,7 +20,6 @@ import asyncio
 import json
 import os
 import platform
-import random
 import re
 import subprocess
 import sys
@@ -31,14 +30,18 @@ from collections import defaultdict
 from pathlib import Path
 
 import grpc
-from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_health.v1 import health_pb2_grpc
 
+from bench.common import RESULTS
 from bench.service.harness import (
     REPO,
     Latency,
     Rest,
     api_cpu_s,
+    check_health,
     niceness,
+    percentiles,
+    poll,
     start_profilers,
     start_service,
     stop_profilers,
@@ -47,9 +50,9 @@ from bench.service.rawhttp import request_bytes
 from nprt.protos import nprt_pb2 as pb
 from nprt.protos import nprt_pb2_grpc
 
-RESULTS = REPO / "bench" / "results"
 TERMINAL = {"succeeded", "failed", "canceled"}
 HEALTH_INTERVAL_S = 0.02
+POLL_PAUSE_S = 0.005
 LABELS = ("before", "after", "after_2_workers")
 _EVENT = re.compile(rb"event: (\w+)\r\n")
 
@@ -128,28 +131,6 @@ async def run(host: str, port: int, target: str, pid: int, args: argparse.Namesp
             await asyncio.sleep(0.2)
         ids: list[str] = list(warm)
 
-        async def poller() -> None:
-            conn = rest.connection()
-            while not stop.is_set():
-                if random.random() < 0.8:
-                    await lat.timed("GET /v1/jobs/{id}", rest.call(
-                        conn, "GET", f"/v1/jobs/{random.choice(ids)}"))
-                else:
-                    await lat.timed("GET /v1/jobs", rest.call(conn, "GET", "/v1/jobs",
-                                                              params={"limit": 20}))
-                await asyncio.sleep(0.005)
-            conn.close()
-
-        async def health_loop() -> None:
-            conn = rest.connection()
-            while not stop.is_set():
-                reply = await lat.timed("gRPC Health.Check", health.Check(
-                    health_pb2.HealthCheckRequest(service=""), timeout=30))
-                assert reply.status == health_pb2.HealthCheckResponse.SERVING
-                await lat.timed("GET /healthz", rest.call(conn, "GET", "/healthz"))
-                await asyncio.sleep(HEALTH_INTERVAL_S)
-            conn.close()
-
         async def submit() -> tuple[int, dict]:
             """One submission on a connection of its own, honouring Retry-After; its
             latency is the first answer's."""
@@ -165,8 +146,10 @@ async def run(host: str, port: int, target: str, pid: int, args: argparse.Namesp
             conn.close()
             return status, body
 
-        background = [asyncio.create_task(poller()) for _ in range(args.pollers)]
-        background.append(asyncio.create_task(health_loop()))
+        background = [asyncio.create_task(poll(rest, lat, ids, stop, POLL_PAUSE_S))
+                      for _ in range(args.pollers)]
+        background.append(asyncio.create_task(
+            check_health(rest, health, lat, stop, HEALTH_INTERVAL_S)))
         profilers = [] if args.profile is None else start_profilers(pid, args.profile)
         await asyncio.sleep(0.5)  # pollers and health running before the burst
         cpu0, client0 = api_cpu_s(pid), time.process_time()
@@ -214,7 +197,7 @@ async def run(host: str, port: int, target: str, pid: int, args: argparse.Namesp
         "client_retries_after_idle_disconnect": rest.retries,
         "nice_by_process": nice,
         "sse_events": dict(sse_counts), "grpc_events": dict(grpc_counts),
-        "latency_ms": lat.summary(),
+        "latency_ms": lat.summary(), "_samples_s": dict(lat.samples_s),
     }
 
 
@@ -230,11 +213,48 @@ async def sequential_post_cpu_ms(rest: Rest, conn, pid: int, job: dict, n: int) 
     return round(posts / n * 1e3, 3)
 
 
+def pool(rounds: list[dict]) -> dict:
+    """One result from several rounds (each on a fresh service): counts summed, latency
+    percentiles over every round's samples, CPU and times as medians, and each round's
+    p99s and load average kept."""
+    import statistics
+
+    out = {k: sum(r[k] for r in rounds) for k in ("submitted", "accepted_202", "lost",
+                                                  "duplicated", "succeeded")}
+    out["other_statuses"] = sorted({s for r in rounds for s in r["other_statuses"]})
+    refused: dict = defaultdict(int)
+    for r in rounds:
+        for status, n in r["refused_then_retried"].items():
+            refused[status] += n
+    out["refused_then_retried"] = dict(refused)
+    for k in ("burst_s", "drain_s", "api_cpu_s_during_burst", "client_cpu_s_during_burst",
+              "api_cpu_ms_per_sequential_post"):
+        out[k] = round(statistics.median(r[k] for r in rounds), 3)
+    out["streams_open_after_burst"] = {k: min(r["streams_open_after_burst"][k]
+                                              for r in rounds) for k in ("sse", "grpc")}
+    samples: dict = defaultdict(list)
+    for r in rounds:
+        for kind, v in r.pop("_samples_s").items():
+            samples[kind] += v
+    out["latency_ms"] = {k: percentiles(v) for k, v in sorted(samples.items())}
+    out["rounds"] = rounds
+    return out
+
+
+def _worst_p99(lat: dict, kinds: tuple[str, ...]) -> float:
+    return max(lat[k]["p99"] for k in kinds if k in lat)
+
+
+_GETS = ("GET /v1/jobs", "GET /v1/jobs/{id}")
+_HEALTH = ("GET /healthz", "gRPC Health.Check")
+
+
 def markdown(r: dict, label: str, args: dict) -> str:
     lat = r["latency_ms"]
     post = lat["POST /v1/jobs"]["p99"]
-    gets = max(lat[k]["p99"] for k in ("GET /v1/jobs", "GET /v1/jobs/{id}") if k in lat)
-    health = max(lat[k]["p99"] for k in ("GET /healthz", "gRPC Health.Check") if k in lat)
+    gets = _worst_p99(lat, _GETS)
+    health = _worst_p99(lat, _HEALTH)
+    rounds = r.get("rounds", [])
 
     def verdict(ok: bool) -> str:
         return "met" if ok else "**NOT met**"
@@ -242,7 +262,8 @@ def markdown(r: dict, label: str, args: dict) -> str:
     lines = [f"### {label}: {r['submitted']} concurrent submissions, {args['sse_watchers']} SSE"
              f" watchers, {args['grpc_streams']} gRPC WatchJob streams, a K = "
              f"{args['long_shards']} render running ({args['scene']}, {args['api_workers']} "
-             "API worker(s))", "",
+             f"API worker(s)){f', {len(rounds)} rounds pooled' if len(rounds) > 1 else ''}",
+             "",
              "| check | value | target |", "| --- | --- | --- |",
              f"| accepted (202) | {r['accepted_202']} / {r['submitted']} | all |",
              f"| refused with Retry-After, then retried | {r['refused_then_retried'] or 0} "
@@ -267,6 +288,14 @@ def markdown(r: dict, label: str, args: dict) -> str:
              "| --- | ---: | ---: | ---: | ---: |"]
     for kind, p in lat.items():
         lines.append(f"| {kind} | {p['n']} | {p['p50']} | {p['p99']} | {p['max']} |")
+    if len(rounds) > 1:
+        lines += ["", "Each round's p99 (POST / worst GET / worst health, ms) and load "
+                  "average before, after: " + "; ".join(
+                      f"{x['latency_ms']['POST /v1/jobs']['p99']:.0f} / "
+                      f"{_worst_p99(x['latency_ms'], _GETS):.0f} / "
+                      f"{_worst_p99(x['latency_ms'], _HEALTH):.0f} at load "
+                      f"{x['load_average'][0]:.1f}, {x['load_average'][1]:.1f}"
+                      for x in rounds) + "."]
     return "\n".join(lines)
 
 
@@ -321,6 +350,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--label", choices=LABELS, default="after")
     ap.add_argument("--service-root", type=Path, default=REPO,
                     help="checkout whose service runs (default: this one)")
+    ap.add_argument("--service-commit", help="the commit --service-root holds (for the "
+                    "record; default: git rev-parse there)")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="rounds, each on a fresh service; latencies pooled")
     ap.add_argument("--jobs", type=int, default=500, help="concurrent submissions")
     ap.add_argument("--sse-watchers", type=int, default=100)
     ap.add_argument("--grpc-streams", type=int, default=40)
@@ -348,23 +381,30 @@ def main(argv: list[str] | None = None) -> int:
     watched = [long] if args.smoke else [long, {**long, "shards": args.long_shards}]
 
     load_before = os.getloadavg()
-    with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
-        proc, host, port, target = start_service(args.service_root, Path(tmp) / "data",
-                                                 args.max_jobs, args.api_workers)
-        try:
-            result = asyncio.run(run(host, port, target, proc.pid, args, job, watched))
-        finally:
-            os.killpg(proc.pid, 15)
-            proc.wait(60)
-    shown = {k: v for k, v in vars(args).items() if k != "service_root"}
+    rounds = []
+    for _ in range(args.repeat):
+        load0 = os.getloadavg()[0]
+        with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
+            proc, host, port, target = start_service(args.service_root, Path(tmp) / "data",
+                                                     args.max_jobs, args.api_workers)
+            try:
+                one = asyncio.run(run(host, port, target, proc.pid, args, job, watched))
+            finally:
+                os.killpg(proc.pid, 15)
+                proc.wait(60)
+        one["load_average"] = [load0, os.getloadavg()[0]]
+        rounds.append(one)
+    result = pool(rounds)
+    shown = {k: v for k, v in vars(args).items() if k not in ("service_root", "profile")}
     table = markdown(result, args.label, shown)
     print(table)
-    ok = (result["succeeded"] == result["accepted_202"] == args.jobs and result["lost"] == 0
-          and result["duplicated"] == 0)
+    ok = (result["succeeded"] == result["accepted_202"] == args.jobs * args.repeat
+          and result["lost"] == 0 and result["duplicated"] == 0)
     if args.smoke:
         return 0 if ok else 1
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=args.service_root,
-                            capture_output=True, text=True).stdout.strip()
+    commit = args.service_commit or subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=args.service_root, capture_output=True,
+        text=True).stdout.strip()
     out = RESULTS / f"bench_service_{args.label}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     command = "python -m bench.service.bench_service " + " ".join(

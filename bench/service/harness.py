@@ -4,8 +4,10 @@ client over bench.service.rawhttp, and latency percentiles."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -16,6 +18,7 @@ from pathlib import Path
 from urllib.parse import urlencode
 
 import numpy as np
+from grpc_health.v1 import health_pb2
 
 from bench.service.rawhttp import Connection, request_bytes
 
@@ -107,6 +110,19 @@ def api_cpu_s(pid: int) -> float:
     return sum(_cpu_s(p) for p in api_pids(pid))
 
 
+def render_cpu_s(pid: int) -> float:
+    """CPU seconds so far of the scheduler process under pid and everything it started
+    (renders, Ray)."""
+    todo, inside = [(pid, False)], []
+    while todo:
+        p, under = todo.pop()
+        under = under or _is_scheduler(p)
+        if under:
+            inside.append(p)
+        todo += [(c, under) for c in _children(p)]
+    return sum(_cpu_s(p) for p in inside)
+
+
 def niceness(pid: int) -> dict[str, list[int]]:
     """Nice values of pid's process tree by command name, e.g. {"raylet": [10]}."""
     out: dict[str, list[int]] = defaultdict(list)
@@ -196,3 +212,34 @@ class Latency:
 
     def summary(self) -> dict:
         return {k: percentiles(v) for k, v in sorted(self.samples_s.items())}
+
+
+async def poll(rest: Rest, lat: Latency, ids: list[str], stop: asyncio.Event,
+               pause_s: float) -> None:
+    """A dashboard until stop: reads a random job of `ids` (4 in 5) or the first page of
+    the job list, pause_s apart, on one keep-alive connection."""
+    conn = rest.connection()
+    while not stop.is_set():
+        if random.random() < 0.8:
+            await lat.timed("GET /v1/jobs/{id}", rest.call(
+                conn, "GET", f"/v1/jobs/{random.choice(ids)}"))
+        else:
+            await lat.timed("GET /v1/jobs", rest.call(conn, "GET", "/v1/jobs",
+                                                      params={"limit": 20}))
+        await asyncio.sleep(pause_s)
+    conn.close()
+
+
+async def check_health(rest: Rest, health, lat: Latency, stop: asyncio.Event,
+                       interval_s: float) -> None:
+    """gRPC Health.Check (health: a HealthStub), then GET /healthz, interval_s apart until
+    stop; each must say serving."""
+    conn = rest.connection()
+    while not stop.is_set():
+        reply = await lat.timed("gRPC Health.Check", health.Check(
+            health_pb2.HealthCheckRequest(service=""), timeout=30))
+        assert reply.status == health_pb2.HealthCheckResponse.SERVING
+        status, _, _ = await lat.timed("GET /healthz", rest.call(conn, "GET", "/healthz"))
+        assert status == 200
+        await asyncio.sleep(interval_s)
+    conn.close()
