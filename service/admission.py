@@ -8,36 +8,21 @@ from __future__ import annotations
 
 from pydantic import ValidationError
 from starlette.responses import Response
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import Scope
 
-from nprt.service.bodyguard import read_body, replayed
+from nprt.service.bodyguard import BodyMiddleware
 from nprt.service.errors import ServiceError
 from nprt.service.schemas import JobCreate, JobPublic
 
 MAX_KEY_CHARS = 200  # the route's Idempotency-Key limit
 
 
-class FastAdmission:
-    def __init__(self, app: ASGIApp):
-        self.app = app
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if not (scope["type"] == "http" and scope["method"] == "POST"
-                and scope["path"] == "/v1/jobs"):
-            await self.app(scope, receive, send)
-            return
+class FastAdmission(BodyMiddleware):
+    async def answer(self, scope: Scope, body: bytes) -> Response | None:
         headers = dict(scope["headers"])
         if not headers.get(b"content-type", b"").startswith(b"application/json"):
-            await self.app(scope, receive, send)
-            return
-        body = await read_body(receive)
-        if body is None:  # the client went away
-            return
-        answer = await _admit(scope["app"].state.api, headers, body)
-        if answer is not None:
-            await answer(scope, receive, send)
-            return
-        await self.app(scope, replayed(body, receive), send)
+            return None
+        return await _admit(scope["app"].state.api, headers, body)
 
 
 async def _admit(api, headers: dict, body: bytes) -> Response | None:

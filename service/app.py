@@ -24,20 +24,7 @@ from nprt.service.admission import FastAdmission
 from nprt.service.auth import TokenMiddleware
 from nprt.service.bodyguard import JsonGuard
 from nprt.service.config import ServiceSettings
-from nprt.service.errors import (
-    BadUpload,
-    Conflict,
-    InvalidJob,
-    InvalidScene,
-    NotFound,
-    QueueFull,
-    ServiceError,
-    StoreBusy,
-    TooLarge,
-    TooManyWatchers,
-    UnknownScene,
-    redact_paths,
-)
+from nprt.service.errors import BadUpload, ServiceError, redact_paths
 from nprt.service.fastreads import FastReads
 from nprt.service.jobapi import JobApi
 from nprt.service.problems import describe_fields, document_problems, problem_response, type_name
@@ -47,10 +34,6 @@ from nprt.service.scenes import SceneStore
 log = logging.getLogger(__name__)
 
 STATIC_DIR = Path(__file__).parent / "static"
-_STATUS = {NotFound: 404, Conflict: 409, BadUpload: 400, TooLarge: 413, InvalidScene: 422,
-           InvalidJob: 422, UnknownScene: 422, TooManyWatchers: 503, QueueFull: 429,
-           StoreBusy: 503}
-_RETRY = (QueueFull, StoreBusy)  # answered with Retry-After
 
 
 def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = None,
@@ -102,9 +85,8 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
     # Every error answer is RFC 9457 problem details (service/problems.py).
     @app.exception_handler(ServiceError)
     async def service_error(request: Request, exc: ServiceError) -> JSONResponse:
-        retry = {"Retry-After": str(settings.retry_after_s)} if isinstance(exc, _RETRY) \
-            else None
-        return problem_response(_STATUS.get(type(exc), 400), redact_paths(str(exc), roots),
+        retry = {"Retry-After": str(settings.retry_after_s)} if exc.retry_after else None
+        return problem_response(exc.http_status, redact_paths(str(exc), roots),
                                 type_=type_name(type(exc)), title=_title(type(exc)),
                                 instance=request.url.path, headers=retry)
 

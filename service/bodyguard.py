@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import re
 
+from starlette.responses import Response
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 MAX_JSON_DEPTH = 8  # a job body nests 2 levels (proxy, frames); leave room for clients
@@ -53,13 +54,15 @@ def replayed(body: bytes, receive: Receive) -> Receive:
     return replay
 
 
-class JsonGuard:
-    """ASGI middleware for POSTs to GUARDED_PATHS: 413 over max_bytes, 422 past max_depth,
-    else the body is passed on unchanged. Runs after the token check."""
+class BodyMiddleware:
+    """Base of the ASGI middlewares that read the body of a POST to GUARDED_PATHS (at most
+    max_bytes + a chunk): answer() returns the response, or None to pass the request on
+    with its body replayed."""
 
-    def __init__(self, app: ASGIApp, max_depth: int = MAX_JSON_DEPTH,
-                 max_bytes: int = MAX_JSON_BYTES):
-        self.app, self.max_depth, self.max_bytes = app, max_depth, max_bytes
+    max_bytes: int | None = None
+
+    def __init__(self, app: ASGIApp):
+        self.app = app
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if not (scope["type"] == "http" and scope["method"] == "POST"
@@ -69,19 +72,32 @@ class JsonGuard:
         body = await read_body(receive, self.max_bytes)
         if body is None:  # the client went away
             return
-        if len(body) > self.max_bytes:
-            await self._refuse(scope, receive, send, 413, f"a job body is at most "
-                               f"{self.max_bytes} bytes (got more)")
-            return
-        if json_depth(body) > self.max_depth:
-            await self._refuse(scope, receive, send, 422, f"the body nests deeper than "
-                               f"{self.max_depth} levels")
+        answer = await self.answer(scope, body)
+        if answer is not None:
+            await answer(scope, receive, send)
             return
         await self.app(scope, replayed(body, receive), send)
 
-    @staticmethod
-    async def _refuse(scope: Scope, receive: Receive, send: Send, status: int,
-                      detail: str) -> None:
+    async def answer(self, scope: Scope, body: bytes) -> Response | None:
+        raise NotImplementedError
+
+
+class JsonGuard(BodyMiddleware):
+    """413 over max_bytes, 422 past max_depth, else the body is passed on unchanged. Runs
+    after the token check."""
+
+    def __init__(self, app: ASGIApp, max_depth: int = MAX_JSON_DEPTH,
+                 max_bytes: int = MAX_JSON_BYTES):
+        super().__init__(app)
+        self.max_depth, self.max_bytes = max_depth, max_bytes
+
+    async def answer(self, scope: Scope, body: bytes) -> Response | None:
         from nprt.service.problems import problem_response
 
-        await problem_response(status, detail, instance=scope["path"])(scope, receive, send)
+        if len(body) > self.max_bytes:
+            return problem_response(413, f"a job body is at most {self.max_bytes} bytes "
+                                    "(got more)", instance=scope["path"])
+        if json_depth(body) > self.max_depth:
+            return problem_response(422, f"the body nests deeper than {self.max_depth} "
+                                    "levels", instance=scope["path"])
+        return None

@@ -27,12 +27,11 @@ _SETTING_FLAGS = (  # flag, RenderSettings field, type
 
 
 def add_serve_parsers(subparsers) -> None:
-    """Register `serve` and `submit` on an argparse subparsers object."""
-    p = subparsers.add_parser("serve", help="run the REST + gRPC render service",
-                              description="REST (and /docs, dashboard at /) plus gRPC in API "
-                                          "worker processes, and a scheduler process that "
-                                          "renders; other settings come from NPRT_* "
-                                          "variables.")
+    """Register `serve`, `scheduler` and `submit` on an argparse subparsers object."""
+    p = _service_parser(subparsers, "serve", cmd_serve, "run the REST + gRPC render service",
+                        "REST (and /docs, dashboard at /) plus gRPC in API worker processes, "
+                        "and a scheduler process that renders; other settings come from "
+                        "NPRT_* variables.")
     p.add_argument("--host", default="127.0.0.1", help="bind address (REST and gRPC)")
     p.add_argument("--port", type=int, default=8000, help="REST port")
     p.add_argument("--grpc-port", type=int, default=50051, help="gRPC port; -1 disables gRPC")
@@ -41,15 +40,10 @@ def add_serve_parsers(subparsers) -> None:
     p.add_argument("--api-only", action="store_true",
                    help="no scheduler: only store and serve jobs (run `nprt scheduler` once "
                         "per data directory elsewhere)")
-    _add_service_flags(p)
-    p.set_defaults(func=cmd_serve)
-
-    sch = subparsers.add_parser("scheduler", help="run the scheduler: the process that renders",
-                                description="Owns Ray, the queue, the job slots and the "
-                                            "checkpoints of one data directory, and renders "
-                                            "the jobs API workers store there.")
-    _add_service_flags(sch)
-    sch.set_defaults(func=cmd_scheduler)
+    _service_parser(subparsers, "scheduler", cmd_scheduler,
+                    "run the scheduler: the process that renders",
+                    "Owns Ray, the queue, the job slots and the checkpoints of one data "
+                    "directory, and renders the jobs API workers store there.")
 
     s = subparsers.add_parser("submit", help="submit a render job to a running service",
                               description="SCENE is a demo name (forest, city:small, "
@@ -85,6 +79,14 @@ def add_server_flags(p) -> None:
     p.add_argument("--token", default=os.environ.get("NPRT_API_TOKEN"),
                    help="bearer token (NPRT_API_TOKEN)")
     p.add_argument("--timeout-s", type=float, default=30.0, help="HTTP request timeout, s")
+
+
+def _service_parser(subparsers, name: str, func, help_: str, description: str):
+    """A subcommand that runs service processes on a data directory, with their flags."""
+    p = subparsers.add_parser(name, help=help_, description=description)
+    _add_service_flags(p)
+    p.set_defaults(func=func)
+    return p
 
 
 def _add_service_flags(p) -> None:

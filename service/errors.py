@@ -1,36 +1,49 @@
-"""Errors the job API, the scheduler and the scene store raise; REST and gRPC map them to
-status codes."""
+"""Errors the job API, the scheduler and the scene store raise, each with the status REST
+and gRPC answer it with (one table for both front ends)."""
 
 
 class ServiceError(Exception):
     """Base class; the message is meant for the API client."""
 
+    http_status = 400
+    grpc_code = "INVALID_ARGUMENT"  # a grpc.StatusCode name
+    retry_after = False  # answered with Retry-After: the same request may succeed later
+
 
 class NotFound(ServiceError):
-    """Unknown job or scene id (HTTP 404, gRPC NOT_FOUND)."""
+    """Unknown job or scene id."""
+
+    http_status, grpc_code = 404, "NOT_FOUND"
 
 
 class Conflict(ServiceError):
-    """The request does not fit the job's state, e.g. cancelling a finished job (409,
-    FAILED_PRECONDITION)."""
+    """The request does not fit the job's state, e.g. cancelling a finished job."""
+
+    http_status, grpc_code = 409, "FAILED_PRECONDITION"
 
 
 class BadUpload(ServiceError):
-    """A malformed or unsafe upload: unknown format, zip-slip path, no scene inside (400)."""
+    """A malformed or unsafe upload: unknown format, zip-slip path, no scene inside."""
 
 
 class TooLarge(ServiceError):
-    """An upload or its extracted content over the configured limit (413)."""
+    """An upload or its extracted content over the configured limit."""
+
+    http_status = 413
 
 
 class InvalidScene(ServiceError):
-    """The upload is well-formed but the scene does not load: carries SceneError's message
-    (422, INVALID_ARGUMENT)."""
+    """The upload is well-formed but the scene does not load: carries SceneError's
+    message."""
+
+    http_status = 422
 
 
 class InvalidJob(ServiceError):
     """Job settings the service refuses although RenderSettings accepts them, or an unknown
-    scene (422 naming `field`, INVALID_ARGUMENT)."""
+    scene (naming `field`)."""
+
+    http_status = 422
 
     def __init__(self, field: str, message: str):
         super().__init__(message)
@@ -45,17 +58,21 @@ class UnknownScene(InvalidJob):
 
 
 class TooManyWatchers(ServiceError):
-    """More event streams open than NPRT_MAX_WATCHERS (503, RESOURCE_EXHAUSTED)."""
+    """More event streams open than NPRT_MAX_WATCHERS."""
+
+    http_status, grpc_code = 503, "RESOURCE_EXHAUSTED"
 
 
 class QueueFull(ServiceError):
-    """NPRT_MAX_QUEUED_JOBS jobs are queued: come back after Retry-After (429,
-    RESOURCE_EXHAUSTED)."""
+    """NPRT_MAX_QUEUED_JOBS jobs are queued: come back after Retry-After."""
+
+    http_status, grpc_code, retry_after = 429, "RESOURCE_EXHAUSTED", True
 
 
 class StoreBusy(ServiceError):
-    """The job store stayed locked by another process's write (503 with Retry-After,
-    UNAVAILABLE)."""
+    """The job store stayed locked by another process's write."""
+
+    http_status, grpc_code, retry_after = 503, "UNAVAILABLE", True
 
 
 def redact_paths(message: str, roots: list[str]) -> str:

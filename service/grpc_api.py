@@ -14,16 +14,7 @@ from pydantic import ValidationError
 
 from nprt.protos import nprt_pb2 as pb
 from nprt.protos import nprt_pb2_grpc
-from nprt.service.errors import (
-    Conflict,
-    InvalidJob,
-    InvalidScene,
-    NotFound,
-    QueueFull,
-    ServiceError,
-    StoreBusy,
-    TooManyWatchers,
-)
+from nprt.service.errors import ServiceError, TooManyWatchers
 from nprt.service.events import AsyncWatch, encoded
 from nprt.service.grpc_convert import job_to_pb, settings_from_pb, tile_to_pb
 from nprt.service.grpc_logs import JobLogServicer
@@ -33,11 +24,6 @@ from nprt.service.store import TERMINAL
 DEFAULT_PAGE = 50
 MAX_PAGE = 500
 
-_CODES = {NotFound: grpc.StatusCode.NOT_FOUND, Conflict: grpc.StatusCode.FAILED_PRECONDITION,
-          InvalidJob: grpc.StatusCode.INVALID_ARGUMENT,
-          InvalidScene: grpc.StatusCode.INVALID_ARGUMENT,
-          TooManyWatchers: grpc.StatusCode.RESOURCE_EXHAUSTED,
-          QueueFull: grpc.StatusCode.RESOURCE_EXHAUSTED, StoreBusy: grpc.StatusCode.UNAVAILABLE}
 _FORMATS = {pb.IMAGE_FORMAT_PNG: "png", pb.IMAGE_FORMAT_EXR: "exr"}
 
 
@@ -50,9 +36,7 @@ async def _call(context: grpc.aio.ServicerContext, fn, *args, thread: bool = Fal
         out = fn(*args)
         return await out if inspect.isawaitable(out) else out
     except ServiceError as e:
-        code = next((c for t, c in _CODES.items() if isinstance(e, t)),
-                    grpc.StatusCode.INVALID_ARGUMENT)
-        await context.abort(code, str(e))
+        await context.abort(grpc.StatusCode[e.grpc_code], str(e))
 
 
 def _validation_message(e: ValidationError) -> str:
