@@ -4,7 +4,11 @@
   FastAPI app and the gRPC servicer. They validate, store and read jobs in the SQLite
   store, read images from the job folders, and serve watchers from the store's events
   table (nprt.service.feed). They never render, start Ray or hold a film; several can run
-  on one data directory (the gRPC port is shared with SO_REUSEPORT).
+  on one data directory (the gRPC port is shared with SO_REUSEPORT). Inside one: HTTP on
+  uvicorn's uvloop loop (the polled reads and admissions answered before FastAPI routing:
+  fastreads, admission), gRPC on a thread with its own asyncio loop (grpc_server), one
+  thread polling the store's events for every watcher (feed), and one thread for the
+  store's writes, which batches the admissions of a burst into one commit (storewriter).
 - **The scheduler** (`nprt scheduler`, or the child process `nprt serve` starts): Ray and
   the warm shard pools, the queue, the job slots, the state machine, the checkpoints, and
   every render (the single-process reference included). One per data directory (a lock
