@@ -69,8 +69,8 @@ def _rays_through_overlapping_trees(n: int, seed: int):
 def test_closest_hit_equals_tracing_every_crossing_with_embreex():
     # The oracle traces every box crossing (culled only by tmax) through embreex, one call
     # per crossing's mesh with tfar = inf, and picks each ray's (t, instance) first. The
-    # renderer traces each ray's boxes nearest first through Embree's C API and stops at
-    # the first box entered beyond its closest hit: the same answer bit for bit.
+    # renderer walks the top-level BVH nearest box first, tracing through Embree's C API,
+    # and stops once boxes are entered beyond its closest hit: the same answer bit for bit.
     from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL
 
     geo, o, d, tmax = _rays_through_overlapping_trees(20000, 3)
@@ -114,17 +114,3 @@ def test_occlusion_equals_tracing_every_crossing_with_embreex():
     want[ray[blocked]] = True
     assert 0.05 < want.mean() < 0.95
     assert np.array_equal(geo.intersect_occluded(o, d, tmax), want)
-
-
-def test_entry_rank_orders_each_rays_crossings_by_entry_then_position():
-    from nprt.workers.kernels.pairs import entry_rank
-
-    rng = np.random.default_rng(5)
-    ray = np.sort(rng.integers(0, 300, 3000)).astype(np.int64)
-    t = rng.choice([0.0, 0.5, 1.0, 2.5, np.inf], len(ray))  # many ties
-    rank = entry_rank(ray, t)
-    order = np.lexsort((np.arange(len(ray)), t, ray))  # by ray, then t, then position
-    want = np.empty(len(ray), np.int64)
-    first = np.searchsorted(ray[order], ray[order])  # start of each ray's run
-    want[order] = np.arange(len(ray)) - first
-    assert np.array_equal(rank, want)

@@ -1,7 +1,9 @@
-"""Jitted kernels that trace each ray's instance boxes through Embree's C API, nearest box
-first, in one compiled loop: Embree's functions are called by address (passed in from
-`nprt.workers.traversal.rtc`, which opens the library and builds the scenes), so nothing
-here depends on the process and numba caches these kernels like the others."""
+"""Jitted kernels that walk each ray through the top level (the instance boxes, through
+their BVH) and trace the boxes it reaches through Embree's C API, in one compiled loop a
+ray: no list of crossings is written or sorted. Embree's functions are called by address
+(passed in from `nprt.workers.traversal.rtc`, which opens the library and builds the
+scenes), so nothing here depends on the process and numba caches these kernels like the
+others."""
 
 from __future__ import annotations
 
@@ -10,6 +12,7 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
+from nprt.workers.kernels.bvh import _slab
 from nprt.workers.kernels.pairs import _to_local_row
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
@@ -65,80 +68,199 @@ def occluded1_ray(fn, scene, rh, ri, o0, o1, o2, d0, d1, d2, tfar):
 
 
 @njit(**JIT)
-def closest_crossings(fn, ray, inst, rank, t_enter, box_slack, tmax, far, mesh_of, scene_of_mesh,
-                      world_to_local, origin, direction, best_t, best_inst, best_prim, best_u,
-                      best_v):
-    """Each ray's crossings (ray-major, rank from `entry_rank`) traced nearest box first,
-    stopping at the first box entered beyond its closest hit so far (or tmax) stretched by
-    box_slack; Embree gets tfar = far. Hits fold in place into best_* (n,) (best_inst -1:
-    none yet): a hit at t <= tmax wins on a smaller t, and on equal t the lower instance,
-    so any shard split agrees. origin, direction (n, 3) float64; scene_of_mesh (M,)
-    uint64."""
-    rh, ri, lo, ld, order = _scratch()
-    a = 0
-    while a < ray.shape[0]:
-        b, order = _ray_run(ray, rank, a, order)
-        r = ray[a]
+def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, col_of, use_bvh,
+                 node_box, node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
+                 world_to_local, best_t, best_inst, best_prim, best_u, best_v):
+    """Each ray's closest hit among the instance boxes `members` (k,) int64 (indices into
+    boxes (m, 2, 3) float64; col_of (m,) int32 >= 0 for members), found in one walk: the
+    boxes it crosses before tmax stretched by box_slack, nearest entry first (through the
+    top-level BVH when use_bvh, nodes and boxes in one queue by entry distance), each
+    traced through Embree (tfar = far) until the next is entered beyond the closest hit so
+    far (stretched alike): no hit there can win or tie. Hits fold into best_* (n,)
+    (best_inst -1: none yet): a hit at t <= tmax wins on a smaller t, on equal t the
+    lower instance, so the answer depends neither on the order boxes are traced in nor on
+    how instances are split over shards. origin, direction (n, 3) float64, tmax (n,)
+    float32."""
+    rh, ri, lo, ld = _scratch()
+    cap = node_child.shape[0] + boxes.shape[0] + 1
+    q_t, q_id = np.empty(cap), np.empty(cap, np.int64)  # by entry, farthest first
+    for r in range(origin.shape[0]):
+        o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
+        d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
+        i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
+        box_tmax = np.float64(tmax[r]) * (1.0 + box_slack)
         cut = np.float64(tmax[r])
-        for k in range(b - a):
-            x = order[k]
-            if not t_enter[x] <= cut * (1.0 + box_slack):
-                break
-            i = inst[x]
-            _to_local_row(world_to_local, i, origin, direction, r, lo, ld, 0)
-            t, prim, u, v = closest1(fn, scene_of_mesh[mesh_of[i]], rh, ri, lo[0, 0], lo[0, 1],
-                                     lo[0, 2], ld[0, 0], ld[0, 1], ld[0, 2], far)
-            if prim < 0 or not t <= tmax[r]:
+        s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
+        h = 0
+        if use_bvh and _finite(o0, o1, o2, d0, d1, d2):
+            t = _node_enter(node_box, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2)
+            if t <= box_tmax:
+                h = _enqueue(q_t, q_id, h, t, 0)
+        else:  # few boxes, or a ray the node test does not cover: every member's slab
+            for j in range(members.shape[0]):
+                ok, te, _ = _slab(boxes, members[j], o0, o1, o2, i0, i1, i2, box_tmax)
+                if ok:
+                    h = _enqueue(q_t, q_id, h, te, -1 - members[j])
+        while h > 0:
+            h -= 1
+            if not q_t[h] <= cut * (1.0 + box_slack):
+                break  # everything left is entered beyond the closest hit
+            x = q_id[h]
+            if x < 0:
+                cut = _closest_box(fn, -1 - x, r, cut, far, tmax, mesh_of, scene_of_mesh,
+                                   world_to_local, origin, direction, rh, ri, lo, ld, best_t,
+                                   best_inst, best_prim, best_u, best_v)
                 continue
-            if best_inst[r] < 0 or t < best_t[r] or (t == best_t[r] and i < best_inst[r]):
-                best_t[r], best_inst[r], best_prim[r] = t, i, prim
-                best_u[r], best_v[r] = u, v
-                if t < cut:
-                    cut = np.float64(t)
-        a = b
+            c = node_child[x]
+            if c >= 0:
+                for y in range(c, c + 2):
+                    t = _node_enter(node_box, y, o0, o1, o2, i0, i1, i2, s0, s1, s2)
+                    if t <= box_tmax:
+                        h = _enqueue(q_t, q_id, h, t, y)
+                continue
+            for y in range(node_start[x], node_start[x] + node_count[x]):
+                b = prim[y]
+                if col_of[b] >= 0:
+                    ok, te, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, box_tmax)
+                    if ok:
+                        h = _enqueue(q_t, q_id, h, te, -1 - b)
+
+
+@njit(inline="always", **JIT)
+def _enqueue(q_t, q_id, h, t, x):
+    """Insert (t, x) into the queue q_t, q_id of h entries kept farthest first (the
+    nearest pops from the end). Returns the new length."""
+    y = h
+    while y > 0 and q_t[y - 1] < t:
+        q_t[y], q_id[y] = q_t[y - 1], q_id[y - 1]
+        y -= 1
+    q_t[y], q_id[y] = t, x
+    return h + 1
+
+
+@njit(inline="always", **JIT)
+def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, world_to_local, origin,
+                 direction, rh, ri, lo, ld, best_t, best_inst, best_prim, best_u, best_v):
+    """Trace ray r in instance b and fold its hit into best_*. Returns the new cut (the
+    closest hit's t so far, or tmax) as float64."""
+    _to_local_row(world_to_local, b, origin, direction, r, lo, ld, 0)
+    t, p, u, v = closest1(fn, scene_of_mesh[mesh_of[b]], rh, ri, lo[0, 0], lo[0, 1], lo[0, 2],
+                          ld[0, 0], ld[0, 1], ld[0, 2], far)
+    if p < 0 or not t <= tmax[r]:
+        return cut
+    if best_inst[r] < 0 or t < best_t[r] or (t == best_t[r] and b < best_inst[r]):
+        best_t[r], best_inst[r], best_prim[r] = t, b, p
+        best_u[r], best_v[r] = u, v
+        if t < cut:
+            return np.float64(t)
+    return cut
 
 
 @njit(**JIT)
-def occluded_crossings(fn, ray, inst, rank, tmax, mesh_of, scene_of_mesh, world_to_local, origin,
-                       direction, occluded):
-    """occluded[r] = some crossing of ray r (ray-major, traced nearest box first) blocks
-    (0, tmax[r]); a ray stops at its first occluder."""
-    rh, ri, lo, ld, order = _scratch()
-    a = 0
-    while a < ray.shape[0]:
-        b, order = _ray_run(ray, rank, a, order)
-        r = ray[a]
-        for k in range(b - a):
-            i = inst[order[k]]
-            _to_local_row(world_to_local, i, origin, direction, r, lo, ld, 0)
-            if occluded1_ray(fn, scene_of_mesh[mesh_of[i]], rh, ri, lo[0, 0], lo[0, 1], lo[0, 2],
-                             ld[0, 0], ld[0, 1], ld[0, 2], tmax[r]):
+def occluded_walk(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, node_box,
+                  node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
+                  world_to_local, occluded):
+    """occluded[r] = some box of `members` crossed before tmax[r] holds a triangle on
+    (0, tmax[r]); a ray stops at its first occluder. Arrays as `closest_walk`."""
+    rh, ri, lo, ld = _scratch()
+    stack, stack_t = np.empty(node_child.shape[0] + 1, np.int32), np.empty(node_child.shape[0] + 1)
+    for r in range(origin.shape[0]):
+        o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
+        d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
+        i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
+        tm = np.float64(tmax[r])
+        if use_bvh and _finite(o0, o1, o2, d0, d1, d2):
+            s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
+            top = _push_near(node_box, 0, stack, stack_t, 0, o0, o1, o2, i0, i1, i2, s0, s1,
+                             s2, tm)
+            while top > 0 and not occluded[r]:
+                top -= 1
+                node = stack[top]
+                c = node_child[node]
+                if c >= 0:
+                    top = _push_pair(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2,
+                                     s0, s1, s2, tm)
+                    continue
+                for x in range(node_start[node], node_start[node] + node_count[node]):
+                    b = prim[x]
+                    if col_of[b] >= 0 and _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1,
+                                                        i2, tmax, mesh_of, scene_of_mesh,
+                                                        world_to_local, origin, direction,
+                                                        rh, ri, lo, ld):
+                        occluded[r] = True
+                        break
+            continue
+        for j in range(members.shape[0]):
+            if _occluded_box(fn, members[j], r, boxes, o0, o1, o2, i0, i1, i2, tmax, mesh_of,
+                             scene_of_mesh, world_to_local, origin, direction, rh, ri, lo, ld):
                 occluded[r] = True
                 break
-        a = b
+
+
+@njit(inline="always", **JIT)
+def _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1, i2, tmax, mesh_of, scene_of_mesh,
+                  world_to_local, origin, direction, rh, ri, lo, ld):
+    """Whether ray r crosses instance b's box before tmax[r] and a triangle there blocks
+    (0, tmax[r])."""
+    ok, _, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, np.float64(tmax[r]))
+    if not ok:
+        return False
+    _to_local_row(world_to_local, b, origin, direction, r, lo, ld, 0)
+    return occluded1_ray(fn, scene_of_mesh[mesh_of[b]], rh, ri, lo[0, 0], lo[0, 1], lo[0, 2],
+                         ld[0, 0], ld[0, 1], ld[0, 2], tmax[r])
+
+
+@njit(inline="always", **JIT)
+def _finite(o0, o1, o2, d0, d1, d2):
+    return (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2) and np.isfinite(d0)
+            and np.isfinite(d1) and np.isfinite(d2))
+
+
+@njit(inline="always", **JIT)
+def _node_enter(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2):
+    """Where a ray enters node c's box (`nprt.workers.kernels.bvh._node_hit`'s arithmetic:
+    no later than it enters any box below), or inf if it misses it."""
+    t_enter = max(max((node_box[c, s0, 0] - o0) * i0, (node_box[c, s1, 1] - o1) * i1),
+                  (node_box[c, s2, 2] - o2) * i2)
+    t_exit = min(min((node_box[c, 1 - s0, 0] - o0) * i0, (node_box[c, 1 - s1, 1] - o1) * i1),
+                 (node_box[c, 1 - s2, 2] - o2) * i2)
+    return t_enter if t_exit >= max(t_enter, 0.0) else np.inf
+
+
+@njit(inline="always", **JIT)
+def _push_near(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2, s0, s1, s2, lim):
+    """Push node c with its entry distance if the ray enters it no later than lim."""
+    t = _node_enter(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2)
+    if t <= lim:
+        stack[top], stack_t[top] = c, t
+        top += 1
+    return top
+
+
+@njit(inline="always", **JIT)
+def _push_pair(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2, s0, s1, s2, lim):
+    """Push children c and c + 1 entered no later than lim, the nearer last (popped
+    first)."""
+    ta = _node_enter(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2)
+    tb = _node_enter(node_box, c + 1, o0, o1, o2, i0, i1, i2, s0, s1, s2)
+    near, far_c, t_near, t_far = c, c + 1, ta, tb
+    if tb < ta:
+        near, far_c, t_near, t_far = c + 1, c, tb, ta
+    if t_far <= lim:
+        stack[top], stack_t[top] = far_c, t_far
+        top += 1
+    if t_near <= lim:
+        stack[top], stack_t[top] = near, t_near
+        top += 1
+    return top
 
 
 @njit(inline="always", **JIT)
 def _scratch():
     """One ray's buffers: the RTCRayHit (as float32 and uint32 views), its local origin and
-    direction (1, 3) float32, and the rank-to-crossing order of its crossings."""
+    direction (1, 3) float32."""
     rh = rayhit_buffer_nb()
-    return (rh, rh.view(np.uint32), np.empty((1, 3), np.float32),
-            np.empty((1, 3), np.float32), np.empty(64, np.int64))
-
-
-@njit(inline="always", **JIT)
-def _ray_run(ray, rank, a, order):
-    """The crossings of ray[a] run from a to the returned b; order[k] (grown if needed) is
-    the one of rank k."""
-    b = a + 1
-    while b < ray.shape[0] and ray[b] == ray[a]:
-        b += 1
-    if b - a > order.shape[0]:
-        order = np.empty(2 * (b - a), np.int64)
-    for x in range(a, b):
-        order[rank[x]] = x
-    return b, order
+    return rh, rh.view(np.uint32), np.empty((1, 3), np.float32), np.empty((1, 3), np.float32)
 
 
 @njit(inline="always", **JIT)

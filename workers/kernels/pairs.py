@@ -1,6 +1,5 @@
-"""Jitted kernels over (ray, instance) crossings: rays moved into an instance's local space
-(float64, then float32) and each ray's crossings ranked nearest box entry first, the order
-`nprt.workers.traversal.rtc` traces them in."""
+"""Jitted kernels over (ray, instance) pairs: rays moved into an instance's local space
+(float64, then float32), the one way every traversal kernel does it."""
 
 from __future__ import annotations
 
@@ -32,25 +31,3 @@ def to_local(inst, world_to_local, origin, direction):
     for x in range(n):
         _to_local_row(world_to_local, inst[x], origin, direction, x, lo, ld, x)
     return lo, ld
-
-
-@njit(**JIT)
-def entry_rank(ray, t_enter):
-    """(p,) int32 position of each crossing among its ray's, nearest box entry first (ties
-    in the order given). ray (p,) int64 ray-major (a ray's crossings are contiguous),
-    t_enter (p,) float64."""
-    p = ray.shape[0]
-    rank = np.empty(p, np.int32)
-    a = 0
-    while a < p:
-        b = a + 1
-        while b < p and ray[b] == ray[a]:
-            b += 1
-        for x in range(a, b):
-            k = 0
-            for y in range(a, b):
-                if t_enter[y] < t_enter[x] or (t_enter[y] == t_enter[x] and y < x):
-                    k += 1
-            rank[x] = k
-        a = b
-    return rank

@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 
 from nprt.workers.kernels import crossings
-from nprt.workers.kernels import pairs as pair_kernels
 from nprt.workers.traversal import rtc
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.toplevel import InstanceTable
@@ -32,19 +31,16 @@ class LocalGeometry:
         if missing:
             raise ValueError(f"instances reference meshes {sorted(missing)} not held here")
         self._scene_of_mesh = None
+        self._walk_inputs = None
 
     def __repr__(self) -> str:
         return f"LocalGeometry({len(self.geometry)} meshes, {len(self.instances)} instances)"
 
-    def _crossings(self, origin, direction, box_tmax):
-        """Box crossings ray (p,) int64, inst (p,) int32, t_enter (p,) float64 (ray-major),
-        their rank within their ray (nearest entry first), and origin, direction as float64
-        C arrays."""
-        ray, inst, t_enter, _ = self.table.box_entries(origin, direction, box_tmax,
-                                                       self.instances)
-        o = np.ascontiguousarray(origin, np.float64)
-        d = np.ascontiguousarray(direction, np.float64)
-        return ray, inst, t_enter, pair_kernels.entry_rank(ray, t_enter), o, d
+    def _walk(self) -> tuple:
+        """The top-level inputs of the walking kernels for these instances (made once)."""
+        if self._walk_inputs is None:
+            self._walk_inputs = self.table.walk_inputs(self.instances)
+        return self._walk_inputs
 
     def _scenes(self) -> np.ndarray:
         """(M,) uint64 Embree scene of each base mesh held here (0 elsewhere)."""
@@ -77,17 +73,17 @@ class LocalGeometry:
         run_inst = np.full(n, -1, np.int32)
         run_prim = np.full(n, -1, np.int32)
         run_u, run_v = np.zeros(n, np.float32), np.zeros(n, np.float32)
-        ray, inst, t_enter, rank, o, d = self._crossings(
-            origin, direction, tmax.astype(np.float64) * (1.0 + BOX_TMAX_SLACK_REL))
+        o = np.ascontiguousarray(origin, np.float64)
+        d = np.ascontiguousarray(direction, np.float64)
         mesh_of, _, w2l = self.table.kernel_arrays()
-        # Each ray's boxes nearest entry first, until one is entered beyond its closest hit
-        # so far (exact: no hit there can win or tie). Embree gets tfar = FAR_T, not that
-        # hit's t: which of two triangles tied on a shared edge it reports depends on tfar,
-        # and an exact render must not depend on the tmax a ray arrived with (nor on which
-        # shard found the closer hit).
-        crossings.closest_crossings(np.uint64(rtc.INTERSECT1), ray, inst, rank, t_enter,
-                                    BOX_TMAX_SLACK_REL, tmax, FAR_T, mesh_of, self._scenes(),
-                                    w2l, o, d, run_t, run_inst, run_prim, run_u, run_v)
+        # Each ray walks the top level nearest box first and traces each box it reaches
+        # until boxes are entered beyond its closest hit so far (exact: no hit there can
+        # win or tie). Embree gets tfar = FAR_T, not that hit's t: which of two triangles
+        # tied on a shared edge it reports depends on tfar, and an exact render must not
+        # depend on the tmax a ray arrived with (nor on which shard found the closer hit).
+        crossings.closest_walk(np.uint64(rtc.INTERSECT1), o, d, tmax, BOX_TMAX_SLACK_REL, FAR_T,
+                               *self._walk(), mesh_of, self._scenes(), w2l, run_t, run_inst,
+                               run_prim, run_u, run_v)
         t_best = tmax.copy()
         if hit_inst is None:
             better = (run_inst >= 0) & (run_t < t_best)
@@ -106,8 +102,9 @@ class LocalGeometry:
         """(n,) bool: some instance here blocks the segment (0, tmax). Shapes as above."""
         tmax = np.ascontiguousarray(tmax, np.float32)
         occluded = np.zeros(len(origin), bool)
-        ray, inst, _, rank, o, d = self._crossings(origin, direction, tmax)
+        o = np.ascontiguousarray(origin, np.float64)
+        d = np.ascontiguousarray(direction, np.float64)
         mesh_of, _, w2l = self.table.kernel_arrays()
-        crossings.occluded_crossings(np.uint64(rtc.OCCLUDED1), ray, inst, rank, tmax,
-                                     mesh_of, self._scenes(), w2l, o, d, occluded)
+        crossings.occluded_walk(np.uint64(rtc.OCCLUDED1), o, d, tmax, *self._walk(), mesh_of,
+                                self._scenes(), w2l, occluded)
         return occluded

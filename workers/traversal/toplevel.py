@@ -106,6 +106,33 @@ class InstanceTable:
                                 np.array(origin, np.float64, order="C"),
                                 np.array(direction, np.float64, order="C"))
 
+    def _columns(self, instances: np.ndarray) -> np.ndarray | None:
+        """col_of (m,) int32: each instance's position in `instances` (-1: not there), when
+        the BVH serves them (a table with a BVH, more than BVH_MIN_INSTANCES valid, unique
+        instances); None: test every box instead."""
+        k, m = len(instances), len(self)
+        if self._bvh is None or k <= BVH_MIN_INSTANCES:
+            return None
+        if instances.min() < 0 or instances.max() >= m:
+            return None
+        col_of = np.full(m, -1, np.int32)
+        col_of[instances] = np.arange(k, dtype=np.int32)
+        if np.count_nonzero(col_of >= 0) != k:  # repeated instances: plain loop
+            return None
+        return col_of
+
+    def walk_inputs(self, instances: np.ndarray) -> tuple:
+        """What the walking kernels (`nprt.workers.kernels.crossings.closest_walk`) take
+        for a set of instances: boxes (m, 2, 3) float64 (world_bounds), members (k,) int64,
+        col_of (m,) int32, use_bvh, then the BVH's node_box, node_child, node_start,
+        node_count, prim (placeholders without one); owned and writable."""
+        members = np.array(instances, np.int64)
+        col_of = self._columns(members)
+        if col_of is None:
+            boxes = np.array(self.world_bounds, np.float64, order="C")
+            return (boxes, members, np.full(len(self), -1, np.int32), False, *_no_bvh())
+        return (self._bvh[0], members, col_of, True, *self._bvh[1:])
+
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
         """Slab test of rays against a set of instance boxes, in float64.
 
@@ -124,20 +151,20 @@ class InstanceTable:
         # One dtype and layout, so the kernels are compiled (and cached) once.
         o, d = np.array(origin, np.float64, order="C"), np.array(direction, np.float64, order="C")
         tm = np.array(tmax, np.float64, order="C")
-        col_of = None
-        if self._bvh is not None and k > BVH_MIN_INSTANCES:
-            m = len(self)
-            if instances.min() >= 0 and instances.max() < m:
-                col_of = np.full(m, -1, np.int32)
-                col_of[instances] = np.arange(k, dtype=np.int32)
-                if np.count_nonzero(col_of >= 0) != k:  # repeated instances: plain loop
-                    col_of = None
+        col_of = self._columns(instances)
         if col_of is not None:
             ray, col, t_enter, t_exit = kernels.bvh_slab(o, d, tm, *self._bvh, col_of)
         else:
             boxes = np.array(self.world_bounds[instances], np.float64, order="C")
             ray, col, t_enter, t_exit = kernels.slab_all(o, d, tm, boxes)
         return ray, instances[col].astype(np.int32), t_enter, t_exit
+
+
+def _no_bvh() -> tuple:
+    """Placeholder BVH arrays (dtypes of `kernels.bvh_build`'s) for kernels told not to
+    use one."""
+    return (np.zeros((1, 2, 3)), np.full(1, -1, np.int32), np.zeros(1, np.int32),
+            np.zeros(1, np.int32), np.zeros(0, np.int32))
 
 
 def _box_corners(b: np.ndarray) -> np.ndarray:
