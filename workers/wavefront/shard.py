@@ -24,8 +24,9 @@ import numpy as np
 
 from nprt.scene.model import Mesh
 from nprt.workers.filmsum import MAX_EXP, FilmSums
+from nprt.workers.kernels import tiles
 from nprt.workers.kernels.filmsum import accumulate
-from nprt.workers.passes import Pass, count_tiles, pass_at, tile_of
+from nprt.workers.passes import Pass, count_tiles, pass_at
 from nprt.workers.routing.exact import DONE, hit_owner, nearest_unvisited, visited_bit
 from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
 from nprt.workers.runtime.protocol import EVERYWHERE, MeshRequest, Parcel, ShardConfig
@@ -97,25 +98,24 @@ class _Step:
         """pixel (n,) uint32 -> (n,) int64 index of its pass in this step."""
         if len(self.states) == 1:
             return np.zeros(len(pixel), np.int64)
-        return self.lookup[tile_of(self.s, pixel)]
+        return tiles.pass_slots(pixel, self.s.width, self.s.tile_size, self.lookup)
 
     def splat(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
         """Keep rgb (n, 3) float64 for each pass's film."""
         if len(pixel) == 0:
             return
+        local = tiles.tile_index(pixel, self.s.width, self.s.tile_size)
+        rgb = np.asarray(rgb, np.float64)
         if len(self.states) == 1:
-            st = self.states[0]
-            st.index.append(st.pass_.local_index(pixel, self.s.width))
-            st.rgb.append(np.asarray(rgb, np.float64))
+            self.states[0].index.append(local)
+            self.states[0].rgb.append(rgb)
             return
         tok = self.tok(pixel)
-        order = np.argsort(tok, kind="stable")  # rows grouped by pass, one sort for all
-        ends = np.cumsum(np.bincount(tok, minlength=len(self.states)))
-        for i, (a, b) in enumerate(zip(np.r_[0, ends[:-1]], ends, strict=True)):
-            if b > a:
-                st, rows = self.states[i], order[a:b]
-                st.index.append(st.pass_.local_index(pixel[rows], self.s.width))
-                st.rgb.append(np.asarray(rgb[rows], np.float64))
+        for i, st in enumerate(self.states):
+            rows = np.flatnonzero(tok == i)
+            if len(rows):
+                st.index.append(local[rows])
+                st.rgb.append(rgb[rows])
 
 
 class Shard:
