@@ -131,7 +131,11 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
                         total += sums
             film[p.pixels(s.width)] += total.to_float()
     cpu = time.process_time() - c0
-    return {"cpu_s": cpu, "steps": steps, "camera_rays": camera, "rays_in": rays_in,
+    per_shard = np.zeros(k)
+    for st in trace["steps"]:
+        per_shard[st["shard"]] += st["cpu_s"]
+    return {"cpu_s": cpu, "shard_cpu_s": per_shard, "steps": steps, "camera_rays": camera,
+            "rays_in": rays_in,
             "phase_cpu_s": {n: round(v, 4) for n, v in sorted(times.phase_cpu_s.items())},
             "film": film, "trace": trace, "window": window}
 
@@ -166,6 +170,9 @@ def bench(args) -> dict:
                        "visits_per_path": round(r["rays_in"] / r["camera_rays"], 3),
                        "us_per_visit": round(1e6 * r["cpu_s"] / max(r["rays_in"], 1), 3),
                        "steps": r["steps"], "phase_cpu_s": r["phase_cpu_s"],
+                       # the busiest shard's CPU over the mean: bounds the wall on K cores
+                       "imbalance": round(float(r["shard_cpu_s"].max()
+                                                / r["shard_cpu_s"].mean()), 3),
                        "model_s": round(model_wall(r, s, cost), 3)}
                 if one is not None:
                     row["cpu_vs_one_shard"] = round(r["cpu_s"] / one["cpu_s"], 3)
@@ -195,11 +202,15 @@ def markdown(res: dict) -> str:
     out = [f"Ray per parcel (this run): send {1e3 * c['send_s']:.2f} ms + "
            f"{1e9 * c['send_s_per_byte']:.2f} ms/MB, receive {1e3 * c['receive_s']:.2f} ms + "
            f"{1e9 * c['receive_s_per_byte']:.2f} ms/MB. *model* is the render wall on K "
-           "dedicated cores (steps replayed with Ray's cost added), against the one-shard CPU.",
+           "dedicated cores (steps replayed with Ray's cost added), against the one-shard CPU; "
+           "*busiest / mean shard* is the CPU of the busiest shard over the mean (the wall "
+           "on K cores is at least the busiest shard's).",
            "",
            "| scene | mode | K | CPU s | vs 1 shard | us / path | visits / path | us / visit | "
-           + " | ".join(PHASES) + " | same film | model s | model vs 1 shard |",
-           "|---|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(PHASES) + "---|---:|---:|"]
+           + " | ".join(PHASES) + " | same film | busiest / mean shard | model s | "
+           "model vs 1 shard |",
+           "|---|---|---:|---:|---:|---:|---:|---:|" + "---:|" * len(PHASES)
+           + "---|---:|---:|---:|"]
     for r in res["rows"]:
         ph = " | ".join(f"{r['phase_cpu_s'].get(p, 0.0):.2f}" for p in PHASES)
         same = r.get("same_film_as_one_shard")
@@ -207,7 +218,8 @@ def markdown(res: dict) -> str:
                    f"{r.get('cpu_vs_one_shard', 1.0):.2f}x | {r['us_per_path']:.2f} | "
                    f"{r['visits_per_path']:.2f} | {r['us_per_visit']:.3f} | {ph} | "
                    f"{'' if same is None else ('yes' if same else 'NO')} | "
-                   f"{r['model_s']:.2f} | {r.get('model_vs_one_shard', 1.0):.2f}x |")
+                   f"{r['imbalance']:.2f} | {r['model_s']:.2f} | "
+                   f"{r.get('model_vs_one_shard', 1.0):.2f}x |")
     return "\n".join(out)
 
 
