@@ -5,8 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from nprt.workers.kernels import records
 from nprt.workers.traversal.local import LocalGeometry
-from nprt.workers.wavefront.batch import LIGHT_BASE, RayBatch, precedes
+from nprt.workers.wavefront.batch import RayBatch
 from nprt.workers.wavefront.lights import LightSet
 
 
@@ -17,16 +18,9 @@ def resolve_closest(rays: RayBatch, geometry: LocalGeometry, lights: LightSet) -
     them in the same way)."""
     t, inst, prim, u, v = geometry.intersect_closest(rays.origin, rays.direction, rays.tmax,
                                                      rays.hit_inst, rays.hit_prim)
-    got = inst >= 0
-    hit_inst = np.where(got, inst, rays.hit_inst).astype(np.int32)
-    hit_prim = np.where(got, prim, rays.hit_prim).astype(np.int32)
     tl, light = lights.intersect_quads(rays.origin, rays.direction, t)
-    light_inst = (LIGHT_BASE - light).astype(np.int32)
-    no_prim = np.full(len(rays), -1, np.int32)
-    on_light = (light >= 0) & precedes(tl, light_inst, no_prim, t, hit_inst, hit_prim)
-    return rays.replace(
-        tmax=np.where(on_light, tl, t).astype(np.float32),
-        hit_inst=np.where(on_light, light_inst, hit_inst).astype(np.int32),
-        hit_prim=np.where(on_light, no_prim, hit_prim).astype(np.int32),
-        hit_u=np.where(got & ~on_light, u, np.where(on_light, 0.0, rays.hit_u)).astype(np.float32),
-        hit_v=np.where(got & ~on_light, v, np.where(on_light, 0.0, rays.hit_v)).astype(np.float32))
+    tmax, hit_inst, hit_prim, hit_u, hit_v = records.with_lights(
+        t, inst, prim, u, v, rays.hit_inst, rays.hit_prim, rays.hit_u, rays.hit_v, tl,
+        np.ascontiguousarray(light, np.int32))
+    return rays.replace(tmax=tmax, hit_inst=hit_inst, hit_prim=hit_prim, hit_u=hit_u,
+                        hit_v=hit_v)

@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from nprt.workers.kernels import crossings
+from nprt.workers.kernels import crossings, records
 from nprt.workers.traversal import rtc
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.toplevel import InstanceTable
-from nprt.workers.wavefront.batch import precedes
 from nprt.workers.wavefront.lights import FAR_T
 
 # Instance boxes are culled at tmax stretched by this much (256 float32 ulps): the float32
@@ -84,18 +83,12 @@ class LocalGeometry:
         crossings.closest_walk(np.uint64(rtc.INTERSECT1), o, d, tmax, BOX_TMAX_SLACK_REL, FAR_T,
                                *self._walk(), mesh_of, self._scenes(), w2l, run_t, run_inst,
                                run_prim, run_u, run_v)
-        t_best = tmax.copy()
-        if hit_inst is None:
-            better = (run_inst >= 0) & (run_t < t_best)
-        else:
-            better = (run_inst >= 0) & precedes(run_t, run_inst, run_prim, t_best, hit_inst,
-                                                hit_prim)
-        t_best[better] = run_t[better]
-        inst_best = np.where(better, run_inst, -1).astype(np.int32)
-        prim_best = np.where(better, run_prim, -1).astype(np.int32)
-        u_best = np.where(better, run_u, np.float32(0)).astype(np.float32)
-        v_best = np.where(better, run_v, np.float32(0)).astype(np.float32)
-        return t_best, inst_best, prim_best, u_best, v_best
+        use_record = hit_inst is not None
+        if not use_record:
+            hit_inst = hit_prim = np.zeros(n, np.int32)
+        return records.local_winners(run_t, run_inst, run_prim, run_u, run_v, tmax,
+                                     np.ascontiguousarray(hit_inst, np.int32),
+                                     np.ascontiguousarray(hit_prim, np.int32), use_record)
 
     def intersect_occluded(self, origin: np.ndarray, direction: np.ndarray,
                            tmax: np.ndarray) -> np.ndarray:

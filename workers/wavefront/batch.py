@@ -17,26 +17,24 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+# Hit record sentinels in `hit_inst` (int32): no hit yet (NO_HIT), or a quad light
+# (LIGHT_BASE - light index); tie ranks of hit_inst values (see kernels/records.py, which
+# holds the compiled folds of the same order).
+from nprt.workers.kernels.records import LIGHT_BASE, NO_HIT, RANK_LIGHT0, RANK_NO_HIT
+
 # Ray kinds, stored in RayBatch.kind (uint8).
 from nprt.workers.runtime.protocol import KIND_NAMES, PRIMARY, SECONDARY, SHADOW  # noqa: F401
-
-# Hit record sentinels in `hit_inst` (int32): no hit yet, or a quad light (-2 - light index).
-NO_HIT = -1
-LIGHT_BASE = -2
 
 # Precision policy of the wire format: origins float64, everything else float32 or less.
 ORIGIN_DTYPE = np.float64
 
-# Tie ranks (int64) of hit_inst values: quad lights first, in light order, then instances
-# in instance order; "no hit" last, so any hit at or before tmax replaces it.
-_RANK_LIGHT0 = -(1 << 40)
-_RANK_NO_HIT = 1 << 40
-
 
 def tie_rank(hit_inst: np.ndarray) -> np.ndarray:
-    """(n,) int32 hit_inst -> (n,) int64 rank: the order of hits at equal t."""
+    """(n,) int32 hit_inst -> (n,) int64 rank: the order of hits at equal t (quad lights
+    first, in light order, then instances in instance order; "no hit" last, so any hit
+    at or before tmax replaces it)."""
     h = np.asarray(hit_inst, np.int64)
-    return np.where(h >= 0, h, np.where(h == NO_HIT, _RANK_NO_HIT, _RANK_LIGHT0 + LIGHT_BASE - h))
+    return np.where(h >= 0, h, np.where(h == NO_HIT, RANK_NO_HIT, RANK_LIGHT0 + LIGHT_BASE - h))
 
 
 def precedes(t_a, inst_a, prim_a, t_b, inst_b, prim_b) -> np.ndarray:
@@ -61,16 +59,18 @@ class _Batch:
 
     _SPEC: dict = {}
 
-    # Fields are walked through _SPEC (same names as the dataclass fields): calling
-    # dataclasses.fields() on every take/replace cost ~5 % of a render.
+    # Columns are read through the instance __dict__, which holds exactly the dataclass
+    # fields in _SPEC order: calling dataclasses.fields() on every take/replace cost ~5 %
+    # of a render, and a getattr per column most of a small batch's glue.
 
     def __post_init__(self):
-        n = len(self.pixel)
+        cols = self.__dict__
+        n = len(cols["pixel"])
         for name, (width, dtype) in self._SPEC.items():
-            _check(name, getattr(self, name), n, width, dtype)
+            _check(name, cols[name], n, width, dtype)
 
     def __len__(self) -> int:
-        return len(self.pixel)
+        return self.__dict__["pixel"].shape[0]
 
     @property
     def nbytes(self) -> int:
@@ -81,8 +81,7 @@ class _Batch:
         """A batch of columns already checked (rows of checked batches): no validation,
         which costs more than the copy itself for small batches."""
         batch = object.__new__(cls)
-        for name, arr in cols.items():
-            object.__setattr__(batch, name, arr)
+        batch.__dict__.update(cols)  # frozen: fields are set past __setattr__
         return batch
 
     def take(self, index: np.ndarray):
@@ -93,16 +92,14 @@ class _Batch:
             index = np.flatnonzero(index)
             if len(index) == len(self):
                 return self
-        return self._trusted({name: getattr(self, name)[index] for name in self._SPEC})
+        return self._trusted({name: arr[index] for name, arr in self.__dict__.items()})
 
     def replace(self, **changes):
         n = len(self)
         for name, arr in changes.items():
             width, dtype = self._SPEC[name]
             _check(name, arr, n, width, dtype)
-        d = {name: getattr(self, name) for name in self._SPEC}
-        d.update(changes)
-        return self._trusted(d)
+        return self._trusted({**self.__dict__, **changes})
 
     @classmethod
     def concat(cls, batches: list):
@@ -111,7 +108,7 @@ class _Batch:
             return cls.empty()
         if len(batches) == 1:
             return batches[0]
-        return cls._trusted({name: np.concatenate([getattr(b, name) for b in batches])
+        return cls._trusted({name: np.concatenate([b.__dict__[name] for b in batches])
                              for name in cls._SPEC})
 
     @classmethod
