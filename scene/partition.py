@@ -11,6 +11,7 @@ import numpy as np
 
 from nprt.scene.errors import SceneError
 from nprt.scene.model import Scene, instance_world_bounds
+from nprt.scene.workload import instance_work
 
 SHARD_DTYPE = np.int32
 
@@ -61,8 +62,9 @@ def partition(scene: Scene, k: int) -> Partition:
     """Assign every instance to one of k shards, balancing the bytes of the meshes held.
 
     Objects go largest-first to the shard with the fewest bytes so far. When k exceeds the
-    number of instanced meshes, the meshes with the most instances per piece are split into
-    more pieces, each piece a spatially coherent group from recursive median bisection of the
+    number of instanced meshes, the meshes with the most estimated ray work per piece
+    (nprt.scene.workload: the camera's view their instances cover) are split into more
+    pieces, each piece a spatially coherent group from recursive median bisection of the
     instance centres along the longest axis. Every shard gets at least one instance.
     """
     n = len(scene.instances)
@@ -77,7 +79,8 @@ def partition(scene: Scene, k: int) -> Partition:
     counts = np.bincount(inst_mesh, minlength=len(scene.meshes))
     nbytes = np.array([m.nbytes for m in scene.meshes], dtype=np.int64)
     used = np.flatnonzero(counts)
-    pieces = _piece_counts(used, counts, nbytes, int(k))
+    work = np.bincount(inst_mesh, weights=instance_work(scene), minlength=len(scene.meshes))
+    pieces = _piece_counts(used, counts, nbytes, work, int(k))
     centres = instance_world_bounds(scene).mean(axis=1)  # (n, 3) float64
     # Instances grouped by mesh, ascending within a mesh: one sort, not a scan per mesh.
     by_mesh = np.argsort(inst_mesh, kind="stable")
@@ -105,17 +108,21 @@ def partition(scene: Scene, k: int) -> Partition:
     return Partition(int(k), instance_shard, tuple(tuple(sorted(h)) for h in held), load)
 
 
-def _piece_counts(used: np.ndarray, counts: np.ndarray, nbytes: np.ndarray, k: int) -> dict:
+def _piece_counts(used: np.ndarray, counts: np.ndarray, nbytes: np.ndarray,
+                  work: np.ndarray, k: int) -> dict:
     """Pieces per instanced mesh summing to max(k, len(used)): extra pieces go, one at a time,
-    to the mesh with the most instances per piece (ties: more bytes, then lower index)."""
+    to the mesh with the most work per piece (work: (meshes,) float64; ties: more instances
+    per piece, more bytes, then lower index). A mesh is cut into at most one piece per
+    instance."""
     pieces = {int(m): 1 for m in used}
-    heap = [(-float(counts[m]), -int(nbytes[m]), int(m)) for m in used if counts[m] > 1]
+    heap = [(-float(work[m]), -float(counts[m]), -int(nbytes[m]), int(m))
+            for m in used if counts[m] > 1]
     heapq.heapify(heap)
     for _ in range(k - len(used)):
-        _, neg_bytes, m = heapq.heappop(heap)  # never empty: k <= number of instances
+        _, _, neg_bytes, m = heapq.heappop(heap)  # never empty: k <= number of instances
         pieces[m] += 1
         if pieces[m] < counts[m]:
-            heapq.heappush(heap, (-counts[m] / pieces[m], neg_bytes, m))
+            heapq.heappush(heap, (-work[m] / pieces[m], -counts[m] / pieces[m], neg_bytes, m))
     return pieces
 
 
