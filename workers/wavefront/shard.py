@@ -92,13 +92,21 @@ class _Step:
     def __init__(self, s: RenderSettings, states: list[_PassState], lookup: np.ndarray):
         self.s, self.states = s, states
         self.lookup = lookup  # (tiles,) int64 -> index into states, -1: none in this step
+        self._tok_of, self._tok = None, None  # the last pixel column tok was asked for
         self.stats = SplitStats([st.stats for st in states])
 
     def tok(self, pixel: np.ndarray) -> np.ndarray:
-        """pixel (n,) uint32 -> (n,) int64 index of its pass in this step."""
+        """pixel (n,) uint32 -> (n,) int64 index of its pass in this step. The last answer
+        is kept: a batch whose rows all go on shares its pixel column (columns are never
+        written)."""
+        if pixel is self._tok_of:
+            return self._tok
         if len(self.states) == 1:
-            return np.zeros(len(pixel), np.int64)
-        return tiles.pass_slots(pixel, self.s.width, self.s.tile_size, self.lookup)
+            tok = np.zeros(len(pixel), np.int64)
+        else:
+            tok = tiles.pass_slots(pixel, self.s.width, self.s.tile_size, self.lookup)
+        self._tok_of, self._tok = pixel, tok
+        return tok
 
     def splat(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
         """Keep rgb (n, 3) float64 for each pass's film."""
@@ -360,12 +368,16 @@ class Shard:
                 rays = shaded.secondary
             if len(shadow):
                 stats.bind(step.tok(shadow.pixel)).count_rays(np.full(len(shadow), SHADOW))
-                shadow = shadow.replace(visited=shadow.visited | self.bit)
                 with stats.phase("local_intersect"):
                     free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
                                                           shadow.tmax)
                 stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
-                shadow = shadow.take(free)
+                if not len(self.remote):  # nothing elsewhere: the free ones all end here
+                    stats.count_hops(shadow.hops, free)
+                    step.splat(shadow.pixel[free], shadow.contribution[free])
+                    shadow = ShadowRayBatch.empty()
+                    continue
+                shadow = shadow.take(free).replace(visited=shadow.visited[free] | self.bit)
                 with stats.phase("top_level"):
                     shadow, target = self.policy.route_shadow(
                         shadow, stats.bind(step.tok(shadow.pixel)))
