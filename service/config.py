@@ -59,8 +59,9 @@ class ServiceSettings(BaseSettings):
                                description="Retry-After of a 429 or 503 answer, seconds")
     scheduler_nice: int = Field(10, ge=0, le=19,
                                 description="niceness the scheduler process (and the Ray "
-                                            "processes it starts) runs at, so that renders "
-                                            "yield the CPU to API workers on a shared host")
+                                            "processes it starts) runs at, as batch work in "
+                                            "a session of its own, so that renders yield "
+                                            "the CPU to API workers (0: none of it)")
     ray_start_attempts: int = Field(3, ge=1, le=20,
                                     description="tries at starting or joining Ray per job")
 

@@ -76,7 +76,11 @@ async def run(host: str, port: int, target: str, pid: int, args: argparse.Namesp
                                                       args.phase_s, pid)}
         render = (await rest.call(control, "POST", "/v1/jobs", long))[1]["id"]
         t_start = time.perf_counter()
-        while (await rest.call(control, "GET", f"/v1/jobs/{render}"))[1]["passes_done"] < 1:
+        while (job := (await rest.call(control, "GET", f"/v1/jobs/{render}"))[1]
+               )["passes_done"] < 1:
+            if job["state"] in ("failed", "canceled"):
+                raise RuntimeError(f"the K = {args.shards} render {job['state']}: "
+                                   f"{job['error']}")
             await asyncio.sleep(0.5)
         start_s = time.perf_counter() - t_start
         done0 = (await rest.call(control, "GET", f"/v1/jobs/{render}"))[1]["passes_done"]

@@ -80,9 +80,12 @@ def test_killed_scheduler_leaves_the_api_answering_and_the_job_resumes(tmp_path)
         assert job["passes_total"] == PASSES
         wait_for(lambda: httpx.get(f"{url}/v1/jobs/{job_id}").json()["passes_done"] >= 3,
                  120, interval_s=0.01, what="three finished passes")
-        # Renders yield the CPU to the API (NPRT_SCHEDULER_NICE; Ray inherits it).
+        # Renders yield the CPU to the API (NPRT_SCHEDULER_NICE; Ray inherits it): nice,
+        # batch scheduling, and a session (an autogroup) of their own.
         assert os.getpriority(os.PRIO_PROCESS, scheduler.pid) == min(19, 10 + os.getpriority(
             os.PRIO_PROCESS, api.pid))
+        assert os.sched_getscheduler(scheduler.pid) == os.SCHED_BATCH
+        assert os.getsid(scheduler.pid) == scheduler.pid != os.getsid(api.pid)
         scheduler.send_signal(signal.SIGKILL)
         scheduler.wait(10)
         assert (data / "jobs" / job_id / "checkpoint.json").exists(), "no checkpoint"
