@@ -12,7 +12,7 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from nprt.workers.kernels.bvh import _slab
+from nprt.workers.kernels.bvh import _push, _slab
 from nprt.workers.kernels.pairs import _to_local_row
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
@@ -72,64 +72,59 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
                  node_box, node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
                  world_to_local, best_t, best_inst, best_prim, best_u, best_v):
     """Each ray's closest hit among the instance boxes `members` (k,) int64 (indices into
-    boxes (m, 2, 3) float64; col_of (m,) int32 >= 0 for members), found in one walk: the
-    boxes it crosses before tmax stretched by box_slack, nearest entry first (through the
-    top-level BVH when use_bvh, nodes and boxes in one queue by entry distance), each
-    traced through Embree (tfar = far) until the next is entered beyond the closest hit so
-    far (stretched alike): no hit there can win or tie. Hits fold into best_* (n,)
-    (best_inst -1: none yet): a hit at t <= tmax wins on a smaller t, on equal t the
-    lower instance, so the answer depends neither on the order boxes are traced in nor on
-    how instances are split over shards. origin, direction (n, 3) float64, tmax (n,)
-    float32."""
+    boxes (m, 2, 3) float64; col_of (m,) int32 >= 0 for members), in one loop a ray: the
+    boxes it crosses before tmax stretched by box_slack (through the top-level BVH when
+    use_bvh) are gathered nearest entry first, then traced through Embree (tfar = far)
+    until the next is entered beyond the closest hit so far (stretched alike): no hit
+    there can win or tie. Hits fold into best_* (n,) (best_inst -1: none yet): a hit at
+    t <= tmax wins on a smaller t, on equal t the lower instance, so the answer depends
+    neither on the order boxes are traced in nor on how instances are split over shards.
+    origin, direction (n, 3) float64, tmax (n,) float32."""
     rh, ri, lo, ld = _scratch()
-    cap = node_child.shape[0] + boxes.shape[0] + 1
-    q_t, q_id = np.empty(cap), np.empty(cap, np.int64)  # by entry, farthest first
+    stack = np.empty(node_child.shape[0] + 1, np.int32)
+    q_t, q_id = np.empty(boxes.shape[0] + 1), np.empty(boxes.shape[0] + 1, np.int64)
     for r in range(origin.shape[0]):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
         d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
         i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
         box_tmax = np.float64(tmax[r]) * (1.0 + box_slack)
-        cut = np.float64(tmax[r])
-        s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
         h = 0
         if use_bvh and _finite(o0, o1, o2, d0, d1, d2):
-            t = _node_enter(node_box, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2)
-            if t <= box_tmax:
-                h = _enqueue(q_t, q_id, h, t, 0)
+            s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
+            top = _push(node_box, 0, 1, stack, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, box_tmax)
+            while top > 0:
+                top -= 1
+                node = stack[top]
+                c = node_child[node]
+                if c >= 0:
+                    top = _push(node_box, c, 2, stack, top, o0, o1, o2, i0, i1, i2, s0, s1, s2,
+                                box_tmax)
+                    continue
+                for x in range(node_start[node], node_start[node] + node_count[node]):
+                    b = prim[x]
+                    if col_of[b] >= 0:
+                        ok, te, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, box_tmax)
+                        if ok:
+                            h = _enqueue(q_t, q_id, h, te, b)
         else:  # few boxes, or a ray the node test does not cover: every member's slab
             for j in range(members.shape[0]):
                 ok, te, _ = _slab(boxes, members[j], o0, o1, o2, i0, i1, i2, box_tmax)
                 if ok:
-                    h = _enqueue(q_t, q_id, h, te, -1 - members[j])
+                    h = _enqueue(q_t, q_id, h, te, members[j])
+        cut = np.float64(tmax[r])
         while h > 0:
             h -= 1
             if not q_t[h] <= cut * (1.0 + box_slack):
                 break  # everything left is entered beyond the closest hit
-            x = q_id[h]
-            if x < 0:
-                cut = _closest_box(fn, -1 - x, r, cut, far, tmax, mesh_of, scene_of_mesh,
-                                   world_to_local, origin, direction, rh, ri, lo, ld, best_t,
-                                   best_inst, best_prim, best_u, best_v)
-                continue
-            c = node_child[x]
-            if c >= 0:
-                for y in range(c, c + 2):
-                    t = _node_enter(node_box, y, o0, o1, o2, i0, i1, i2, s0, s1, s2)
-                    if t <= box_tmax:
-                        h = _enqueue(q_t, q_id, h, t, y)
-                continue
-            for y in range(node_start[x], node_start[x] + node_count[x]):
-                b = prim[y]
-                if col_of[b] >= 0:
-                    ok, te, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, box_tmax)
-                    if ok:
-                        h = _enqueue(q_t, q_id, h, te, -1 - b)
+            cut = _closest_box(fn, q_id[h], r, cut, far, tmax, mesh_of, scene_of_mesh,
+                               world_to_local, origin, direction, rh, ri, lo, ld, best_t,
+                               best_inst, best_prim, best_u, best_v)
 
 
 @njit(inline="always", **JIT)
 def _enqueue(q_t, q_id, h, t, x):
-    """Insert (t, x) into the queue q_t, q_id of h entries kept farthest first (the
-    nearest pops from the end). Returns the new length."""
+    """Insert box x entered at t into the queue q_t, q_id of h entries kept farthest first
+    (the nearest pops from the end). Returns the new length."""
     y = h
     while y > 0 and q_t[y - 1] < t:
         q_t[y], q_id[y] = q_t[y - 1], q_id[y - 1]
