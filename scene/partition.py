@@ -58,7 +58,7 @@ class Partition:
         }
 
 
-def partition(scene: Scene, k: int) -> Partition:
+def partition(scene: Scene, k: int, replicated=()) -> Partition:
     """Assign every instance to one of k shards, balancing the bytes of the meshes held.
 
     Objects go largest-first to the shard with the fewest bytes so far. When k exceeds the
@@ -66,6 +66,11 @@ def partition(scene: Scene, k: int) -> Partition:
     (nprt.scene.workload: the camera's view their instances cover) are split into more
     pieces, each piece a spatially coherent group from recursive median bisection of the
     instance centres along the longest axis. Every shard gets at least one instance.
+
+    replicated: mesh indices every shard will hold (placement's choice for meshes too light
+    to be worth forwarding rays to): they take no piece, every shard holds them, and their
+    instances are recorded on shard 0 (the placement owns them everywhere). Ignored where
+    the other meshes have fewer than k instances.
     """
     n = len(scene.instances)
     if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
@@ -78,7 +83,10 @@ def partition(scene: Scene, k: int) -> Partition:
     inst_mesh = np.asarray(scene.instance_mesh, dtype=np.int64)
     counts = np.bincount(inst_mesh, minlength=len(scene.meshes))
     nbytes = np.array([m.nbytes for m in scene.meshes], dtype=np.int64)
-    used = np.flatnonzero(counts)
+    everywhere = np.isin(np.arange(len(scene.meshes)), np.asarray(replicated, np.int64))
+    if counts[~everywhere].sum() < k:
+        everywhere[:] = False
+    used = np.flatnonzero(counts * ~everywhere)
     work = np.bincount(inst_mesh, weights=instance_work(scene), minlength=len(scene.meshes))
     pieces = _piece_counts(used, counts, nbytes, work, int(k))
     centres = instance_world_bounds(scene).mean(axis=1)  # (n, 3) float64
@@ -103,6 +111,11 @@ def partition(scene: Scene, k: int) -> Partition:
         instance_shard[group] = s
         held[s].add(m)
         load[s] += nbytes[m]
+    for m in np.flatnonzero(everywhere & (counts > 0)):
+        instance_shard[inst_mesh == m] = 0
+        for h in held:
+            h.add(int(m))
+        load += nbytes[m]
     instance_shard.setflags(write=False)
     load.setflags(write=False)
     return Partition(int(k), instance_shard, tuple(tuple(sorted(h)) for h in held), load)

@@ -22,8 +22,10 @@ def test_demo_renders_exact_and_proxy_side_by_side(ray_local, tmp_path, capsys):
     runs = json.loads((tmp_path / "comparison.json").read_text())["runs"]
     assert runs["exact"]["quality_vs_exact"]["flip"] == 0.0
     proxy = runs["proxy"]
-    # At the default accuracy target uncertain shadow rays fall back to exact forwarding;
-    # the proxies answer most of them where they are made.
-    assert proxy["transfers"]["shadow"] < runs["exact"]["transfers"]["shadow"] / 4
+    # Both modes copy the meshes lighter than a proxy (the ground) to every shard. Of the
+    # shadow rays exact mode still forwards, the proxies answer most where they are made;
+    # at the default accuracy target the uncertain ones fall back to exact forwarding
+    # (0.28 of exact's here).
+    assert proxy["transfers"]["shadow"] < runs["exact"]["transfers"]["shadow"] / 3
     assert proxy["total_bytes"] < runs["exact"]["total_bytes"]
     assert proxy["proxy_plan"]["counts"]["proxy"] > 0

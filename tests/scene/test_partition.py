@@ -145,3 +145,15 @@ def test_summary_reports_balance_and_counts():
     assert s["k"] == 4 and len(s["shard_bytes"]) == 4
     assert sum(s["instances_per_shard"]) == len(scene.instances)
     assert s["max_shard_bytes"] == max(s["shard_bytes"]) and s["imbalance"] >= 1.0
+
+
+def test_replicated_meshes_take_no_piece_and_every_shard_holds_them():
+    scene = make_demo("forest", "small")  # mesh 0 is the ground: one instance
+    p = partition(scene, 4, replicated=[0])
+    assert all(0 in ms for ms in p.shard_meshes)
+    mesh_of = np.asarray(scene.instance_mesh)
+    # every shard owns instances of some other mesh: the ground did not take a shard
+    for s in range(4):
+        assert (mesh_of[p.shard_instances(s)] != 0).any()
+    assert np.array_equal(p.shard_bytes, [sum(scene.meshes[m].nbytes for m in ms)
+                                          for ms in p.shard_meshes])

@@ -45,23 +45,40 @@ class Placement:
     proxies: dict = field(default_factory=dict)
 
 
+def lighter_than_a_proxy(meta: SceneMeta, settings: RenderSettings) -> list[int]:
+    """Instanced meshes lighter than the smallest proxy the policy would train (its
+    `replicate` rule, nprt.proxies.policy): every mode copies them to every shard. A ground
+    plane of 120 bytes held by one shard drew a third of all shard CPU in city at K = 8
+    (bench_visits), every ray that fell on it forwarded there."""
+    from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
+
+    knobs = settings.proxy
+    widths = DEFAULT_WIDTHS if knobs.width is None else (knobs.width,)
+    smallest = estimate_proxy_bytes(ProxyConfig(steps=knobs.steps).with_width(min(widths)))
+    used = set(np.unique(meta.instance_mesh).tolist())
+    return [m for m, mesh in enumerate(meta.meshes) if m in used and mesh.nbytes < smallest]
+
+
 def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
                    trainer=None) -> Placement:
     """Plan K shards for `scene` (a Scene or SceneMeta) from its metadata only."""
     meta = SceneMeta.of(scene)
     k = settings.shards
-    part = partition(meta, k)
+    tiny = lighter_than_a_proxy(meta, settings) if k > 1 else []
+    part = partition(meta, k, replicated=tiny)
     owner = np.asarray(part.instance_shard, np.int32).copy()
     held = [set(m) for m in part.shard_meshes]
     plan, proxies = None, {}
+    replicated = {m for m in tiny if all(m in h for h in held)}
     if settings.mode in ("proxy", "oracle"):
         # The oracle bounds the proxy mode, so it gets the same placement: meshes
         # lighter than their proxy are replicated (it trains nothing to learn that).
         plan = make_plan(meta, part, settings, proxy_dir, train=settings.mode == "proxy",
                          trainer=trainer)
         proxies = plan.proxies if settings.mode == "proxy" else {}
-        for m in plan.replicated:  # cheaper to copy than to model
-            owner[meta.instances_of_mesh(m)] = EVERYWHERE
-            for h in held:
-                h.add(m)
+        replicated |= plan.replicated
+    for m in sorted(replicated):  # cheaper to copy than to model, or to forward rays to
+        owner[meta.instances_of_mesh(m)] = EVERYWHERE
+        for h in held:
+            h.add(m)
     return Placement(meta, part, owner, [tuple(sorted(h)) for h in held], plan, proxies)
