@@ -62,6 +62,12 @@ class ServiceSettings(BaseSettings):
                                             "processes it starts) runs at, as batch work in "
                                             "a session of its own, so that renders yield "
                                             "the CPU to API workers (0: none of it)")
+    scheduler_session_nice: int = Field(
+        0, ge=0, le=19,
+        description="nice of the scheduler session's autogroup (Linux autogroup scheduling "
+                    "shares the CPU between sessions first): 10 keeps a K = 8 render from "
+                    "taking the API's CPU, but on a host busy with other sessions it slows "
+                    "Ray's start to minutes")
     ray_start_attempts: int = Field(3, ge=1, le=20,
                                     description="tries at starting or joining Ray per job")
 

@@ -43,7 +43,7 @@ def run_scheduler(settings: ServiceSettings) -> int:
 
     done = threading.Event()
     if settings.scheduler_nice:
-        yield_cpu(settings.scheduler_nice)
+        yield_cpu(settings.scheduler_nice, settings.scheduler_session_nice)
     scheduler = Scheduler(settings)
 
     def on_signal(*_) -> None:
@@ -66,23 +66,28 @@ def run_scheduler(settings: ServiceSettings) -> int:
     return 0
 
 
-def yield_cpu(nice: int) -> None:
+def yield_cpu(nice: int, session_nice: int = 0) -> None:
     """Put this process, and the Ray processes and renders it starts (they inherit it all),
     below the API workers: `nice` levels lower, scheduled as batch work (it never preempts
-    a waking API worker), and on Linux in a session of its own. With autogroups (the
-    kernel default) the CPU is shared between sessions first and nice orders processes
-    only within one: renders in the API's session spent that session's share, so a waking
-    API worker queued behind other sessions (a K = 8 render moved the API's p99 by
-    200-600 ms); in a session of their own they leave the API's share alone. The
-    session's autogroup keeps nice 0: at nice 10 other busy sessions starved Ray's start
-    (timed out at load 8). A step the platform refuses is skipped."""
+    a waking API worker), and on Linux in a session of its own whose autogroup runs at
+    session_nice. With autogroups (the kernel default) the CPU is shared between sessions
+    first and a process's nice orders it only within its session, so only session_nice
+    keeps renders from taking the API's share when other sessions are busy
+    (NPRT_SCHEDULER_SESSION_NICE; bench/README.md, "render effect"). A step the platform
+    refuses is skipped."""
     os.nice(nice)
     if hasattr(os, "SCHED_BATCH"):
         os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
     try:
         os.setsid()
     except OSError:  # already a group leader (started from a shell): its session it is
-        pass
+        return
+    if session_nice:
+        try:
+            with open("/proc/self/autogroup", "w") as f:
+                f.write(str(session_nice))
+        except OSError:
+            pass
 
 
 def _die_with_parent() -> None:

@@ -148,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=20, help="finished jobs the pollers read")
     ap.add_argument("--scene", default="forest:tiny")
     ap.add_argument("--api-workers", type=int, default=1, help="nprt serve --workers")
+    ap.add_argument("--service-root", type=Path, default=REPO,
+                    help="checkout whose service runs (default: this one)")
     ap.add_argument("--smoke", action="store_true",
                     help="K = 2, 1 s phases, 2 jobs; writes nothing under bench/results")
     args = ap.parse_args(argv)
@@ -159,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             "spp_per_pass": 2, "bounces": 2, "shards": args.shards}
     load_before = os.getloadavg()
     with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
-        proc, host, port, target = start_service(REPO, Path(tmp) / "data", 1,
+        proc, host, port, target = start_service(args.service_root, Path(tmp) / "data", 1,
                                                  args.api_workers)
         try:
             raw = asyncio.run(run(host, port, target, proc.pid, args, small, long))
@@ -168,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
             proc.wait(60)
     result = summarize(raw, args.shards)
     table = markdown(result, vars(args))
+    args.service_root = str(args.service_root)
     print(table)
     if args.smoke:
         return 0
