@@ -231,9 +231,10 @@ class Coordinator:
             self._end(epoch, wait=False)
 
     def _last_poll(self, epoch: int) -> None:
-        """The shards' final totals (and trace records): every step of the job has handed
-        back its weight, so what it recorded is in its shard's outbox already."""
-        for shard, ref in enumerate(self.actors[s].poll.remote(epoch, 0.0)
+        """The shards' final totals (and trace records). Every pass has its weight back, so
+        no ray is left anywhere; a shard may still be accounting for its last step (its
+        parcels leave first), so the poll settles that first."""
+        for shard, ref in enumerate(self.actors[s].poll.remote(epoch, 0.0, True)
                                     for s in range(self.k)):
             try:
                 reply = self._get(ref)

@@ -30,6 +30,7 @@ import ray
 from nprt.workers.runtime.protocol import Parcel, PollReply
 
 MAX_CONCURRENCY = 8  # Ray threads per actor: deliver, poll and collect never wait on a step
+SETTLE_S = 30.0  # a settling poll waits at most this long for the step in progress
 
 
 class ShardActor:
@@ -46,6 +47,7 @@ class ShardActor:
         self._cv = threading.Condition()
         self._step_lock = threading.Lock()  # the Shard is run by one thread at a time
         self._inbox: list[Parcel] = []
+        self._running = False  # the wavefront thread holds parcels it has not accounted for
         self._epoch: int | None = None
         self._peers: list | None = None
         self._trace = False
@@ -125,9 +127,16 @@ class ShardActor:
             self._inbox.append(parcel)
             self._cv.notify_all()
 
-    def poll(self, epoch: int, timeout_s: float) -> PollReply:
-        """Wait up to timeout_s for weight to hand back; then the totals so far."""
+    def poll(self, epoch: int, timeout_s: float, settle: bool = False) -> PollReply:
+        """Wait up to timeout_s for weight to hand back; then the totals so far. settle:
+        first wait for the step in progress to finish its accounting (the job's last poll:
+        a step sends its parcels before it records itself, so a pass can complete on
+        another shard while this one has yet to add the step's totals and trace record)."""
         with self._cv:
+            if settle:
+                self._cv.wait_for(lambda: not (self._running or self._inbox)
+                                  or self._error is not None or self._epoch != epoch,
+                                  timeout=SETTLE_S)
             self._cv.wait_for(lambda: self._returned or self._error is not None
                               or self._epoch != epoch, timeout=timeout_s)
             if self._error is not None:
@@ -156,11 +165,15 @@ class ShardActor:
                 self._cv.wait_for(lambda: bool(self._inbox))
                 parcels, self._inbox = self._inbox, []
                 epoch, peers, trace = self._epoch, self._peers, self._trace
+                self._running = True
             try:
                 self._run(epoch, peers, trace, parcels)
             except BaseException as e:  # handed to the coordinator by the next poll
                 with self._cv:
                     self._error = e
+            finally:
+                with self._cv:
+                    self._running = False
                     self._cv.notify_all()
 
     def _run(self, epoch: int, peers: list, trace: bool, parcels: list[Parcel]) -> None:
