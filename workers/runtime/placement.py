@@ -20,15 +20,22 @@ def make_plan(scene, part, settings: RenderSettings, proxy_dir=None, train=True,
     scene: a Scene or SceneMeta; trainer: trains the missing proxies (for instance as
     parallel Ray tasks, nprt.proxies.tasks), else they are trained here one after another."""
     from nprt.proxies.cache import ProxyCache
-    from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig
     from nprt.proxies.policy import plan_proxies
 
+    config, widths = _proxy_config(settings)
+    return plan_proxies(scene, part, target_accuracy=settings.proxy.accuracy_target,
+                        cache=ProxyCache(proxy_dir), train=train, config=config,
+                        widths=widths, trainer=trainer)
+
+
+def _proxy_config(settings: RenderSettings):
+    """(ProxyConfig, widths tried) of a job's proxy knobs: one reading for the plan and
+    for the replicate threshold."""
+    from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig
+
     knobs = settings.proxy
-    return plan_proxies(scene, part, target_accuracy=knobs.accuracy_target,
-                        cache=ProxyCache(proxy_dir), train=train,
-                        config=ProxyConfig(steps=knobs.steps),
-                        widths=DEFAULT_WIDTHS if knobs.width is None else (knobs.width,),
-                        trainer=trainer)
+    return (ProxyConfig(steps=knobs.steps),
+            DEFAULT_WIDTHS if knobs.width is None else (knobs.width,))
 
 
 @dataclass(eq=False)
@@ -50,11 +57,10 @@ def lighter_than_a_proxy(meta: SceneMeta, settings: RenderSettings) -> list[int]
     `replicate` rule, nprt.proxies.policy): every mode copies them to every shard. A ground
     plane of 120 bytes held by one shard drew a third of all shard CPU in city at K = 8
     (bench_visits), every ray that fell on it forwarded there."""
-    from nprt.proxies.config import DEFAULT_WIDTHS, ProxyConfig, estimate_proxy_bytes
+    from nprt.proxies.config import estimate_proxy_bytes
 
-    knobs = settings.proxy
-    widths = DEFAULT_WIDTHS if knobs.width is None else (knobs.width,)
-    smallest = estimate_proxy_bytes(ProxyConfig(steps=knobs.steps).with_width(min(widths)))
+    config, widths = _proxy_config(settings)
+    smallest = estimate_proxy_bytes(config.with_width(min(widths)))
     used = set(np.unique(meta.instance_mesh).tolist())
     return [m for m, mesh in enumerate(meta.meshes) if m in used and mesh.nbytes < smallest]
 
