@@ -141,8 +141,13 @@ class ShardActor:
                               or self._epoch != epoch, timeout=timeout_s)
             if self._error is not None:
                 raise RuntimeError(f"shard {self.id} failed in its wavefront") from self._error
-            returned, self._returned = self._returned, []
-            records, self._records = self._records, []
+            returned, records = [], []
+            # A long poll of an earlier run (the coordinator drops it when a frame or run
+            # ends) can wake after the next `begin`: the weight and trace records are the
+            # new run's, and taking them would lose them (the pass never completes).
+            if self._epoch == epoch:
+                returned, self._returned = self._returned, []
+                records, self._records = self._records, []
             return PollReply(
                 self.id, self.incarnation, self._epoch, returned, steps=self._steps,
                 busy_s=self._busy_s, cpu_s=time.process_time() - self._cpu0,
