@@ -1,7 +1,7 @@
 """Helpers shared by the benchmarks: where results go (`RESULTS`), the epilogue every script
 ends with (`finish`: JSON, plot, table, and its marked section of bench/README.md or the
-top-level README), the `--smoke` flag of the CI smoke test (tests/test_bench_smoke.py), one
-timed distributed render and the machine record.
+top-level README), the `--smoke` flag of the CI smoke test (tests/test_bench_smoke.py), the
+driver's Ray (`start_ray`), one timed distributed render and the machine record.
 
 `NPRT_BENCH_RESULTS` moves `RESULTS` elsewhere (the smoke test points it at a temporary
 folder); a README section is only written for results that lie beside that README."""
@@ -34,6 +34,19 @@ def machine(ray_cpus: int) -> dict:
     return {"platform": platform.platform(), "python": platform.python_version(),
             "cpus": os.cpu_count(), "ray": ray.__version__, "ray_cpus": ray_cpus,
             "load_average_before": os.getloadavg()}
+
+
+def start_ray(num_cpus: int | None = None) -> None:
+    """ray.init for a benchmark driver: a local Ray of num_cpus CPUs, or the running cluster
+    RAY_ADDRESS names, with that cluster's CPUs (the smoke test shares one among its runs:
+    starting a Ray takes seconds). Worker output and Ray's notices stay off the console."""
+    import logging
+
+    import ray
+
+    shared = os.environ.get("RAY_ADDRESS", "") not in ("", "local")
+    ray.init(num_cpus=None if shared else num_cpus, include_dashboard=False,
+             log_to_driver=False, logging_level=logging.WARNING)
 
 
 def timed_render(scene: Scene, s: RenderSettings, on_pass=None, repeat: int = 1,

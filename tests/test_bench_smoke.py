@@ -3,7 +3,11 @@ block) runs once with `--smoke`, its smallest input, in a subprocess. Results go
 temporary folder (NPRT_BENCH_RESULTS), scenes and proxies to empty caches, as on a fresh
 checkout. Not timed. The selected runs go PARALLEL at a time in one fixture; each script's
 exit status is its own test, and no README or recorded result may change. SLOW ones (a
-multi-process runtime at scale, minutes even at their smallest) are marked slow."""
+multi-process runtime at scale, minutes even at their smallest) are marked slow.
+
+The runs join one local Ray (RAY_ADDRESS; bench.common.start_ray and the pools connect to
+it) that a holder process keeps up while they run: starting a Ray took 9 s of each run
+under load. OWN_RAY ones start their own (several drivers and Ray starts by design)."""
 
 from __future__ import annotations
 
@@ -13,6 +17,7 @@ import subprocess
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
@@ -25,6 +30,23 @@ RUN_TIMEOUT_S = 600  # a hung bench fails instead of stalling CI
 # bench_massive: three driver processes, two Ray starts and two training rounds;
 # bench_scale: four pools and a job manager.
 SLOW = ("bench.render.bench_massive", "bench.render.bench_scale")
+OWN_RAY = ("bench.render.bench_massive",)
+# Logical CPUs of the shared Ray: two runs at a time, each with a K = 2 pool and its
+# training tasks, never wait for CPUs the other holds.
+SHARED_RAY_CPUS = 8
+# A new local Ray turns token authentication on by itself (the token in ~/.ray/auth_token);
+# a driver that joins it must be told to send that token.
+SHARED_AUTH = {"RAY_AUTH_MODE": "token"}
+# Started with RAY_ADDRESS=local; prints its address and holds Ray until stdin closes.
+_HOLDER = """
+import logging, sys
+import ray
+ray.init(num_cpus=int(sys.argv[1]), include_dashboard=False, log_to_driver=False,
+         logging_level=logging.ERROR)
+print(ray.get_runtime_context().gcs_address, flush=True)
+sys.stdin.read()
+ray.shutdown()
+"""
 
 pytestmark = pytest.mark.timeout(3600)  # the fixture runs every selected bench
 
@@ -42,8 +64,11 @@ def _fingerprint() -> dict[str, str]:
             for f in files if f.is_file()}
 
 
-def _run(module: str, out: Path, caches: Path) -> tuple[subprocess.CompletedProcess, float]:
-    env = {**os.environ, "NPRT_BENCH_RESULTS": str(out), "RAY_ADDRESS": "local",
+def _run(module: str, out: Path, caches: Path, ray_address: str
+         ) -> tuple[subprocess.CompletedProcess, float]:
+    own = module in OWN_RAY
+    env = {**os.environ, "NPRT_BENCH_RESULTS": str(out),
+           "RAY_ADDRESS": "local" if own else ray_address, **({} if own else SHARED_AUTH),
            "NPRT_SCENE_CACHE": str(caches / "scenes"), "NPRT_PROXY_CACHE": str(caches / "proxies"),
            "PYTHONPATH": os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))),
            "MPLBACKEND": "Agg"}
@@ -57,6 +82,27 @@ def _run(module: str, out: Path, caches: Path) -> tuple[subprocess.CompletedProc
     return res, time.perf_counter() - t0
 
 
+@contextmanager
+def _shared_ray():
+    """The address of a local Ray held up by a child process until the block ends."""
+    env = {**os.environ, "RAY_ADDRESS": "local", **SHARED_AUTH}
+    holder = subprocess.Popen([sys.executable, "-c", _HOLDER, str(SHARED_RAY_CPUS)], env=env,
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        address = holder.stdout.readline().strip()
+        if not address:
+            raise RuntimeError(f"the shared Ray did not start: {holder.stderr.read()[-3000:]}")
+        yield address
+    finally:
+        holder.stdin.close()  # the holder shuts Ray down and exits
+        try:
+            holder.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            holder.kill()
+            holder.wait()
+
+
 @pytest.fixture(scope="module")
 def smoke_runs(request, tmp_path_factory):
     """{module: CompletedProcess} of every selected entry point, and the fingerprints
@@ -65,8 +111,8 @@ def smoke_runs(request, tmp_path_factory):
     root = tmp_path_factory.mktemp("bench-smoke")
     mods = [item.callspec.params["module"] for item in request.session.items
             if item.originalname == "test_bench_runs_on_its_smallest_input"]
-    with ThreadPoolExecutor(PARALLEL) as pool:
-        done = list(pool.map(lambda m: _run(m, root / m, root / "caches"), mods))
+    with _shared_ray() as address, ThreadPoolExecutor(PARALLEL) as pool:
+        done = list(pool.map(lambda m: _run(m, root / m, root / "caches", address), mods))
     # wall seconds per run, for whoever sizes the CI budget (reported, never asserted)
     report = request.config.pluginmanager.get_plugin("terminalreporter")
     capture = request.config.pluginmanager.get_plugin("capturemanager")

@@ -45,6 +45,7 @@ from bench.common import (  # noqa: E402
     machine,
     render_settings,
     smoke,
+    start_ray,
 )
 from nprt.scene.demos import make_demo  # noqa: E402
 from nprt.workers.passes import iter_passes  # noqa: E402
@@ -196,8 +197,7 @@ def run_scaling(args) -> dict:
     s = render_settings(args)
     out = {"settings": s.model_dump(), "ks": list(args.ks), "machine": machine(max(args.ks)),
            "runs": []}
-    ray.init(num_cpus=max(args.ks), include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)
+    start_ray(max(args.ks))
     try:
         for name in args.scenes:
             scene = make_demo(name, args.size)

@@ -30,6 +30,7 @@ from bench.common import (
     quality,
     render_settings,
     smoke,
+    start_ray,
     timed_render,
 )
 from nprt.proxies.evaluate import throughput
@@ -67,8 +68,7 @@ def run(args) -> dict:
     names = [n for n in args.scenes.split(",") if n]
     ks = sorted(int(k) for k in args.shards.split(","))
     ray_cpus = args.ray_cpus or max(ks)
-    ray.init(num_cpus=ray_cpus, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)
+    start_ray(ray_cpus)
     out = {"size": args.size, "settings": s.model_dump(), "shards": ks,
            "machine": machine(ray_cpus), "targets": TARGETS, "scenes": {}}
     columns = (TextColumn("{task.description:<28}"), BarColumn(), MofNCompleteColumn(),

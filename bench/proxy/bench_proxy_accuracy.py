@@ -14,7 +14,6 @@ nprt.proxies.accuracy were fitted on the demos (`--fit` prints the fit from this
 from __future__ import annotations
 
 import argparse
-import logging
 import math
 import os
 import time
@@ -22,7 +21,16 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import RESULTS, add_render_flags, finish, quality, render_settings, smoke
+from bench.common import (
+    RESULTS,
+    add_render_flags,
+    finish,
+    quality,
+    render_settings,
+    smoke,
+    start_ray,
+)
+from nprt.proxies.ship import TEST_STEPS
 
 SECTION = "bench_proxy_accuracy"
 
@@ -178,13 +186,12 @@ def main(argv=None) -> int:
     ap.add_argument("--tag", default="", help="results/proxy_accuracy_<tag>.json (and .png);"
                     " the README table is left alone")
     add_render_flags(ap, RESULTS)
+    # The smoke renders with the foliage:tiny proxies shipped at width 16 (proxies/ship.py,
+    # TEST_STEPS): the planner finds them in the cache and trains nothing.
     args = smoke(ap.parse_args(argv), scenes=["foliage:tiny"], targets=[30.0],
                  shards=2, width=32, height=24, spp=1, bounces=2, proxy_width=16,
-                 proxy_steps=200, repeat=1)
-    if args.smoke and args.proxy_dir is None:
-        args.proxy_dir = str(args.out / "proxies")
-    ray.init(num_cpus=max(args.shards, 2), include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)
+                 proxy_steps=TEST_STEPS, repeat=1)
+    start_ray(max(args.shards, 2))
     try:
         rows = [r for spec in args.scenes for r in run_scene(spec, args)]
     finally:

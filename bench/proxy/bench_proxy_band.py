@@ -27,6 +27,7 @@ from bench.common import (
     quality,
     render_settings,
     smoke,
+    start_ray,
     timed_render,
 )
 from bench.proxy.bench_proxies import TARGETS
@@ -40,8 +41,7 @@ PSNR_TARGET = TARGETS["psnr_db_k4"]
 def run(args) -> dict:
     base = render_settings(args, shards=args.shards)
     names = [n for n in args.scenes.split(",") if n]
-    ray.init(num_cpus=args.shards, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)
+    start_ray(args.shards)
     out = {"size": args.size, "settings": base.model_dump(), "bands": args.bands,
            "default_band": ProxySettings().band, "machine": machine(args.shards),
            "scenes": {}}

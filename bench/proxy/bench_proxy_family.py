@@ -16,10 +16,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import logging
 import os
 
-from bench.common import RESULTS, smoke
+from bench.common import RESULTS, smoke, start_ray
 
 COUNTERS = ("proxy_targeted", "proxy_internal_targeted", "proxy_internal_ambiguous",
             "proxy_mispredictions", "proxy_internal_mispredictions", "proxy_uncertain",
@@ -56,8 +55,7 @@ def main(argv=None) -> int:
     scene = family.build(args.size)
     base = RenderSettings(width=args.width, height=args.width * 3 // 4, spp=args.spp,
                           spp_per_pass=args.spp, bounces=5, seed=0, shards=args.shards)
-    ray.init(num_cpus=args.shards, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)
+    start_ray(args.shards)
     try:
         ex_row, ex_img, _ = timed_render(scene, base)
         margin = {} if args.internal_margin is None else {

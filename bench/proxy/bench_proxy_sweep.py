@@ -32,6 +32,7 @@ from bench.common import (
     quality,
     render_settings,
     smoke,
+    start_ray,
     timed_render,
 )
 from nprt.proxies.config import ProxyConfig
@@ -65,8 +66,7 @@ def points(knobs=tuple(SWEEPS), per_knob: int | None = None
 
 def run(args) -> dict:
     base = render_settings(args, shards=args.shards)
-    ray.init(num_cpus=args.shards, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)
+    start_ray(args.shards)
     scene = make_demo(args.scene, args.size)
     todo = points(args.knobs, args.per_knob)
     out = {"scene": args.scene, "size": args.size, "settings": base.model_dump(),

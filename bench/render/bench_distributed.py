@@ -46,6 +46,7 @@ from bench.common import (  # noqa: E402
     finish,
     publish,
     smoke,
+    start_ray,
     timed_render,
 )
 from nprt.scene.demos import DEMOS, make_demo  # noqa: E402
@@ -109,8 +110,7 @@ def run(args) -> dict:
                        spp_per_pass=args.spp_per_pass, tile_size=args.tile_size)
     names = [n for n in args.scenes.split(",") if n]
     ks = sorted(int(k) for k in args.shards.split(","))
-    ray.init(num_cpus=args.ray_cpus or max(ks), include_dashboard=False, log_to_driver=False,
-             logging_level=logging.WARNING)
+    start_ray(args.ray_cpus or max(ks))
     n_passes = len(range(0, s.spp, s.spp_per_pass)) * -(-s.width // s.tile_size) \
         * -(-s.height // s.tile_size)
     out = {"size": args.size, "settings": s.model_dump(), "shards": ks, "repeat": args.repeat,

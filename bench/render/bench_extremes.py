@@ -39,7 +39,7 @@ import numpy as np
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from bench.common import RESULTS, add_output_flags, machine, publish, smoke, timed_render  # noqa: E402,E501
+from bench.common import RESULTS, add_output_flags, machine, publish, smoke, start_ray, timed_render  # noqa: E402,E501
 from nprt.scene.demos import make_demo  # noqa: E402
 from nprt.scene.transform import similarity, transform_scene  # noqa: E402
 from nprt.workers.render import render  # noqa: E402
@@ -327,10 +327,7 @@ def main(argv=None) -> int:
         report(json.loads(result_path.read_text()), args.out, not args.no_readme)
         return 0
     if set(args.modes) != {"reference"} or not args.no_throughput:  # the reference needs no Ray
-        import ray
-
-        ray.init(num_cpus=args.ray_cpus, include_dashboard=False, log_to_driver=False,
-                 logging_level=logging.WARNING)
+        start_ray(args.ray_cpus)
     args.out.mkdir(parents=True, exist_ok=True)
     res = {"size": args.size, "machine": machine(args.ray_cpus),
            "args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}

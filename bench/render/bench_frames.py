@@ -21,7 +21,6 @@ steps of training each) on an empty cache, so its pool trains every proxy it nee
 from __future__ import annotations
 
 import argparse
-import logging
 import os
 import tempfile
 import time
@@ -30,7 +29,15 @@ from pathlib import Path
 import numpy as np
 import ray
 
-from bench.common import RESULTS, add_render_flags, finish, machine, render_settings, smoke
+from bench.common import (
+    RESULTS,
+    add_render_flags,
+    finish,
+    machine,
+    render_settings,
+    smoke,
+    start_ray,
+)
 from nprt.proxies.cache import ProxyCache
 from nprt.proxies.tasks import RayTrainer
 from nprt.scene.demos import make_demo
@@ -182,8 +189,7 @@ def main(argv=None) -> int:
                  shadow_rays=1)
     scene = make_demo("windy", args.size)  # the reference renders it in memory
     stored = open_scene(f"windy:{args.size}")  # shards: metadata, as the service does
-    ray.init(num_cpus=args.ray_cpus or args.shards, include_dashboard=False,
-             log_to_driver=False, logging_level=logging.WARNING)
+    start_ray(args.ray_cpus or args.shards)
     try:
         res = {"size": args.size, "shards": args.shards, "scene": scene.summary(),
                "moving": len(scene.animation.instances), "machine": machine(args.ray_cpus
