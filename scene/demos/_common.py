@@ -1,4 +1,5 @@
-"""Building blocks shared by the demo scenes: quads, cylinders, placements, sky and sun panel."""
+"""Building blocks shared by the demo scenes: quads, cylinders, placements, sky and sun panel,
+the named materials, and a scene on a ground."""
 
 from __future__ import annotations
 
@@ -8,12 +9,37 @@ from nprt.scene.model import (
     INDEX_DTYPE,
     TRANSFORM_DTYPE,
     VERTEX_DTYPE,
+    Camera,
     Environment,
+    Instances,
+    Material,
     Mesh,
     QuadLight,
+    Scene,
 )
 
 QUAD_TRIS = np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int64)
+
+# Albedo (linear RGB) of the demos' plain materials, by name: one table for every demo.
+ALBEDO = {
+    "dirt": (0.30, 0.24, 0.16), "leaf": (0.20, 0.42, 0.10), "asphalt": (0.18, 0.18, 0.19),
+    "concrete": (0.60, 0.58, 0.55), "brick": (0.50, 0.28, 0.20), "sandstone": (0.70, 0.62, 0.48),
+    "blue-glass": (0.25, 0.32, 0.40), "white": (0.80, 0.80, 0.78), "floor": (0.45, 0.43, 0.40),
+    "terracotta": (0.65, 0.33, 0.20), "bronze": (0.45, 0.32, 0.15), "marble": (0.85, 0.84, 0.80),
+    "pedestal": (0.25, 0.25, 0.27),
+}
+
+
+def on_ground(name: str, meshes, kinds: np.ndarray, xf: np.ndarray, materials, *, sun: tuple,
+              sky_strength: float, camera: Camera) -> Scene:
+    """An outdoor demo: meshes[0] is the ground, instance 0 (identity); kinds (n,) the
+    meshes of the others, placed by xf (n, 4, 4). materials: a Material or the name of a
+    plain one in ALBEDO each. Lit by sun_panel(*sun) and sky(sky_strength)."""
+    mats = tuple(m if isinstance(m, Material) else Material(m, ALBEDO[m]) for m in materials)
+    return Scene(meshes=tuple(meshes),
+                 instances=Instances(np.r_[0, kinds], np.concatenate([np.eye(4)[None], xf])),
+                 materials=mats, quad_lights=(sun_panel(*sun),),
+                 environment=sky(sky_strength), camera=camera, name=name)
 
 
 def quads(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -92,6 +118,14 @@ def placement(yaw: np.ndarray, scale: np.ndarray, pos: np.ndarray) -> np.ndarray
     xf[:, :3, 3] = pos
     xf[:, 3, 3] = 1.0
     return xf
+
+
+def yawed(rng: np.random.Generator, pos: np.ndarray, scale: tuple[float, float]) -> np.ndarray:
+    """Instances at pos (n, 3), each scaled by a factor drawn from [scale[0], scale[1]),
+    then turned by a random yaw (drawn in that order) -> (n, 4, 4)."""
+    n = len(pos)
+    s = rng.uniform(*scale, size=n)
+    return placement(rng.uniform(0, 2 * np.pi, n), np.repeat(s[:, None], 3, 1), pos)
 
 
 def scatter(rng: np.random.Generator, n: int, half_extent: float, min_dist: float) -> np.ndarray:

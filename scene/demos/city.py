@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from nprt.scene.demos._common import concat, ground, make_mesh, placement, quads, sky, sun_panel
-from nprt.scene.model import Camera, Instances, Material, Scene
+from nprt.scene.demos._common import concat, ground, make_mesh, on_ground, placement, quads
+from nprt.scene.model import Camera, Scene
 
 # Per size: window bay width and storey height (m), lots per side (x, z), lot pitch (m).
 SIZES = {
@@ -35,14 +35,7 @@ DESIGNS = [
     ("midrise", [("box", 0, 0, 16, 12, 0, 30), ("box", 0, -2, 16, 8, 30, 6)], (0.5, 0.45), 1),
 ]
 
-MATERIALS = [
-    Material("asphalt", (0.18, 0.18, 0.19)),
-    Material("concrete", (0.60, 0.58, 0.55)),
-    Material("brick", (0.50, 0.28, 0.20)),
-    Material("sandstone", (0.70, 0.62, 0.48)),
-    Material("blue-glass", (0.25, 0.32, 0.40)),
-    Material("white", (0.80, 0.80, 0.78)),
-]
+MATERIALS = ("asphalt", "concrete", "brick", "sandstone", "blue-glass", "white")  # ALBEDO's
 
 # One bay: 4 outer corners, 4 window corners, 4 recessed corners; 9 quads facing out.
 BAY_QUADS = np.array([[0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7],  # wall ring
@@ -72,19 +65,11 @@ def build(size: str, seed: int) -> Scene:
     jitter = rng.uniform(-1.5, 1.5, size=(n, 2))
     pos = np.column_stack([gx.ravel() + jitter[:, 0], np.zeros(n), gz.ravel() + jitter[:, 1]])
     xf = placement(yaw, scale, pos)
-    # The ground first, then the buildings (mesh 0 is the ground).
-    instances = Instances(np.r_[0, kinds + 1], np.concatenate([np.eye(4)[None], xf]))
     half = 0.5 * cfg["pitch"] * max(cfg["lots"])
-    return Scene(
-        meshes=tuple(meshes),
-        instances=instances,
-        materials=tuple(MATERIALS),
-        quad_lights=(sun_panel((0.5 * half, 0.3 * half), 160.0, 30.0, 3.0),),
-        environment=sky(1.0),
-        camera=Camera(eye=(1.3 * half, 0.85 * half + 25.0, 1.65 * half), target=(0.0, 10.0, 0.0),
-                      fov_deg=45.0),
-        name=f"city-{size}",
-    )
+    return on_ground(f"city-{size}", meshes, kinds + 1, xf, MATERIALS,  # mesh 0: the ground
+                     sun=((0.5 * half, 0.3 * half), 160.0, 30.0, 3.0), sky_strength=1.0,
+                     camera=Camera(eye=(1.3 * half, 0.85 * half + 25.0, 1.65 * half),
+                                   target=(0.0, 10.0, 0.0), fov_deg=45.0))
 
 
 def _building(rng, blocks: list, win: tuple[float, float], bay: float, storey: float):

@@ -17,14 +17,14 @@ from nprt.scene.demos._common import (
     concat,
     ground,
     make_mesh,
+    on_ground,
     placement,
     quads,
     random_frames,
-    sky,
-    sun_panel,
     tube,
+    yawed,
 )
-from nprt.scene.model import Camera, Instances, Material, Mesh, Scene, instance_world_bounds
+from nprt.scene.model import Camera, Material, Mesh, Scene, instance_world_bounds
 
 # Per size: leaves of the two foliage clusters, sphere subdivisions (shell, holes), instances
 # per family mesh and the half extent of the patch they are packed into (boxes overlap).
@@ -99,8 +99,7 @@ def build(size: str = "small", seed: int = 0) -> Scene:
     interpenetrate), on a ground; instance 0 is the ground."""
     cfg = SIZES[size]
     rng = np.random.default_rng([seed, 12])
-    materials = (Material("dirt", (0.30, 0.24, 0.16)), Material("leaf", (0.20, 0.42, 0.10)),
-                 Material("stone", (0.55, 0.52, 0.48)))
+    materials = ("dirt", "leaf", Material("stone", (0.55, 0.52, 0.48)))
     meshes = [ground(cfg["half"] + 10.0, material=0), *family_meshes(size, seed)]
     kinds = np.repeat(np.arange(1, len(meshes)), cfg["copies"])
     rng.shuffle(kinds)
@@ -110,22 +109,12 @@ def build(size: str = "small", seed: int = 0) -> Scene:
     pos = np.column_stack([rng.uniform(-cfg["half"], cfg["half"], n),
                            np.where(kinds >= 3, 1.0, 0.0),  # shells and rings sit above ground
                            rng.uniform(-cfg["half"], cfg["half"], n)])
-    s = rng.uniform(0.8, 1.3, size=n)
-    xf = placement(rng.uniform(0, 2 * np.pi, n), np.repeat(s[:, None], 3, 1), pos)
+    xf = yawed(rng, pos, (0.8, 1.3))
     half = cfg["half"]
-    return _on_ground(meshes, kinds, xf, materials,
-                      sun_panel((0.3 * half, 0.2 * half), 40.0, 10.0, 3.0), sky(0.9),
-                      Camera(eye=(0.0, 4.0 + 0.3 * half, half + 8.0), target=(0.0, 1.5, 0.0),
-                             fov_deg=50.0), f"family-{size}")
-
-
-def _on_ground(meshes, kinds, xf, materials, sun, environment, camera, name) -> Scene:
-    """meshes[0] is the ground, instance 0 (identity); kinds (n,) the meshes of the others,
-    placed by xf (n, 4, 4)."""
-    return Scene(meshes=tuple(meshes),
-                 instances=Instances(np.r_[0, kinds], np.concatenate([np.eye(4)[None], xf])),
-                 materials=materials, quad_lights=(sun,), environment=environment,
-                 camera=camera, name=name)
+    return on_ground(f"family-{size}", meshes, kinds, xf, materials,
+                     sun=((0.3 * half, 0.2 * half), 40.0, 10.0, 3.0), sky_strength=0.9,
+                     camera=Camera(eye=(0.0, 4.0 + 0.3 * half, half + 8.0),
+                                   target=(0.0, 1.5, 0.0), fov_deg=50.0))
 
 
 def overlap_fraction(scene: Scene) -> float:
@@ -173,15 +162,14 @@ def build_foliage(size: str = "small", seed: int = 0) -> Scene:
     cfg = FOLIAGE_SIZES[size]
     rng = np.random.default_rng([seed, 22])
     half = cfg["half"]
-    materials = (Material("dirt", (0.30, 0.24, 0.16)), Material("leaf", (0.20, 0.42, 0.10)),
-                 Material("stone", (0.50, 0.48, 0.45)))
+    materials = ("dirt", "leaf", Material("stone", (0.50, 0.48, 0.45)))
     meshes = [ground(half + 10.0, material=0), *foliage_meshes(size, seed)]
     kinds = np.r_[np.arange(cfg["trees"]) % 2 + 1, np.full(cfg["rocks"], 3)]
     n = len(kinds)
     pos = np.column_stack([rng.uniform(-half, half, n), np.zeros(n), rng.uniform(-half, half, n)])
     s = np.where(kinds == 3, rng.uniform(0.5, 0.9, n), rng.uniform(0.9, 1.4, n))
     xf = placement(rng.uniform(0, 2 * np.pi, n), np.repeat(s[:, None], 3, 1), pos)
-    return _on_ground(meshes, kinds, xf, materials,
-                      sun_panel((0.4 * half, 0.3 * half), 30.0, 8.0, 3.0), sky(0.8),
-                      Camera(eye=(0.0, 3.0 + 0.3 * half, half + 7.0), target=(0.0, 1.6, 0.0),
-                             fov_deg=50.0), f"foliage-{size}")
+    return on_ground(f"foliage-{size}", meshes, kinds, xf, materials,
+                     sun=((0.4 * half, 0.3 * half), 30.0, 8.0, 3.0), sky_strength=0.8,
+                     camera=Camera(eye=(0.0, 3.0 + 0.3 * half, half + 7.0),
+                                   target=(0.0, 1.6, 0.0), fov_deg=50.0))

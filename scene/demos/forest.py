@@ -9,15 +9,14 @@ import numpy as np
 from nprt.scene.demos._common import (
     concat,
     ground,
-    placement,
+    on_ground,
     quads,
     random_frames,
     scatter,
-    sky,
-    sun_panel,
     tube,
+    yawed,
 )
-from nprt.scene.model import VERTEX_DTYPE, Camera, Instances, Material, Mesh, Scene
+from nprt.scene.model import VERTEX_DTYPE, Camera, Material, Mesh, Scene
 
 # Per size: leaves per species (oak, pine, birch, bush), instances per species, half extent
 # of the planted square (m), trunk sections, branches per tree.
@@ -41,7 +40,7 @@ def build(size: str, seed: int) -> Scene:
         return massive.build(seed)
     cfg = SIZES[size]
     rng = np.random.default_rng([seed, 1])
-    materials = [Material("dirt", (0.30, 0.24, 0.16))]
+    materials: list = ["dirt"]  # ALBEDO's, then a textured one per species
     meshes = [ground(cfg["half"] + 25.0, material=0)]
     for (name, make, bark, leaf), n_leaves in zip(SPECIES, cfg["leaves"], strict=True):
         tex = np.array([[bark, leaf]], dtype=np.float32)  # (1, 2, 3) linear
@@ -53,20 +52,12 @@ def build(size: str, seed: int) -> Scene:
     xz = scatter(rng, len(kinds), cfg["half"], min_dist=2.5)
     n = len(kinds)
     pos = np.column_stack([xz[:, 0], np.zeros(n), xz[:, 1]])
-    s = rng.uniform(0.8, 1.25, size=n)
-    xf = placement(rng.uniform(0, 2 * np.pi, n), np.repeat(s[:, None], 3, 1), pos)
-    instances = Instances(np.r_[0, kinds], np.concatenate([np.eye(4)[None], xf]))  # ground first
+    xf = yawed(rng, pos, (0.8, 1.25))
     half = cfg["half"]
-    return Scene(
-        meshes=tuple(meshes),
-        instances=instances,
-        materials=tuple(materials),
-        quad_lights=(sun_panel((0.4 * half, 0.3 * half), 60.0, 14.0, 3.0),),
-        environment=sky(0.9),
-        camera=Camera(eye=(0.0, 7.0 + 0.1 * half, half + 12.0), target=(0.0, 3.5, -0.2 * half),
-                      fov_deg=50.0),
-        name=f"forest-{size}",
-    )
+    return on_ground(f"forest-{size}", meshes, kinds, xf, materials,
+                     sun=((0.4 * half, 0.3 * half), 60.0, 14.0, 3.0), sky_strength=0.9,
+                     camera=Camera(eye=(0.0, 7.0 + 0.1 * half, half + 12.0),
+                                   target=(0.0, 3.5, -0.2 * half), fov_deg=50.0))
 
 
 def tree_mesh(name: str, parts: tuple[list, list], material: int) -> Mesh:

@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from nprt.scene.demos._common import ground, placement, sky, sun_panel
+from nprt.scene.demos._common import ground, on_ground, yawed
 from nprt.scene.demos.forest import SPECIES, tree_mesh
-from nprt.scene.model import Camera, Instances, Material, Scene
+from nprt.scene.model import Camera, Material, Scene
 
 LEAVES = 1_350_000  # per tree mesh
 INSTANCES = 10_000
@@ -22,7 +22,7 @@ TREE_CFG = dict(sections=16, branches=10)
 def build(seed: int, leaves: int = LEAVES, instances: int = INSTANCES,
           name: str = "forest-massive") -> Scene:
     """leaves: leaf quads per tree mesh; instances: trees planted (ground excluded)."""
-    materials = [Material("dirt", (0.30, 0.24, 0.16))]
+    materials: list = ["dirt"]  # ALBEDO's, then a textured one per species
     side = int(np.ceil(np.sqrt(instances)))
     half = 0.5 * side * SPACING
     meshes = [ground(half + 25.0, material=0)]
@@ -40,15 +40,8 @@ def build(seed: int, leaves: int = LEAVES, instances: int = INSTANCES,
     grid = np.column_stack([cell % side, cell // side]) + 0.5 + jitter
     xz = grid * SPACING - half
     pos = np.column_stack([xz[:, 0], np.zeros(instances), xz[:, 1]])
-    scale = rng.uniform(0.8, 1.25, instances)
-    xf = placement(rng.uniform(0, 2 * np.pi, instances), np.repeat(scale[:, None], 3, 1), pos)
-    return Scene(
-        meshes=tuple(meshes),
-        instances=Instances(np.r_[0, kinds], np.concatenate([np.eye(4)[None], xf])),
-        materials=tuple(materials),
-        quad_lights=(sun_panel((0.0, half + 20.0), 80.0, 20.0, 3.0),),
-        environment=sky(0.9),
-        camera=Camera(eye=(0.0, 14.0, half + 12.0), target=(0.0, 3.0, half - 60.0),
-                      fov_deg=50.0),
-        name=name,
-    )
+    xf = yawed(rng, pos, (0.8, 1.25))
+    return on_ground(name, meshes, kinds, xf, materials,
+                     sun=((0.0, half + 20.0), 80.0, 20.0, 3.0), sky_strength=0.9,
+                     camera=Camera(eye=(0.0, 14.0, half + 12.0), target=(0.0, 3.0, half - 60.0),
+                                   fov_deg=50.0))

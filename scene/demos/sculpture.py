@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from nprt.scene.demos._common import ground, make_mesh, placement, sky, sun_panel
-from nprt.scene.model import Camera, Instances, Material, Scene
+from nprt.scene.demos._common import ground, make_mesh, on_ground, placement
+from nprt.scene.model import Camera, Scene
 
 # Per size: icosphere subdivisions, torus (major, minor) and column (around, along) segments,
 # gallery grid (columns, rows) and its pitch (m).
@@ -19,13 +19,7 @@ SIZES = {
 }
 
 PEDESTAL = (0.9, 1.0, 0.9)  # width, height, depth (m)
-MATERIALS = [
-    Material("floor", (0.45, 0.43, 0.40)),
-    Material("terracotta", (0.65, 0.33, 0.20)),
-    Material("bronze", (0.45, 0.32, 0.15)),
-    Material("marble", (0.85, 0.84, 0.80)),
-    Material("pedestal", (0.25, 0.25, 0.27)),
-]
+MATERIALS = ("floor", "terracotta", "bronze", "marble", "pedestal")  # ALBEDO's
 
 
 def build(size: str, seed: int) -> Scene:
@@ -63,19 +57,12 @@ def build(size: str, seed: int) -> Scene:
     xf[:, :3, 3] = base + np.column_stack([np.zeros(n), PEDESTAL[1] - lowest, np.zeros(n)])
     pedestals = placement(rng.uniform(0, np.pi, n), np.ones((n, 3)), base)
     pedestal_mesh = len(meshes) - 1
-    instances = Instances(np.r_[0, kinds, np.full(n, pedestal_mesh)],
-                          np.concatenate([np.eye(4)[None], xf, pedestals]))  # ground first
     extent = 0.5 * cfg["pitch"] * max(nx, nz)
-    return Scene(
-        meshes=tuple(meshes),
-        instances=instances,
-        materials=tuple(MATERIALS),
-        quad_lights=(sun_panel((2.0, 3.0), 14.0, 4.0, 4.0),),
-        environment=sky(0.7),
-        camera=Camera(eye=(0.35 * extent, 2.5 + 0.5 * extent, 1.9 * extent + 3.0),
-                      target=(0.0, 1.0, 0.0), fov_deg=42.0),
-        name=f"sculpture-{size}",
-    )
+    return on_ground(f"sculpture-{size}", meshes, np.r_[kinds, np.full(n, pedestal_mesh)],
+                     np.concatenate([xf, pedestals]), MATERIALS,
+                     sun=((2.0, 3.0), 14.0, 4.0, 4.0), sky_strength=0.7,
+                     camera=Camera(eye=(0.35 * extent, 2.5 + 0.5 * extent, 1.9 * extent + 3.0),
+                                   target=(0.0, 1.0, 0.0), fov_deg=42.0))
 
 
 def _displace(rng, v: np.ndarray, f: np.ndarray, amplitude: float):
