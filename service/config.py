@@ -8,6 +8,11 @@ from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
+def _in_data_dir(name: str, doc: str | None = None) -> property:
+    """A read-only property: the path `name` inside the settings' data_dir."""
+    return property(lambda self: self.data_dir / name, doc=doc)
+
+
 class ServiceSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="NPRT_", extra="ignore")
 
@@ -71,23 +76,9 @@ class ServiceSettings(BaseSettings):
     ray_start_attempts: int = Field(3, ge=1, le=20,
                                     description="tries at starting or joining Ray per job")
 
-    @property
-    def db_path(self) -> Path:
-        return self.data_dir / "jobs.sqlite3"
-
-    @property
-    def jobs_dir(self) -> Path:
-        return self.data_dir / "jobs"
-
-    @property
-    def scenes_dir(self) -> Path:
-        return self.data_dir / "scenes"
-
-    @property
-    def proxies_dir(self) -> Path:
-        return self.data_dir / "proxies"
-
-    @property
-    def tmp_dir(self) -> Path:
-        """Uploads are spooled here, on the same filesystem as the store, for os.replace."""
-        return self.data_dir / "tmp"
+    db_path = _in_data_dir("jobs.sqlite3")
+    jobs_dir = _in_data_dir("jobs")
+    scenes_dir = _in_data_dir("scenes")
+    proxies_dir = _in_data_dir("proxies")
+    tmp_dir = _in_data_dir("tmp", "Uploads are spooled here, on the same filesystem as the "
+                                  "store, for os.replace.")
