@@ -60,9 +60,11 @@ def create_app(settings: ServiceSettings | None = None, grpc_port: int | None = 
         try:
             yield
         finally:
-            if grpc_thread is not None:
-                await asyncio.to_thread(grpc_thread.stop)
-            api.stop()
+            try:
+                if grpc_thread is not None:
+                    await asyncio.to_thread(grpc_thread.stop)
+            finally:  # the store writer and event feed threads end even if that failed
+                api.stop()
 
     # FastAPI's OpenTelemetry hooks asked for the global providers on every request (a
     # quarter of a polled read's CPU); the service exports Prometheus metrics instead.

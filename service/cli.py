@@ -142,10 +142,11 @@ def preflight(settings, ray_address: str | None, uses_ray: bool) -> None:
     """Refuse before any work what would fail after it: a render that cannot fit in
     memory, a Ray cluster nobody answers at."""
     from nprt.service.preflight import check_memory
-    from nprt.service.ray_reach import check_ray_reachable
 
     check_memory(settings)
-    if uses_ray:
+    if uses_ray:  # gRPC (and Ray) only in processes that will use them
+        from nprt.service.ray_reach import check_ray_reachable
+
         check_ray_reachable(ray_address)
 
 

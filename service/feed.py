@@ -37,7 +37,7 @@ class EventFeed:
     def stop(self) -> None:
         self._stop.set()
         if self._thread.is_alive():
-            self._thread.join(5.0)
+            self._thread.join()  # a poll is one bounded read; then it sees the stop
 
     def _run(self) -> None:
         while not self._stop.is_set():

@@ -71,14 +71,19 @@ async def start_grpc_server(api: JobApi, settings: ServiceSettings, host: str,
 
 
 class GrpcThread:
-    """start_grpc_server on a daemon thread running its own asyncio loop until stop()."""
+    """start_grpc_server on a daemon thread running its own asyncio loop until stop().
+
+    The server is stopped by the coroutine that started it, on its loop, and the thread
+    ends once that stop has finished: stopping it from outside while the thread tore its
+    loop down canceled the stop half-way (stop() then raised CancelledError, and the
+    lifespan that called it failed)."""
 
     def __init__(self, api: JobApi, settings: ServiceSettings, host: str, port: int):
         self._args = (api, settings, host, port)
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
-        self._server: grpc.aio.Server | None = None
+        self._release: asyncio.Future | None = None  # its result: the grace in seconds
         self.port: int | None = None
         self._thread = threading.Thread(target=self._run, name="nprt-grpc", daemon=True)
 
@@ -93,27 +98,41 @@ class GrpcThread:
     def _run(self) -> None:
         loop = self._loop = asyncio.new_event_loop()
         try:
-            self._server, self.port = loop.run_until_complete(start_grpc_server(*self._args))
-        except BaseException as e:  # handed to start()
+            loop.run_until_complete(self._serve())
+        except BaseException as e:  # handed to start(), or logged once serving
+            if self._ready.is_set():
+                log.exception("the gRPC server failed")
             self._error = e
+        finally:
             self._ready.set()
-            loop.close()
-            return
-        self._ready.set()
-        try:
-            loop.run_until_complete(self._server.wait_for_termination())
-            left = asyncio.all_tasks(loop)
+            left = asyncio.all_tasks(loop)  # handlers the server's stop left behind
             for task in left:
                 task.cancel()
-            loop.run_until_complete(asyncio.gather(*left, return_exceptions=True))
+            if left:
+                loop.run_until_complete(asyncio.gather(*left, return_exceptions=True))
             loop.run_until_complete(loop.shutdown_default_executor())
-        finally:
             loop.close()
 
+    async def _serve(self) -> None:
+        self._release = asyncio.get_running_loop().create_future()
+        server, self.port = await start_grpc_server(*self._args)
+        self._ready.set()
+        try:
+            grace_s = await self._release
+        finally:
+            await server.stop(grace_s if self._release.done() else None)
+
     def stop(self, grace_s: float = 1.0) -> None:
-        """Stop serving (streams are canceled after grace_s) and end the thread."""
-        if self._server is None or not self._thread.is_alive():
+        """Stop serving (streams are canceled after grace_s), then join the thread."""
+        if not self._thread.is_alive():
             return
-        asyncio.run_coroutine_threadsafe(self._server.stop(grace_s),
-                                         self._loop).result(grace_s + 10)
-        self._thread.join(10)
+        try:
+            self._loop.call_soon_threadsafe(_resolve, self._release, grace_s)
+        except RuntimeError:  # the loop closed meanwhile: the thread is ending
+            pass
+        self._thread.join()
+
+
+def _resolve(future: asyncio.Future, value) -> None:
+    if not future.done():
+        future.set_result(value)

@@ -111,13 +111,16 @@ class MemoryEstimate:
 def estimate_memory(s: RenderSettings) -> MemoryEstimate:
     """Peak memory of rendering `s` in this process (the film lives in the driver)."""
     from nprt.workers.film import ACCUM_DTYPE
-    from nprt.workers.runtime.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
 
     pixels = s.width * s.height
     film = pixels * (3 * ACCUM_DTYPE().itemsize + 8)  # sums (3 float64) + samples (int64)
     tile_pixels = min(s.tile_size, s.width) * min(s.tile_size, s.height)
     k = max(s.shards, 1)
-    window = 1 if s.shards == 0 else max(MIN_WINDOW, WINDOW_PER_SHARD * k)
+    window = 1
+    if s.shards:  # the coordinator imports Ray, and Ray gRPC: not for a reference render
+        from nprt.workers.runtime.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
+
+        window = max(MIN_WINDOW, WINDOW_PER_SHARD * k)
     inflight = window * k * tile_pixels * 3 * ACCUM_DTYPE().itemsize  # one part per shard
     return MemoryEstimate(film, pixels * OUTPUT_BYTES_PER_PIXEL, inflight,
                           tile_pixels * s.spp_per_pass * PATH_WORK_BYTES)

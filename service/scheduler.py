@@ -129,25 +129,27 @@ class Scheduler:
         f.flush()
         self._lock_file = f
 
-    def stop(self, timeout_s: float = 30.0) -> None:
+    def stop(self, timeout_s: float | None = 30.0) -> None:
         """Interrupt renders at their next pass boundary; their jobs stay unfinished in the
-        store, so the next start resumes them from the checkpoint."""
+        store, so the next start resumes them from the checkpoint. Then close the warm
+        pools, stop a Ray this scheduler started (its processes and agents included) and
+        join every thread it started. timeout_s None waits for the renders however long
+        they take; a render still running after a finite timeout_s keeps Ray and its
+        thread (they go when the process exits)."""
         self._stopping.set()
         with self._lock:
             for live in self._live.values():
                 live.cancel.set()
-        deadline = time.monotonic() + timeout_s
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
         with self._idle:
             self._idle.wait_for(lambda: not self._running, timeout_s)
             idle = not self._running
         if idle:
-            # Before the workers exit: Ray's processes die with the thread that started
-            # them (parent-death signal), and closing a pool needs them.
             self.pools.close()
         for _ in range(self.settings.max_concurrent_jobs):
             self._queue.put(None)
         for t in self._threads:
-            t.join(max(0.0, deadline - time.monotonic()))
+            t.join(None if deadline is None else max(0.0, deadline - time.monotonic()))
         running = [t.name for t in self._threads if t.is_alive()]
         if running or not idle:  # never pull Ray from under a render; it goes at exit
             log.warning("%s still rendering after %.0f s; leaving Ray up", running, timeout_s)

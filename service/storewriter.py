@@ -49,7 +49,7 @@ class StoreWriter:
         with self._cond:
             self._closed = True
             self._cond.notify()
-        self._thread.join(30.0)
+        self._thread.join()  # each queued write ends: the store's busy timeout bounds it
 
     def _run(self) -> None:
         while True:

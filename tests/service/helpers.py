@@ -67,7 +67,7 @@ class LiveServer:
         # Stops a Ray the scheduler started: one still stopping behind the next test
         # would pull Ray from under it.
         if self.scheduler is not None:
-            self.scheduler.stop()
+            self.scheduler.stop(timeout_s=None)
         if self.thread.is_alive():
             raise RuntimeError(f"the service did not stop within {STOP_TIMEOUT_S} s")
 

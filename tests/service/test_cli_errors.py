@@ -156,6 +156,22 @@ def test_cli_under_an_address_space_limit_refuses_a_huge_film(tmp_path):
     assert "of memory is available" in run.stderr and not (tmp_path / "big.png").exists()
 
 
+def test_reference_render_checks_load_neither_ray_nor_grpc(tmp_path):
+    # Importing Ray starts gRPC's machinery, which aborted under this limit (CI, load 20+);
+    # a render without shards needs neither, refused or not.
+    def limit():
+        resource.setrlimit(resource.RLIMIT_AS, (8 << 30, 8 << 30))
+
+    code = ("import sys; from nprt.service.cli import main; rc = main(sys.argv[1:]); "
+            "print(rc, sorted(m for m in sys.modules if m.split('.')[0] in ('ray', 'grpc')))")
+    run = subprocess.run(
+        [sys.executable, "-c", code, "render", _scene(tmp_path), "--width", "16384",
+         "--height", "16384", "-o", str(tmp_path / "big.png")],
+        preexec_fn=limit, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
+        text=True, timeout=120)
+    assert run.stdout.split("\n")[-2] == "2 []", (run.stdout, run.stderr)
+
+
 def _closed_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

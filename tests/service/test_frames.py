@@ -144,7 +144,7 @@ def test_a_frames_job_resumed_after_a_restart_skips_the_frames_it_stored(tmp_pat
         assert png_pixels(m.frame_image("resumed", 2, "png")).shape == (32, 32, 3)
         assert sorted(rec.stats["frames"]["frame_wall_s"]) == ["2", "3"]
     finally:
-        scheduler.stop()
+        scheduler.stop(timeout_s=None)
         m.stop()
 
 

@@ -82,6 +82,6 @@ def test_burst_past_the_queue_depth_gets_429_with_retry_after_and_loses_none(tmp
                                 ["state"] in ("succeeded", "failed") and r, 60,
                                 what=f"job {j}") for j in (*accepted, waiting[0]["id"])}
         finally:
-            scheduler.stop()
+            scheduler.stop(timeout_s=None)
         assert {d["state"] for d in done.values()} == {"succeeded"}
         assert client.get("/v1/jobs").json()["count"] == depth + 1

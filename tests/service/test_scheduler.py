@@ -41,7 +41,7 @@ class _Service:
         return getattr(self.api, name)
 
     def stop(self) -> None:
-        self.scheduler.stop()
+        self.scheduler.stop(timeout_s=None)
         self.api.stop()
 
 
