@@ -72,6 +72,28 @@ def _push(node_box, first, count, stack, top, o0, o1, o2, i0, i1, i2, s0, s1, s2
     return top
 
 
+@njit(inline="always", **JIT)
+def _next_leaf(bvh, stack, top, line, tmax):
+    """One step of a ray's walk through bvh = (node_box, node_child, node_start,
+    node_count, prim) of `bvh_build`, for line = (o0, o1, o2, i0, i1, i2, s0, s1, s2)
+    (origin, 1 / direction, s_a = i_a < 0): pop the stack down to the next leaf the ray
+    may enter before tmax, pushing the children of inner nodes on the way (top -1: push
+    the root first). Returns (top, lo, hi): the leaf's boxes are prim[lo:hi], and lo == hi
+    once the walk is over. tmax may shrink between steps."""
+    node_box, node_child, node_start, node_count, _ = bvh
+    o0, o1, o2, i0, i1, i2, s0, s1, s2 = line
+    if top < 0:
+        top = _push(node_box, 0, 1, stack, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, tmax)
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        c = node_child[node]
+        if c < 0:
+            return top, node_start[node], node_start[node] + node_count[node]
+        top = _push(node_box, c, 2, stack, top, o0, o1, o2, i0, i1, i2, s0, s1, s2, tmax)
+    return top, 0, 0
+
+
 def _buffers(n: int, k: int):
     """Output rows: ray (c,) int64, col (c,) int32, t_enter, t_exit (c,) float64, with
     room for four crossings per ray (scenes of overlapping boxes average about three, and
@@ -312,6 +334,7 @@ def _bvh_fill(origin, direction, tmax, boxes, node_box, node_child, node_start, 
     component take the plain loop: the node test does not mirror the reference formula's
     NaN cases for them."""
     n, k, cap = origin.shape[0], members.shape[0], len(ray)
+    bvh = (node_box, node_child, node_start, node_count, prim)
     for r in range(r0, n):
         if p + k > cap:
             return r, p
@@ -323,16 +346,10 @@ def _bvh_fill(origin, direction, tmax, boxes, node_box, node_child, node_start, 
         h = 0
         if (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2) and np.isfinite(d0)
                 and np.isfinite(d1) and np.isfinite(d2)):
-            top = _push(node_box, 0, 1, stack, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm)
-            while top > 0:
-                top -= 1
-                node = stack[top]
-                c = node_child[node]
-                if c >= 0:
-                    top = _push(node_box, c, 2, stack, top, o0, o1, o2, i0, i1, i2, s0, s1,
-                                s2, tm)
-                    continue
-                for x in range(node_start[node], node_start[node] + node_count[node]):
+            line = (o0, o1, o2, i0, i1, i2, s0, s1, s2)
+            top, lo, hi = _next_leaf(bvh, stack, -1, line, tm)
+            while lo < hi:
+                for x in range(lo, hi):
                     b = prim[x]
                     j = col_of[b]
                     if j < 0:
@@ -346,6 +363,7 @@ def _bvh_fill(origin, direction, tmax, boxes, node_box, node_child, node_start, 
                             y -= 1
                         hit_col[y], hit_in[y], hit_out[y] = j, te, tx
                         h += 1
+                top, lo, hi = _next_leaf(bvh, stack, top, line, tm)
         else:
             for j in range(k):
                 ok, te, tx = _slab(boxes, members[j], o0, o1, o2, i0, i1, i2, tm)

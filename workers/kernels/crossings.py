@@ -12,8 +12,8 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from nprt.workers.kernels.bvh import _push, _slab
-from nprt.workers.kernels.pairs import _to_local_row
+from nprt.workers.kernels.bvh import _next_leaf, _slab
+from nprt.workers.kernels.pairs import to_local_ray
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
@@ -38,32 +38,37 @@ RTC_INVALID_ID = 0xFFFFFFFF
 # time 7, tfar 8, mask 9, id 10, flags 11; hit Ng 12-14, u 15, v 16, primID 17,
 # geomID 18, instID 19. 16-byte aligned; 32 floats leave room for any instance levels.
 RAYHIT_FLOATS = 32
+# Embree traces a box with tfar = the closest hit so far (or tmax) stretched by this much
+# (8192 float32 ulps); see `_closest_box` for why the hit it reports is then the one it
+# reports with no limit.
+TFAR_MARGIN_REL = 2.0**-10
 
 
 @njit(inline="always", **JIT)
-def closest1(fn, scene, rh, ri, o0, o1, o2, d0, d1, d2, tfar):
+def closest1(fn, scene, ptr, rh, ri, o0, o1, o2, d0, d1, d2, tfar):
     """Embree's closest hit of one ray (tnear 0) in scene, through fn = INTERSECT1: rh the
-    `rayhit_buffer_nb`, ri its uint32 view. Returns (t, prim (-1: none), u, v)."""
+    `rayhit_buffer_nb` at address ptr (uint64), ri its uint32 view. Returns (t, prim (-1:
+    none), u, v)."""
     rh[0], rh[1], rh[2], rh[3] = o0, o1, o2, np.float32(0.0)
     rh[4], rh[5], rh[6], rh[7] = d0, d1, d2, np.float32(0.0)
     rh[8] = tfar
     ri[9], ri[10], ri[11] = RTC_INVALID_ID, 0, 0
     ri[17], ri[18], ri[19] = RTC_INVALID_ID, RTC_INVALID_ID, RTC_INVALID_ID
-    _call3(fn, np.uint64(scene), np.uint64(rh.ctypes.data), np.uint64(0))
+    _call3(fn, np.uint64(scene), ptr, np.uint64(0))
     if ri[18] == RTC_INVALID_ID:
         return rh[8], np.int32(-1), rh[15], rh[16]
     return rh[8], np.int32(ri[17]), rh[15], rh[16]
 
 
 @njit(inline="always", **JIT)
-def occluded1_ray(fn, scene, rh, ri, o0, o1, o2, d0, d1, d2, tfar):
+def occluded1_ray(fn, scene, ptr, rh, ri, o0, o1, o2, d0, d1, d2, tfar):
     """Whether scene blocks the segment (0, tfar) of one ray (as embreex's OCCLUDED),
-    through fn = OCCLUDED1."""
+    through fn = OCCLUDED1; buffers as `closest1`."""
     rh[0], rh[1], rh[2], rh[3] = o0, o1, o2, np.float32(0.0)
     rh[4], rh[5], rh[6], rh[7] = d0, d1, d2, np.float32(0.0)
     rh[8] = tfar
     ri[9], ri[10], ri[11] = RTC_INVALID_ID, 0, 0
-    _call3(fn, np.uint64(scene), np.uint64(rh.ctypes.data), np.uint64(0))
+    _call3(fn, np.uint64(scene), ptr, np.uint64(0))
     return not rh[8] >= 0.0  # Embree sets tfar to -inf on a hit
 
 
@@ -76,13 +81,16 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
     boxes it crosses before tmax stretched by box_slack (through the top-level BVH when
     use_bvh) are gathered nearest entry first, then traced through Embree (tfar = far)
     until the next is entered beyond the closest hit so far (stretched alike): no hit
-    there can win or tie. Hits fold into best_* (n,) (best_inst -1: none yet): a hit at
+    there can win or tie. Embree's tfar is far, or the closest hit so far stretched by
+    TFAR_MARGIN_REL (the same hits: see `_closest_box`). Hits fold into best_* (n,)
+    (best_inst -1: none yet): a hit at
     t <= tmax wins on a smaller t, on equal t the lower instance, so the answer depends
     neither on the order boxes are traced in nor on how instances are split over shards.
     origin, direction (n, 3) float64, tmax (n,) float32."""
-    rh, ri, lo, ld = _scratch()
+    rh, ri, ptr = _scratch()
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     q_t, q_id = np.empty(boxes.shape[0] + 1), np.empty(boxes.shape[0] + 1, np.int64)
+    bvh = (node_box, node_child, node_start, node_count, prim)
     for r in range(origin.shape[0]):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
         d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
@@ -91,21 +99,16 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
         h = 0
         if use_bvh and _finite(o0, o1, o2, d0, d1, d2):
             s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
-            top = _push(node_box, 0, 1, stack, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, box_tmax)
-            while top > 0:
-                top -= 1
-                node = stack[top]
-                c = node_child[node]
-                if c >= 0:
-                    top = _push(node_box, c, 2, stack, top, o0, o1, o2, i0, i1, i2, s0, s1, s2,
-                                box_tmax)
-                    continue
-                for x in range(node_start[node], node_start[node] + node_count[node]):
+            line = (o0, o1, o2, i0, i1, i2, s0, s1, s2)
+            top, lo, hi = _next_leaf(bvh, stack, -1, line, box_tmax)
+            while lo < hi:
+                for x in range(lo, hi):
                     b = prim[x]
                     if col_of[b] >= 0:
                         ok, te, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, box_tmax)
                         if ok:
                             h = _enqueue(q_t, q_id, h, te, b)
+                top, lo, hi = _next_leaf(bvh, stack, top, line, box_tmax)
         else:  # few boxes, or a ray the node test does not cover: every member's slab
             for j in range(members.shape[0]):
                 ok, te, _ = _slab(boxes, members[j], o0, o1, o2, i0, i1, i2, box_tmax)
@@ -117,7 +120,7 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
             if not q_t[h] <= cut * (1.0 + box_slack):
                 break  # everything left is entered beyond the closest hit
             cut = _closest_box(fn, q_id[h], r, cut, far, tmax, mesh_of, scene_of_mesh,
-                               world_to_local, origin, direction, rh, ri, lo, ld, best_t,
+                               world_to_local, origin, direction, ptr, rh, ri, best_t,
                                best_inst, best_prim, best_u, best_v)
 
 
@@ -135,12 +138,23 @@ def _enqueue(q_t, q_id, h, t, x):
 
 @njit(inline="always", **JIT)
 def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, world_to_local, origin,
-                 direction, rh, ri, lo, ld, best_t, best_inst, best_prim, best_u, best_v):
+                 direction, ptr, rh, ri, best_t, best_inst, best_prim, best_u, best_v):
     """Trace ray r in instance b and fold its hit into best_*. Returns the new cut (the
-    closest hit's t so far, or tmax) as float64."""
-    _to_local_row(world_to_local, b, origin, direction, r, lo, ld, 0)
-    t, p, u, v = closest1(fn, scene_of_mesh[mesh_of[b]], rh, ri, lo[0, 0], lo[0, 1], lo[0, 2],
-                          ld[0, 0], ld[0, 1], ld[0, 2], far)
+    closest hit's t so far, or tmax) as float64.
+
+    Only a hit at t <= cut can change best_*, and Embree, given tfar = C > cut by a wide
+    margin instead of far, reports the same hit there: its traversal visits nodes in an
+    order set by their entry distances alone, culls a node entered beyond tfar, and
+    accepts the nearest triangle of a leaf at t <= tfar, then lowers tfar to it. A run
+    from C visits the nodes of a run from far, less ones entered beyond C (whose hits
+    all lie beyond cut), and accepts the same hits up to C; so its last accepted hit at
+    or before cut, the answer, is the same triangle, u and v."""
+    o0, o1, o2, d0, d1, d2 = to_local_ray(world_to_local, b, origin, direction, r)
+    tfar = far
+    if cut * (1.0 + TFAR_MARGIN_REL) < far:
+        tfar = np.float32(cut * (1.0 + TFAR_MARGIN_REL))
+    t, p, u, v = closest1(fn, scene_of_mesh[mesh_of[b]], ptr, rh, ri, o0, o1, o2, d0, d1, d2,
+                          tfar)
     if p < 0 or not t <= tmax[r]:
         return cut
     if best_inst[r] < 0 or t < best_t[r] or (t == best_t[r] and b < best_inst[r]):
@@ -157,7 +171,7 @@ def occluded_walk(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, 
                   world_to_local, occluded):
     """occluded[r] = some box of `members` crossed before tmax[r] holds a triangle on
     (0, tmax[r]); a ray stops at its first occluder. Arrays as `closest_walk`."""
-    rh, ri, lo, ld = _scratch()
+    rh, ri, ptr = _scratch()
     stack, stack_t = np.empty(node_child.shape[0] + 1, np.int32), np.empty(node_child.shape[0] + 1)
     for r in range(origin.shape[0]):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
@@ -181,28 +195,28 @@ def occluded_walk(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, 
                     if col_of[b] >= 0 and _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1,
                                                         i2, tmax, mesh_of, scene_of_mesh,
                                                         world_to_local, origin, direction,
-                                                        rh, ri, lo, ld):
+                                                        ptr, rh, ri):
                         occluded[r] = True
                         break
             continue
         for j in range(members.shape[0]):
             if _occluded_box(fn, members[j], r, boxes, o0, o1, o2, i0, i1, i2, tmax, mesh_of,
-                             scene_of_mesh, world_to_local, origin, direction, rh, ri, lo, ld):
+                             scene_of_mesh, world_to_local, origin, direction, ptr, rh, ri):
                 occluded[r] = True
                 break
 
 
 @njit(inline="always", **JIT)
 def _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1, i2, tmax, mesh_of, scene_of_mesh,
-                  world_to_local, origin, direction, rh, ri, lo, ld):
+                  world_to_local, origin, direction, ptr, rh, ri):
     """Whether ray r crosses instance b's box before tmax[r] and a triangle there blocks
     (0, tmax[r])."""
     ok, _, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, np.float64(tmax[r]))
     if not ok:
         return False
-    _to_local_row(world_to_local, b, origin, direction, r, lo, ld, 0)
-    return occluded1_ray(fn, scene_of_mesh[mesh_of[b]], rh, ri, lo[0, 0], lo[0, 1], lo[0, 2],
-                         ld[0, 0], ld[0, 1], ld[0, 2], tmax[r])
+    l0, l1, l2, e0, e1, e2 = to_local_ray(world_to_local, b, origin, direction, r)
+    return occluded1_ray(fn, scene_of_mesh[mesh_of[b]], ptr, rh, ri, l0, l1, l2, e0, e1, e2,
+                         tmax[r])
 
 
 @njit(inline="always", **JIT)
@@ -252,10 +266,9 @@ def _push_pair(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2, s0, s1,
 
 @njit(inline="always", **JIT)
 def _scratch():
-    """One ray's buffers: the RTCRayHit (as float32 and uint32 views), its local origin and
-    direction (1, 3) float32."""
+    """One ray's RTCRayHit: as float32 and uint32 views, and its address (uint64)."""
     rh = rayhit_buffer_nb()
-    return rh, rh.view(np.uint32), np.empty((1, 3), np.float32), np.empty((1, 3), np.float32)
+    return rh, rh.view(np.uint32), np.uint64(rh.ctypes.data)
 
 
 @njit(inline="always", **JIT)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from nprt.workers.kernels.bvh import JIT, _push, _slab
+from nprt.workers.kernels.bvh import JIT, _next_leaf, _slab
 
 NONE = -1  # no unvisited box before tmax
 
@@ -24,6 +24,7 @@ def bvh_nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node
     Returns (n,) int32 owner, or NONE."""
     n = origin.shape[0]
     out = np.full(n, NONE, np.int32)
+    bvh = (node_box, node_child, node_start, node_count, prim)
     for r in range(n):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
         d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
@@ -39,21 +40,16 @@ def bvh_nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node
                                            i0, i1, i2, tm, best_t, best_o)
             out[r] = best_o
             continue
-        top = _push(node_box, 0, 1, stack, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2, tm)
-        while top > 0:
-            top -= 1
-            node = stack[top]
-            # A node entered after the best so far cannot hold a better box; one entered
-            # exactly at it may hold a tie with a lower owner.
-            cull = min(tm, np.nextafter(best_t, np.inf))
-            c = node_child[node]
-            if c >= 0:
-                top = _push(node_box, c, 2, stack, top, o0, o1, o2, i0, i1, i2, s0, s1, s2,
-                            cull)
-                continue
-            for x in range(node_start[node], node_start[node] + node_count[node]):
+        line = (o0, o1, o2, i0, i1, i2, s0, s1, s2)
+        top, lo, hi = _next_leaf(bvh, stack, -1, line, tm)
+        while lo < hi:
+            for x in range(lo, hi):
                 best_t, best_o = _consider(boxes, prim[x], in_set, box_owner, seen, o0, o1,
                                            o2, i0, i1, i2, tm, best_t, best_o)
+            # A node entered after the best so far cannot hold a better box; one entered
+            # exactly at it may hold a tie with a lower owner.
+            top, lo, hi = _next_leaf(bvh, stack, top, line,
+                                     min(tm, np.nextafter(best_t, np.inf)))
         out[r] = best_o
     return out
 

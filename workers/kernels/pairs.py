@@ -10,16 +10,19 @@ JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(inline="always", **JIT)
-def _to_local_row(world_to_local, i, origin, direction, r, lo, ld, y):
-    """lo[y], ld[y] = ray r moved by instance i's world_to_local (3, 4), in float64 then
-    float32. Each row sums in the one fixed order of `nprt.workers.kernels.shade._dot`,
-    (m0 x0 + m2 x2) + m1 x1, then adds the translation."""
-    for a in range(3):
-        m0, m1, m2 = world_to_local[i, a, 0], world_to_local[i, a, 1], world_to_local[i, a, 2]
-        o = (m0 * origin[r, 0] + m2 * origin[r, 2]) + m1 * origin[r, 1]
-        d = (m0 * direction[r, 0] + m2 * direction[r, 2]) + m1 * direction[r, 1]
-        lo[y, a] = np.float32(o + world_to_local[i, a, 3])
-        ld[y, a] = np.float32(d)
+def to_local_ray(world_to_local, i, origin, direction, r):
+    """Ray r moved by instance i's world_to_local (3, 4), in float64 then float32: local
+    origin and direction as six float32 scalars. Each row sums in the one fixed order of
+    `nprt.workers.kernels.shade._dot`, (m0 x0 + m2 x2) + m1 x1, then adds the translation."""
+    o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
+    d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
+    w = world_to_local
+    return (np.float32(((w[i, 0, 0] * o0 + w[i, 0, 2] * o2) + w[i, 0, 1] * o1) + w[i, 0, 3]),
+            np.float32(((w[i, 1, 0] * o0 + w[i, 1, 2] * o2) + w[i, 1, 1] * o1) + w[i, 1, 3]),
+            np.float32(((w[i, 2, 0] * o0 + w[i, 2, 2] * o2) + w[i, 2, 1] * o1) + w[i, 2, 3]),
+            np.float32((w[i, 0, 0] * d0 + w[i, 0, 2] * d2) + w[i, 0, 1] * d1),
+            np.float32((w[i, 1, 0] * d0 + w[i, 1, 2] * d2) + w[i, 1, 1] * d1),
+            np.float32((w[i, 2, 0] * d0 + w[i, 2, 2] * d2) + w[i, 2, 1] * d1))
 
 
 @njit(**JIT)
@@ -29,5 +32,6 @@ def to_local(inst, world_to_local, origin, direction):
     n = inst.shape[0]
     lo, ld = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
     for x in range(n):
-        _to_local_row(world_to_local, inst[x], origin, direction, x, lo, ld, x)
+        lo[x, 0], lo[x, 1], lo[x, 2], ld[x, 0], ld[x, 1], ld[x, 2] = to_local_ray(
+            world_to_local, inst[x], origin, direction, x)
     return lo, ld

@@ -77,9 +77,12 @@ class LocalGeometry:
         mesh_of, _, w2l = self.table.kernel_arrays()
         # Each ray walks the top level nearest box first and traces each box it reaches
         # until boxes are entered beyond its closest hit so far (exact: no hit there can
-        # win or tie). Embree gets tfar = FAR_T, not that hit's t: which of two triangles
-        # tied on a shared edge it reports depends on tfar, and an exact render must not
-        # depend on the tmax a ray arrived with (nor on which shard found the closer hit).
+        # win or tie). Embree gets tfar = that hit's t (or tmax) stretched by
+        # crossings.TFAR_MARGIN_REL, not the t itself: with tfar == t, which of two
+        # triangles tied on a shared edge it reports may change, and an exact render must
+        # not depend on the tmax a ray arrived with (nor on which shard found the closer
+        # hit). With the margin it reports what it reports with tfar = FAR_T (see
+        # crossings._closest_box, tests/workers/test_rtc.py).
         crossings.closest_walk(np.uint64(rtc.INTERSECT1), o, d, tmax, BOX_TMAX_SLACK_REL, FAR_T,
                                *self._walk(), mesh_of, self._scenes(), w2l, run_t, run_inst,
                                run_prim, run_u, run_v)
