@@ -2,7 +2,8 @@
 plain formula a kernel must match bit for bit (`surface_at` for
 `nprt.workers.kernels.shade.surface`, `hit_point_error` and `offset_ray_origin` for its
 `point_error` and `offset_origin`, `sample_lights` for `next_event`'s light sampling,
-`cosine_hemisphere` for `bsdf_continue`, `uniform` for `nprt.workers.kernels.rng.uniform`).
+`cosine_hemisphere` for `bsdf_continue`, `uniform` for `nprt.workers.kernels.rng.uniform`,
+`intersect_quads` and `generate_primary` for `nprt.workers.kernels.quads`).
 No product code imports this module."""
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 from numba import njit
 
-from nprt.scene.model import Material, Mesh
+from nprt.scene.model import Camera, Material, Mesh
 from nprt.workers.kernels.shade import GAMMA64_3, LOCAL_REL, offset_origin
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.lights import FAR_T, LightSet
@@ -239,3 +240,50 @@ def uniform(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce, dim) -> np
         x = _mix(x)
         x = _mix(x ^ (np.asarray(bounce, dtype=np.uint64) * _GOLDEN))
     return (x >> np.uint64(11)).astype(np.float64) * (1.0 / (1 << 53))
+
+
+def intersect_quads(lights: LightSet, origin: np.ndarray, direction: np.ndarray,
+                    tmax: np.ndarray):
+    """`nprt.workers.kernels.quads.intersect_quads` in numpy (its three-term dot products
+    are numpy's float64 `(n, 3) @ (3,)`, through BLAS). origin (n, 3) float64, direction
+    (n, 3) float32, tmax (n,) float32 -> t (n,) float32 (inf), light (n,) int32 (-1)."""
+    n = len(origin)
+    best_t = np.full(n, np.inf, np.float32)
+    best_l = np.full(n, -1, np.int32)
+    o, d = origin.astype(np.float64), direction.astype(np.float64)
+    for i in range(lights.n_quads):
+        nrm = lights.quad_normal[i]
+        denom = d @ nrm  # < 0 when arriving at the emitting face
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            t = ((lights.quad_corner[i] - o) @ nrm) / denom
+            t32 = t.astype(np.float32)
+            rel = o + t[:, None] * d - lights.quad_corner[i]
+            a = rel @ lights.quad_u[i] / (lights.quad_u[i] @ lights.quad_u[i])
+            b = rel @ lights.quad_v[i] / (lights.quad_v[i] @ lights.quad_v[i])
+        ok = (denom < 0) & (t > 0) & (t32 <= tmax) & (t32 < best_t) & \
+             (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
+        best_t[ok] = t32[ok]
+        best_l[ok] = i
+    return best_t, best_l
+
+
+def generate_primary(cam: Camera, width: int, height: int, seed: int, pixel: np.ndarray,
+                     sample: np.ndarray):
+    """`nprt.workers.wavefront.camera.generate_primary` in numpy: origin (n, 3) float64,
+    direction (n, 3) float32 of (pixel, sample) (n,) uint32 pairs."""
+    from nprt.workers.kernels.rng import CAMERA_BOUNCE
+    from nprt.workers.kernels.rng import uniform as rng_uniform
+    from nprt.workers.kernels.sampling import normalize
+    from nprt.workers.wavefront.camera import camera_frame
+
+    eye, fwd, right, up, half_w, half_h = camera_frame(cam, width, height)
+    jx = rng_uniform(seed, pixel, sample, CAMERA_BOUNCE, 0)
+    jy = rng_uniform(seed, pixel, sample, CAMERA_BOUNCE, 1)
+    x = (pixel % width + jx) / width * 2.0 - 1.0
+    y = 1.0 - (pixel // width + jy) / height * 2.0
+    d = fwd[None] + (x * half_w)[:, None] * right[None] + (y * half_h)[:, None] * up[None]
+    direction = normalize(d).astype(np.float32)
+    unit = direction.astype(np.float64)
+    t_near = cam.near_distance / (unit @ fwd)
+    origin = eye[None] + t_near[:, None] * unit
+    return origin, direction

@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from nprt.scene.model import Environment, Scene
+from nprt.workers.kernels import quads
 from nprt.workers.kernels.sampling import normalize
 from nprt.workers.kernels.shade import MIN_COS
 
@@ -50,24 +51,32 @@ class LightSet:
         origin (n, 3) float64, direction (n, 3) float32; tmax : (n,) float32
         returns t (n,) float32 (inf if none), light (n,) int32 (-1 if none)
         """
-        n = len(origin)
-        best_t = np.full(n, np.inf, np.float32)
-        best_l = np.full(n, -1, np.int32)
-        o, d = origin.astype(np.float64), direction.astype(np.float64)
-        for i in range(self.n_quads):
-            nrm = self.quad_normal[i]
-            denom = d @ nrm  # < 0 when arriving at the emitting face
-            with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-                t = ((self.quad_corner[i] - o) @ nrm) / denom
-                t32 = t.astype(np.float32)
-            rel = o + t[:, None] * d - self.quad_corner[i]
-            a = rel @ self.quad_u[i] / (self.quad_u[i] @ self.quad_u[i])
-            b = rel @ self.quad_v[i] / (self.quad_v[i] @ self.quad_v[i])
-            ok = (denom < 0) & (t > 0) & (t32 <= tmax) & (t32 < best_t) & \
-                 (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1)
-            best_t[ok] = t32[ok]
-            best_l[ok] = i
-        return best_t, best_l
+        if self.n_quads == 0:
+            n = len(origin)
+            return np.full(n, np.inf, np.float32), np.full(n, -1, np.int32)
+        return quads.intersect_quads(np.ascontiguousarray(origin, np.float64),
+                                     np.ascontiguousarray(direction, np.float32),
+                                     np.ascontiguousarray(tmax, np.float32),
+                                     *self._quad_arrays())
+
+    def _quad_arrays(self) -> tuple:
+        """The quads as `quads.intersect_quads` takes them (owned and writable: arrays
+        read back from Ray's object store are read-only, a separate numba type): corner,
+        normal, u, v (L, 3) float64 and the squared edge lengths (L,) float64, each
+        numpy's `u @ u` (made once, not pickled)."""
+        made = self.__dict__.get("_quads")
+        if made is None:
+            made = (*(np.array(a, np.float64, order="C") for a in (
+                        self.quad_corner, self.quad_normal, self.quad_u, self.quad_v)),
+                    np.array([u @ u for u in self.quad_u], np.float64),
+                    np.array([v @ v for v in self.quad_v], np.float64))
+            self._quads = made
+        return made
+
+    def __getstate__(self):
+        state = self.__dict__.copy()
+        state.pop("_quads", None)
+        return state
 
     def pdf_quad_hit(self, light: np.ndarray, t: np.ndarray,
                      direction: np.ndarray) -> np.ndarray:
