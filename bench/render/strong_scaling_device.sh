@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# bench_strong_scaling on a lent many-core machine (no network there), within a short lease.
+# Here, in the checkout:  bash ../shared/bundle/make.sh .bundle   (nprt's wheel + what that
+# machine lacks); there, from the checkout's root, with .bundle carried:
+#   bash bench/render/strong_scaling_device.sh .bundle "forest:2,4,8" "city:8"
+# Each SCENE:KS runs one `bench_strong_scaling --scenes SCENE --ks KS` (the 1-core reference
+# first, then exact and proxy per K) into $OUT (default bench/results/device), one JSON each;
+# a run cut short by the lease leaves strong_scaling_partial.json. nprt comes from the
+# bundle's wheel, bench/ from this checkout.
+set -u
+BUNDLE=$(cd "${1:?usage: strong_scaling_device.sh BUNDLE SCENE:K,K ...}" && pwd); shift
+OUT=${OUT:-bench/results/device}; mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 RAY_USAGE_STATS_ENABLED=0
+t0=$(date +%s)
+bash "$BUNDLE/install.sh" || exit 1
+export PYTHONPATH=/tmp/site:$PWD PATH=/tmp/site/bin:$PATH
+echo "installed in $(( $(date +%s) - t0 )) s; nproc $(nproc); $(grep -m1 'model name' /proc/cpuinfo)"
+uptime
+# Warm-up: compiles every numba kernel once (cached beside the installed modules), so no
+# timed row pays the compile.
+python3 -m bench.render.bench_strong_scaling --smoke --out "$OUT/warm" > "$OUT/warm.log" 2>&1 \
+  || { echo "warm-up failed:"; tail -30 "$OUT/warm.log"; exit 1; }
+rm -rf "$OUT/warm"
+echo "warm at $(( $(date +%s) - t0 )) s"
+for spec in "$@"; do
+  scene=${spec%%:*}; ks=${spec#*:}; tag=$(nproc)core-$scene-${ks//,/_}
+  # shellcheck disable=SC2086
+  python3 -m bench.render.bench_strong_scaling --scenes "$scene" --ks ${ks//,/ } --no-readme \
+    --out "$OUT" --tag "$tag" 2>&1 | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/scaling.log"
+  [ -f "$OUT/strong_scaling_$tag.json" ] && rm -f "$OUT/strong_scaling_partial.json"
+  echo "$tag done at $(( $(date +%s) - t0 )) s"; uptime
+done
