@@ -37,12 +37,14 @@ async def _admit(api, headers: dict, body: bytes) -> Response | None:
     except ValidationError:
         return None
     frames = None if job.frames is None else (job.frames.first, job.frames.last)
+    settings = job.render_settings()
     try:
-        rec, created = await api.submit_async(job.scene, job.render_settings(), key, frames)
+        rec, created = await api.submit_async(job.scene, settings, key, frames)
     except ServiceError:
         return None
     out = {"location": f"/v1/jobs/{rec.id}"}
     if not created:
         out["idempotent-replayed"] = "true"
-    return Response(JobPublic.from_record(rec).model_dump_json(), 202, out,
+    # A replayed key's job has these settings too (a different request is a Conflict).
+    return Response(JobPublic.from_record(rec, settings).model_dump_json(), 202, out,
                     media_type="application/json")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from functools import lru_cache
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -73,8 +74,12 @@ class JobPublic(BaseModel):
                                       "each finished one at /v1/jobs/{id}/frames/{f}.png")
 
     @classmethod
-    def from_record(cls, r: JobRecord) -> JobPublic:
-        return cls(id=r.id, scene=r.scene, state=r.state, settings=r.settings,
+    def from_record(cls, r: JobRecord, settings: RenderSettings | None = None) -> JobPublic:
+        """settings: the record's settings validated already (the admission has them)."""
+        if settings is None:
+            settings = (_stored_settings(r.settings_json) if r.settings_json is not None
+                        else r.settings)
+        return cls(id=r.id, scene=r.scene, state=r.state, settings=settings,
                    progress=r.progress, passes_done=r.passes_done, passes_total=r.passes_total,
                    created_at=_time(r.created_at), started_at=_time(r.started_at),
                    finished_at=_time(r.finished_at), error=r.error, stats=r.stats,
@@ -82,6 +87,14 @@ class JobPublic(BaseModel):
                    retries=r.retries,
                    frames=None if r.frames is None else FrameRange(first=r.frames[0],
                                                                    last=r.frames[1]))
+
+
+@lru_cache(maxsize=1024)
+def _stored_settings(text: str) -> RenderSettings:
+    """The validated settings of a stored job, once per distinct settings: validating them
+    was 40 % of a job's answer, and a list or a burst repeats the same few. Shared, so
+    never to be changed by a caller."""
+    return RenderSettings.model_validate_json(text)
 
 
 class JobsPublic(BaseModel):

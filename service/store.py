@@ -10,7 +10,7 @@ import json
 import sqlite3
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 STATES = ("queued", "preparing", "running", "succeeded", "failed", "canceled")
@@ -93,6 +93,8 @@ class JobRecord:
     retries: int = 0  # times the job went back to the queue after losing its Ray shards
     idempotency_key: str | None = None
     frames: list[int] | None = None  # [first, last] frame rendered, inclusive; None: one image
+    # The settings as stored (JSON text): a key for reusing their validated model.
+    settings_json: str | None = field(default=None, compare=False, repr=False)
 
     @property
     def progress(self) -> float:
@@ -172,12 +174,13 @@ class JobStore:
                 max_queued: int | None) -> JobRecord | QueueFull:
         now = time.time()
         depth = -1 if max_queued is None else max_queued
+        settings_json = json.dumps(settings)
         cur = self._db.execute(
             "INSERT INTO jobs (id, scene, settings, state, created_at, passes_total, "
             "idempotency_key, frames) SELECT ?, ?, ?, 'queued', ?, ?, ?, ? WHERE ? < 0 OR "
             "(SELECT n FROM counters WHERE name = 'queued') < ? "
             "ON CONFLICT (idempotency_key) DO NOTHING",
-            (job_id, scene, json.dumps(settings), now, passes_total, idempotency_key,
+            (job_id, scene, settings_json, now, passes_total, idempotency_key,
              None if frames is None else json.dumps(list(frames)), depth, depth))
         if cur.rowcount == 0:
             row = None if idempotency_key is None else self._db.execute(
@@ -190,7 +193,8 @@ class JobStore:
                          state="queued", created_at=now, started_at=None, finished_at=None,
                          passes_done=0, passes_total=passes_total, error=None, stats=None,
                          pixel_samples=None, idempotency_key=idempotency_key,
-                         frames=None if frames is None else list(frames))
+                         frames=None if frames is None else list(frames),
+                         settings_json=settings_json)
 
     def get(self, job_id: str) -> JobRecord | None:
         rows = self._read("SELECT * FROM jobs WHERE id = ?", (job_id,))
@@ -369,6 +373,7 @@ def _assignments(fields: dict) -> tuple[str, list]:
 
 def _record(row: sqlite3.Row) -> JobRecord:
     d = dict(row)
+    d["settings_json"] = d["settings"]
     for k in _JSON_COLUMNS:
         d[k] = json.loads(d[k]) if d[k] is not None else None
     d["cancel_requested"] = bool(d["cancel_requested"])

@@ -36,6 +36,7 @@ SSE_SEP = "\r\n"
 # cost more. Writes (submit, cancel) can wait for another process's write, so they go to
 # a thread; so does image encoding. No render runs in this process.
 MAX_OFFSET = (1 << 31) - 1  # SQLite takes 64-bit offsets; nobody pages past 2^31 jobs
+MAX_LIMIT = 500
 
 
 @router.post("", status_code=status.HTTP_202_ACCEPTED, dependencies=[TokenDep],
@@ -69,12 +70,17 @@ async def create_job(body: JobCreate, api: ApiDep,
 @router.get("", response_model=JobsPublic)
 async def list_jobs(api: ApiDep,
                     offset: Annotated[int, Query(ge=0, le=MAX_OFFSET)] = 0,
-                    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+                    limit: Annotated[int, Query(ge=1, le=MAX_LIMIT)] = 50,
                     state: JobState | None = None) -> Response:
     """Jobs, newest first."""
+    return Response(jobs_page(api, offset, limit, state), media_type="application/json")
+
+
+def jobs_page(api, offset: int, limit: int, state: str | None) -> str:
+    """The JSON of a JobsPublic page (also answered by nprt.service.fastreads)."""
     recs, count = api.list(offset, limit, state)
-    return _json(JobsPublic(data=[JobPublic.from_record(r) for r in recs], count=count,
-                            offset=offset, limit=limit))
+    return JobsPublic(data=[JobPublic.from_record(r) for r in recs], count=count,
+                      offset=offset, limit=limit).model_dump_json()
 
 
 @router.get("/{job_id}", response_model=JobPublic, responses=error_responses(404))

@@ -6,6 +6,7 @@ import asyncio
 import json
 import time
 
+import httpx
 import numpy as np
 import pytest
 
@@ -269,3 +270,30 @@ def test_fast_reads_answer_what_the_routes_answer(client, live):
     assert health.headers["content-type"] == "application/json"
     missing = client.get("/v1/jobs/" + "0" * 32)  # falls through to the route's 404
     assert missing.status_code == 404 and "no job with id" in problem_detail(missing)
+
+
+def test_fast_list_pages_like_the_route_and_leaves_refusals_to_it(tmp_path):
+    """GET /v1/jobs with plain offset / limit / state is answered before routing
+    (fastreads); the page is the route's, and a query the route refuses still gets its 422."""
+    from nprt.service.routers.jobs import list_jobs
+    from tests.service.helpers import LiveServer, settings_for, stored_queued_job
+
+    with LiveServer(settings_for(tmp_path), scheduler=False) as server, \
+            httpx.Client(base_url=server.url) as c:
+        api = server.app.state.api
+        ids = [stored_queued_job(server) for _ in range(5)]
+        assert api.store.transition(ids[0], "running", ("queued",))
+        for query in ({}, {"limit": 2}, {"limit": 2, "offset": 1}, {"offset": 4},
+                      {"state": "queued", "limit": 3}, {"state": "running"},
+                      {"limit": "007"}):
+            fast = c.get("/v1/jobs", params=query)
+            routed = asyncio.run(list_jobs(api, **{k: int(v) if k != "state" else v
+                                                   for k, v in query.items()}))
+            assert fast.status_code == 200 and fast.content == routed.body, query
+            assert fast.headers["content-type"] == routed.media_type
+        assert [j["id"] for j in c.get("/v1/jobs", params={"state": "running"}).json()
+                ["data"]] == [ids[0]]
+        for bad in ("limit=0", "limit=501", "offset=-1", "limit=x", "state=done",
+                    f"offset={2**31}"):
+            r = c.get(f"/v1/jobs?{bad}")
+            assert r.status_code == 422 and problem_detail(r), bad
