@@ -1,7 +1,7 @@
-"""`nprt serve` (API workers for REST + gRPC, and a scheduler child process that renders),
-`nprt scheduler` (the scheduler alone), and `nprt submit` (an httpx client that follows a
-job's SSE stream with a progress bar and downloads the image). Which process owns what:
-nprt.service.processes."""
+"""`nprt serve` (API workers for REST, a gRPC child process, and a scheduler child process
+that renders), `nprt grpc` and `nprt scheduler` (each alone), and `nprt submit` (an httpx
+client that follows a job's SSE stream with a progress bar and downloads the image). Which
+process owns what: nprt.service.processes."""
 
 from __future__ import annotations
 
@@ -40,6 +40,12 @@ def add_serve_parsers(subparsers) -> None:
     p.add_argument("--api-only", action="store_true",
                    help="no scheduler: only store and serve jobs (run `nprt scheduler` once "
                         "per data directory elsewhere)")
+    g = _service_parser(subparsers, "grpc", cmd_grpc, "run the gRPC server alone",
+                        "An API worker for gRPC only (`nprt serve` starts one beside its "
+                        "HTTP workers): stores, reads and watches the jobs of a data "
+                        "directory; renders nothing.")
+    g.add_argument("--host", default="127.0.0.1", help="bind address")
+    g.add_argument("--grpc-port", type=int, default=50051, help="gRPC port")
     _service_parser(subparsers, "scheduler", cmd_scheduler,
                     "run the scheduler: the process that renders",
                     "Owns Ray, the queue, the job slots and the checkpoints of one data "
@@ -120,6 +126,31 @@ def cmd_scheduler(args: argparse.Namespace) -> int:
     return run_scheduler(_settings(args))
 
 
+def cmd_grpc(args: argparse.Namespace) -> int:
+    from nprt.service.grpc_child import run_grpc
+
+    configure_logging(getattr(args, "log_level", None) or "INFO",
+                      getattr(args, "log_json", False))
+    return run_grpc(_settings(args), args.host, args.grpc_port)
+
+
+def _start_grpc(args: argparse.Namespace, settings, port: int):
+    """The gRPC child process, once it listens (its own process: see grpc_child)."""
+    from nprt.service.grpc_child import free_port, wait_listening
+    from nprt.service.processes import ChildProcess, spawn_child
+
+    port = port or free_port(args.host)
+    command = ["grpc", "--host", args.host, "--grpc-port", str(port), *_log_args(args)]
+    child = ChildProcess("gRPC server", lambda: spawn_child(settings, command))
+    try:
+        wait_listening(child.proc, args.host, port)
+    except BaseException:
+        child.stop()
+        raise
+    log.info("gRPC on %s:%d (pid %d)", args.host, port, child.proc.pid)
+    return child
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -132,29 +163,32 @@ def cmd_serve(args: argparse.Namespace) -> int:
     settings.data_dir.mkdir(parents=True, exist_ok=True)
     grpc_port = None if args.grpc_port < 0 else args.grpc_port
     scheduler = None if args.api_only else SchedulerChild(settings, _log_args(args))
+    grpc = None
     # uvicorn re-raises SIGTERM/SIGINT once it has shut down: exit through `finally` then,
     # so the scheduler stops gracefully (checkpointing) instead of dying with this process.
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda signum, _frame: sys.exit(128 + signum))
     # uvloop and httptools (dependencies) for the HTTP loop: accepting, reading and writing
-    # in C. gRPC runs on a standard asyncio loop of its own (nprt.service.grpc_server).
+    # in C. gRPC runs in a process of its own (nprt.service.grpc_child).
     # log_config=None: uvicorn's records go through the root handler (text or JSON) too.
     options = {"host": args.host, "port": args.port, "log_level": level.lower(),
                "log_config": None, "timeout_graceful_shutdown": 3, "loop": "uvloop",
                "http": "httptools"}
     try:
+        if grpc_port is not None:
+            grpc = _start_grpc(args, settings, grpc_port)
         if args.workers > 1:  # each worker builds its app from NPRT_* (app_from_env)
             for name, value in settings.model_dump(exclude_none=True).items():
                 os.environ[f"NPRT_{name.upper()}"] = str(value)
-            os.environ["NPRT_GRPC_HOST"] = args.host
-            if grpc_port is not None:
-                os.environ["NPRT_GRPC_PORT"] = str(grpc_port)
+            os.environ.pop("NPRT_GRPC_PORT", None)  # gRPC is the child's
             uvicorn.run("nprt.service.app:app_from_env", factory=True, workers=args.workers,
                         **options)
         else:
-            app = create_app(settings, grpc_port=grpc_port, grpc_host=args.host)
+            app = create_app(settings)
             uvicorn.Server(uvicorn.Config(app, **options)).run()
     finally:
+        if grpc is not None:
+            grpc.stop()
         if scheduler is not None:
             scheduler.stop()
     return 0

@@ -1,18 +1,24 @@
 """Which process owns what, and how `nprt serve` starts them.
 
 - **API workers** (`nprt serve --api-only`, or each of `nprt serve --workers N`): the
-  FastAPI app and the gRPC servicer. They validate, store and read jobs in the SQLite
-  store, read images from the job folders, and serve watchers from the store's events
-  table (nprt.service.feed). They never render, start Ray or hold a film; several can run
-  on one data directory (the gRPC port is shared with SO_REUSEPORT). Inside one: HTTP on
-  uvicorn's uvloop loop (the polled reads and admissions answered before FastAPI routing:
-  fastreads, admission), gRPC on a thread with its own asyncio loop (grpc_server), one
-  thread polling the store's events for every watcher (feed), and one thread for the
-  store's writes, which batches the admissions of a burst into one commit (storewriter).
+  FastAPI app. They validate, store and read jobs in the SQLite store, read images from
+  the job folders, and serve SSE watchers from the store's events table
+  (nprt.service.feed). They never render, start Ray or hold a film; several can run on one
+  data directory. Inside one: HTTP on uvicorn's uvloop loop (the polled reads and
+  admissions answered before FastAPI routing: fastreads, admission), one thread polling
+  the store's events for every watcher (feed), and one thread for the store's writes,
+  which batches the admissions of a burst into one commit (storewriter).
+- **The gRPC server** (`nprt grpc`, or the child process `nprt serve` starts before its
+  HTTP workers answer): an API worker for gRPC alone, with its own feed and writer
+  threads, so that neither its tile fan-out and health checks nor a burst of HTTP requests
+  wait for the other's interpreter lock (grpc_child). `create_app(grpc_port=...)` still
+  runs it on a thread of an HTTP worker instead (tests, embedding).
 - **The scheduler** (`nprt scheduler`, or the child process `nprt serve` starts): Ray and
   the warm shard pools, the queue, the job slots, the state machine, the checkpoints, and
   every render (the single-process reference included). One per data directory (a lock
-  file), restartable at any time: unfinished jobs resume from their checkpoints.
+  file), restartable at any time: unfinished jobs resume from their checkpoints. A Ray it
+  starts belongs to one thread (raystart), and stopping the scheduler stops that Ray, its
+  agents included, and joins every thread it started.
 - **The store** (`<data_dir>/jobs.sqlite3`, WAL): the shared truth. Jobs, their states
   (compare-and-set), idempotency keys (a unique index: exactly-once admission across
   workers), and the events (state snapshots and tiles) that carry notifications.
@@ -100,30 +106,36 @@ def _die_with_parent() -> None:
         pass
 
 
-def spawn_scheduler(settings: ServiceSettings, log_args: list[str]) -> subprocess.Popen:
-    """`nprt scheduler` as a child process on the same settings (passed as NPRT_*)."""
+def spawn_child(settings: ServiceSettings, command: list[str]) -> subprocess.Popen:
+    """`nprt <command>` as a child process on the same settings (passed as NPRT_*)."""
     env = {**os.environ}
     for name, value in settings.model_dump(exclude_none=True).items():
         env[f"NPRT_{name.upper()}"] = str(value)
-    cmd = [sys.executable, "-m", "nprt.service", "scheduler", *log_args]
+    cmd = [sys.executable, "-m", "nprt.service", *command]
     return subprocess.Popen(cmd, env=env, preexec_fn=_die_with_parent)
 
 
-class SchedulerChild:
-    """The scheduler child of `nprt serve`, started again whenever it exits (a crash, an
-    OOM kill): its jobs resume from their checkpoints, and the API never stops answering.
-    Restarts back off from RESPAWN_S up to RESPAWN_MAX_S while it keeps failing fast."""
+def spawn_scheduler(settings: ServiceSettings, log_args: list[str]) -> subprocess.Popen:
+    """`nprt scheduler` as a child process on the same settings."""
+    return spawn_child(settings, ["scheduler", *log_args])
+
+
+class ChildProcess:
+    """A child of `nprt serve`, started again whenever it exits (a crash, an OOM kill):
+    the scheduler's jobs resume from their checkpoints, gRPC clients reconnect, and REST
+    never stops answering. Restarts back off from RESPAWN_S up to RESPAWN_MAX_S while it
+    keeps failing fast."""
 
     RESPAWN_S = 1.0
     RESPAWN_MAX_S = 60.0
     HEALTHY_S = 30.0  # a run this long resets the back-off
 
-    def __init__(self, settings: ServiceSettings, log_args: list[str]):
-        self._spawn = lambda: spawn_scheduler(settings, log_args)
+    def __init__(self, name: str, spawn):
+        self.name, self._spawn = name, spawn
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self.proc = self._spawn()
-        self._thread = threading.Thread(target=self._watch, name="nprt-scheduler-watch",
+        self._thread = threading.Thread(target=self._watch, name=f"nprt-{name}-watch",
                                         daemon=True)
         self._thread.start()
 
@@ -135,8 +147,8 @@ class SchedulerChild:
             if self._stop.is_set():
                 return
             delay = self.RESPAWN_S if time.monotonic() - started > self.HEALTHY_S else delay
-            log.error("the scheduler (pid %d) exited with %s; starting it again in %.0f s",
-                      self.proc.pid, code, delay)
+            log.error("the %s (pid %d) exited with %s; starting it again in %.0f s",
+                      self.name, self.proc.pid, code, delay)
             if self._stop.wait(delay):
                 return
             with self._lock:
@@ -147,15 +159,24 @@ class SchedulerChild:
     def stop(self, timeout_s: float = 30.0) -> None:
         with self._lock:
             self._stop.set()
-        stop_child(self.proc, timeout_s)
+        stop_child(self.proc, timeout_s, self.name)
+        self._thread.join()
 
 
-def stop_child(proc: subprocess.Popen, timeout_s: float = 30.0) -> None:
+class SchedulerChild(ChildProcess):
+    """The scheduler child of `nprt serve`."""
+
+    def __init__(self, settings: ServiceSettings, log_args: list[str]):
+        super().__init__("scheduler", lambda: spawn_scheduler(settings, log_args))
+
+
+def stop_child(proc: subprocess.Popen, timeout_s: float = 30.0, name: str = "scheduler"
+               ) -> None:
     if proc.poll() is None:
         proc.terminate()
         try:
             proc.wait(timeout_s)
         except subprocess.TimeoutExpired:
-            log.warning("scheduler %d did not stop in %.0f s; killing it", proc.pid, timeout_s)
+            log.warning("%s %d did not stop in %.0f s; killing it", name, proc.pid, timeout_s)
             proc.kill()
             proc.wait()
