@@ -27,25 +27,27 @@ _SETTING_FLAGS = (  # flag, RenderSettings field, type
 
 
 def add_serve_parsers(subparsers) -> None:
-    """Register `serve`, `scheduler` and `submit` on an argparse subparsers object."""
-    p = _service_parser(subparsers, "serve", cmd_serve, "run the REST + gRPC render service",
-                        "REST (and /docs, dashboard at /) plus gRPC in API worker processes, "
-                        "and a scheduler process that renders; other settings come from "
-                        "NPRT_* variables.")
-    p.add_argument("--host", default="127.0.0.1", help="bind address (REST and gRPC)")
+    """Register `serve`, `grpc`, `scheduler` and `submit` on an argparse subparsers
+    object."""
+    services = (
+        ("serve", cmd_serve, "run the REST + gRPC render service",
+         "REST (and /docs, dashboard at /) in API worker processes, gRPC in a process of its "
+         "own, and a scheduler process that renders; other settings come from NPRT_* "
+         "variables.", "; -1 disables gRPC"),
+        ("grpc", cmd_grpc, "run the gRPC server alone",
+         "An API worker for gRPC only (`nprt serve` starts one beside its HTTP workers): "
+         "stores, reads and watches the jobs of a data directory; renders nothing.", ""))
+    for name, func, help_, description, disable in services:
+        p = _service_parser(subparsers, name, func, help_, description)
+        p.add_argument("--host", default="127.0.0.1", help="bind address")
+        p.add_argument("--grpc-port", type=int, default=50051, help="gRPC port" + disable)
+    p = subparsers.choices["serve"]
     p.add_argument("--port", type=int, default=8000, help="REST port")
-    p.add_argument("--grpc-port", type=int, default=50051, help="gRPC port; -1 disables gRPC")
     p.add_argument("--workers", type=int, default=1,
-                   help="API worker processes sharing the ports and the store")
+                   help="HTTP API worker processes sharing the port and the store")
     p.add_argument("--api-only", action="store_true",
                    help="no scheduler: only store and serve jobs (run `nprt scheduler` once "
                         "per data directory elsewhere)")
-    g = _service_parser(subparsers, "grpc", cmd_grpc, "run the gRPC server alone",
-                        "An API worker for gRPC only (`nprt serve` starts one beside its "
-                        "HTTP workers): stores, reads and watches the jobs of a data "
-                        "directory; renders nothing.")
-    g.add_argument("--host", default="127.0.0.1", help="bind address")
-    g.add_argument("--grpc-port", type=int, default=50051, help="gRPC port")
     _service_parser(subparsers, "scheduler", cmd_scheduler,
                     "run the scheduler: the process that renders",
                     "Owns Ray, the queue, the job slots and the checkpoints of one data "
