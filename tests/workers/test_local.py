@@ -66,14 +66,26 @@ def _rays_through_overlapping_trees(n: int, seed: int):
     return geo, o, d, tmax
 
 
-def test_closest_hit_equals_tracing_every_crossing_with_embreex():
+@pytest.fixture(params=["flat", "bvh"])
+def walk(request, monkeypatch):
+    """The walking kernels' top level: every box in one flat loop, or the BVH (a scene
+    with more boxes than FLAT_WALK_MAX)."""
+    from nprt.workers.traversal import toplevel
+
+    monkeypatch.setattr(toplevel, "FLAT_WALK_MAX", 10**9 if request.param == "flat" else 0)
+    return request.param
+
+
+def test_closest_hit_equals_tracing_every_crossing_with_embreex(walk):
     # The oracle traces every box crossing (culled only by tmax) through embreex, one call
     # per crossing's mesh with tfar = inf, and picks each ray's (t, instance) first. The
-    # renderer walks the top-level BVH nearest box first, tracing through Embree's C API,
-    # and stops once boxes are entered beyond its closest hit: the same answer bit for bit.
+    # renderer gathers the boxes a ray crosses (flat loop or top-level BVH), traces them
+    # through Embree's C API nearest first, with the closest hit so far (stretched) as
+    # tfar, and stops once boxes are entered beyond it: the same answer bit for bit.
     from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL
 
     geo, o, d, tmax = _rays_through_overlapping_trees(20000, 3)
+    assert geo._walk()[3] == (walk == "bvh")
     t, inst, prim, u, v = geo.intersect_closest(o, d, tmax)
     ray, cross, _, _ = geo.table.box_entries(o, d, tmax.astype(np.float64)
                                              * (1.0 + BOX_TMAX_SLACK_REL), geo.instances)
@@ -101,8 +113,9 @@ def test_closest_hit_equals_tracing_every_crossing_with_embreex():
     assert np.array_equal(v[got], hv[first][np.argsort(r[first])])
 
 
-def test_occlusion_equals_tracing_every_crossing_with_embreex():
+def test_occlusion_equals_tracing_every_crossing_with_embreex(walk):
     geo, o, d, tmax = _rays_through_overlapping_trees(20000, 4)
+    assert geo._walk()[3] == (walk == "bvh")
     ray, cross, _, _ = geo.table.box_entries(o, d, tmax, geo.instances)
     lo, ld = geo.table.to_local(cross, o[ray], d[ray])
     blocked = np.zeros(len(ray), bool)

@@ -33,17 +33,24 @@ def _slab(boxes, j, o0, o1, o2, i0, i1, i2, tmax):
     fmin/fmax of (plane - o) * inv, then fmax/fmin over axes 0, 1, 2 in order.
     Returns (crossed, t_enter, t_exit). Boxes are indexed, not sliced: a view per box
     costs two atomic reference counts, more than the test itself."""
-    t0 = (boxes[j, 0, 0] - o0) * i0
-    t1 = (boxes[j, 1, 0] - o0) * i0
+    return _slab_planes(boxes[j, 0, 0], boxes[j, 0, 1], boxes[j, 0, 2], boxes[j, 1, 0],
+                        boxes[j, 1, 1], boxes[j, 1, 2], o0, o1, o2, i0, i1, i2, tmax)
+
+
+@njit(inline="always", **JIT)
+def _slab_planes(lo0, lo1, lo2, hi0, hi1, hi2, o0, o1, o2, i0, i1, i2, tmax):
+    """`_slab` of the box lo, hi; branch-free, so a loop over boxes vectorises."""
+    t0 = (lo0 - o0) * i0
+    t1 = (hi0 - o0) * i0
     t_enter, t_exit = _fmin(t0, t1), _fmax(t0, t1)
-    t0 = (boxes[j, 0, 1] - o1) * i1
-    t1 = (boxes[j, 1, 1] - o1) * i1
+    t0 = (lo1 - o1) * i1
+    t1 = (hi1 - o1) * i1
     t_enter, t_exit = _fmax(t_enter, _fmin(t0, t1)), _fmin(t_exit, _fmax(t0, t1))
-    t0 = (boxes[j, 0, 2] - o2) * i2
-    t1 = (boxes[j, 1, 2] - o2) * i2
+    t0 = (lo2 - o2) * i2
+    t1 = (hi2 - o2) * i2
     t_enter, t_exit = _fmax(t_enter, _fmin(t0, t1)), _fmin(t_exit, _fmax(t0, t1))
     # np.maximum(t_enter, 0) is NaN for a NaN t_enter, and then the ray is rejected.
-    ok = t_enter == t_enter and t_exit >= max(t_enter, 0.0) and t_enter < tmax
+    ok = (t_enter == t_enter) & (t_exit >= max(t_enter, 0.0)) & (t_enter < tmax)
     return ok, t_enter, t_exit
 
 

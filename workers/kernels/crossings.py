@@ -12,7 +12,7 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from nprt.workers.kernels.bvh import _next_leaf, _slab
+from nprt.workers.kernels.bvh import _next_leaf, _slab, _slab_planes
 from nprt.workers.kernels.pairs import to_local_ray
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
@@ -74,22 +74,24 @@ def occluded1_ray(fn, scene, ptr, rh, ri, o0, o1, o2, d0, d1, d2, tfar):
 
 @njit(**JIT)
 def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, col_of, use_bvh,
-                 node_box, node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
-                 world_to_local, best_t, best_inst, best_prim, best_u, best_v):
+                 flat, node_box, node_child, node_start, node_count, prim, mesh_of,
+                 scene_of_mesh, world_to_local, best_t, best_inst, best_prim, best_u, best_v):
     """Each ray's closest hit among the instance boxes `members` (k,) int64 (indices into
     boxes (m, 2, 3) float64; col_of (m,) int32 >= 0 for members), in one loop a ray: the
     boxes it crosses before tmax stretched by box_slack (through the top-level BVH when
-    use_bvh) are gathered nearest entry first, then traced through Embree (tfar = far)
-    until the next is entered beyond the closest hit so far (stretched alike): no hit
-    there can win or tie. Embree's tfar is far, or the closest hit so far stretched by
-    TFAR_MARGIN_REL (the same hits: see `_closest_box`). Hits fold into best_* (n,)
-    (best_inst -1: none yet): a hit at
-    t <= tmax wins on a smaller t, on equal t the lower instance, so the answer depends
-    neither on the order boxes are traced in nor on how instances are split over shards.
-    origin, direction (n, 3) float64, tmax (n,) float32."""
+    use_bvh, else all members' slabs in one flat loop; flat (6, k) float64 their boxes
+    as rows lo x, y, z, hi x, y, z) are gathered nearest entry first, then traced
+    through Embree until the next is entered beyond the closest hit so far (stretched
+    alike): no hit there can win or tie. Embree's tfar is far, or the closest hit so far
+    stretched by TFAR_MARGIN_REL (the same hits: see `_closest_box`). Hits fold into
+    best_* (n,) (best_inst -1: none yet): a hit at t <= tmax wins on a smaller t, on
+    equal t the lower instance, so the answer depends neither on the order boxes are
+    traced in nor on how instances are split over shards. origin, direction (n, 3)
+    float64, tmax (n,) float32."""
     rh, ri, ptr = _scratch()
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     q_t, q_id = np.empty(boxes.shape[0] + 1), np.empty(boxes.shape[0] + 1, np.int64)
+    f_te, f_ok = np.empty(flat.shape[1]), np.empty(flat.shape[1], np.bool_)
     bvh = (node_box, node_child, node_start, node_count, prim)
     for r in range(origin.shape[0]):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
@@ -110,10 +112,8 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
                             h = _enqueue(q_t, q_id, h, te, b)
                 top, lo, hi = _next_leaf(bvh, stack, top, line, box_tmax)
         else:  # few boxes, or a ray the node test does not cover: every member's slab
-            for j in range(members.shape[0]):
-                ok, te, _ = _slab(boxes, members[j], o0, o1, o2, i0, i1, i2, box_tmax)
-                if ok:
-                    h = _enqueue(q_t, q_id, h, te, members[j])
+            h = _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, box_tmax, f_te, f_ok, q_t,
+                            q_id)
         cut = np.float64(tmax[r])
         while h > 0:
             h -= 1
@@ -134,6 +134,21 @@ def _enqueue(q_t, q_id, h, t, x):
         y -= 1
     q_t[y], q_id[y] = t, x
     return h + 1
+
+
+@njit(inline="always", **JIT)
+def _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, tmax, te, ok, q_t, q_id):
+    """Queue (`_enqueue`) every member box the ray crosses before tmax: the slabs of all
+    of them in one branch-free loop (it vectorises), into the scratch te, ok (k,).
+    Returns the queue's length."""
+    for j in range(flat.shape[1]):
+        ok[j], te[j], _ = _slab_planes(flat[0, j], flat[1, j], flat[2, j], flat[3, j],
+                                       flat[4, j], flat[5, j], o0, o1, o2, i0, i1, i2, tmax)
+    h = 0
+    for j in range(flat.shape[1]):
+        if ok[j]:
+            h = _enqueue(q_t, q_id, h, te[j], members[j])
+    return h
 
 
 @njit(inline="always", **JIT)
@@ -166,13 +181,16 @@ def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, world_to_loca
 
 
 @njit(**JIT)
-def occluded_walk(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, node_box,
-                  node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
+def occluded_walk(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, flat,
+                  node_box, node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
                   world_to_local, occluded):
     """occluded[r] = some box of `members` crossed before tmax[r] holds a triangle on
-    (0, tmax[r]); a ray stops at its first occluder. Arrays as `closest_walk`."""
+    (0, tmax[r]); a ray stops at its first occluder, the boxes tried nearest first.
+    Arrays as `closest_walk`."""
     rh, ri, ptr = _scratch()
     stack, stack_t = np.empty(node_child.shape[0] + 1, np.int32), np.empty(node_child.shape[0] + 1)
+    q_t, q_id = np.empty(boxes.shape[0] + 1), np.empty(boxes.shape[0] + 1, np.int64)
+    f_te, f_ok = np.empty(flat.shape[1]), np.empty(flat.shape[1], np.bool_)
     for r in range(origin.shape[0]):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
         d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
@@ -199,9 +217,11 @@ def occluded_walk(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, 
                         occluded[r] = True
                         break
             continue
-        for j in range(members.shape[0]):
-            if _occluded_box(fn, members[j], r, boxes, o0, o1, o2, i0, i1, i2, tmax, mesh_of,
-                             scene_of_mesh, world_to_local, origin, direction, ptr, rh, ri):
+        h = _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, tm, f_te, f_ok, q_t, q_id)
+        while h > 0:
+            h -= 1
+            if _occluded_in(fn, q_id[h], r, tmax, mesh_of, scene_of_mesh, world_to_local,
+                            origin, direction, ptr, rh, ri):
                 occluded[r] = True
                 break
 
@@ -212,8 +232,14 @@ def _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1, i2, tmax, mesh_of, scene_
     """Whether ray r crosses instance b's box before tmax[r] and a triangle there blocks
     (0, tmax[r])."""
     ok, _, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, np.float64(tmax[r]))
-    if not ok:
-        return False
+    return ok and _occluded_in(fn, b, r, tmax, mesh_of, scene_of_mesh, world_to_local, origin,
+                               direction, ptr, rh, ri)
+
+
+@njit(inline="always", **JIT)
+def _occluded_in(fn, b, r, tmax, mesh_of, scene_of_mesh, world_to_local, origin, direction,
+                 ptr, rh, ri):
+    """Whether a triangle of instance b blocks (0, tmax[r]) of ray r."""
     l0, l1, l2, e0, e1, e2 = to_local_ray(world_to_local, b, origin, direction, r)
     return occluded1_ray(fn, scene_of_mesh[mesh_of[b]], ptr, rh, ri, l0, l1, l2, e0, e1, e2,
                          tmax[r])

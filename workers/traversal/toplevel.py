@@ -17,6 +17,12 @@ BOX_PAD_ABS = 1e-9
 BOX_PAD_COORD_REL = 1e-7
 # Up to this many requested instances, a plain loop over their boxes beats the BVH.
 BVH_MIN_INSTANCES = 8
+# The walking kernels test up to this many boxes a ray in one flat loop (vectorised)
+# instead of walking the BVH. Walk kernels on a render's rays, closest / occlusion s, flat
+# against BVH (same process): foliage (24 boxes) 0.285 / 0.222 against 0.346 / 0.269,
+# forest small (39) 0.277 / 0.065 against 0.306 / 0.078, city default (65) 0.418 / 0.107
+# against 0.510 / 0.115, forest default (85) 0.602 / 0.538 against 0.575 / 0.474.
+FLAT_WALK_MAX = 72
 
 
 class InstanceTable:
@@ -124,14 +130,18 @@ class InstanceTable:
     def walk_inputs(self, instances: np.ndarray) -> tuple:
         """What the walking kernels (`nprt.workers.kernels.crossings.closest_walk`) take
         for a set of instances: boxes (m, 2, 3) float64 (world_bounds), members (k,) int64,
-        col_of (m,) int32, use_bvh, then the BVH's node_box, node_child, node_start,
-        node_count, prim (placeholders without one); owned and writable."""
+        col_of (m,) int32, use_bvh, flat (6, k) float64 (the members' boxes as rows lo x,
+        y, z, hi x, y, z, for the flat loop), then the BVH's node_box, node_child,
+        node_start, node_count, prim (placeholders without one); owned and writable."""
         members = np.array(instances, np.int64)
         col_of = self._columns(members)
-        if col_of is None:
+        bounds = np.asarray(self.world_bounds, np.float64)[members]  # (k, 2, 3)
+        flat = np.ascontiguousarray(bounds.reshape(len(members), 6).T)
+        if col_of is None or len(members) <= FLAT_WALK_MAX:
             boxes = np.array(self.world_bounds, np.float64, order="C")
-            return (boxes, members, np.full(len(self), -1, np.int32), False, *_no_bvh())
-        return (self._bvh[0], members, col_of, True, *self._bvh[1:])
+            return (boxes, members, np.full(len(self), -1, np.int32), False, flat,
+                    *_no_bvh())
+        return (self._bvh[0], members, col_of, True, flat, *self._bvh[1:])
 
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
         """Slab test of rays against a set of instance boxes, in float64.
