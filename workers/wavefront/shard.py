@@ -339,6 +339,9 @@ class Shard:
         out_rays / out_shadow, (k,) lists of batches per target shard. With one shard
         this is the reference."""
         stats = step.stats
+        # Every instance is here and the policy forwards only to other shards' instances
+        # (the reference): every ray ends here, so routing and visited bits are skipped.
+        alone = not len(self.remote) and type(self.policy) is ExactPolicy
         while len(rays) or len(shadow):
             if len(rays):
                 settled = (rays.flags & FLAG_SHADE) != 0
@@ -346,18 +349,14 @@ class Shard:
                 if settled.any():
                     arrived, rays = rays.take(settled), rays.take(~settled)
                 stats.bind(step.tok(rays.pixel)).count_rays(rays.kind)
-                rays = rays.replace(visited=rays.visited | self.bit)
+                if not alone:
+                    rays = rays.replace(visited=rays.visited | self.bit)
                 with stats.phase("local_intersect"):
                     rays = resolve_closest(rays, self.local, self.world.lights)
-                with stats.phase("top_level"):
-                    rays, target = self.policy.route_rays(rays, stats)
-                # Rays going to their hit's owner only to be shaded are not re-intersected:
-                # a second Embree call with tmax == t may pick a different triangle on an edge.
-                final = (target != DONE) & (target == hit_owner(self.world, rays.hit_inst))
-                if final.any():
-                    rays = rays.replace(flags=rays.flags | (final * FLAG_SHADE).astype(np.uint8))
-                self._send(rays, target, out_rays)
-                done = RayBatch.concat([arrived, rays.take(target == DONE)])
+                if alone:
+                    done = RayBatch.concat([arrived, rays])
+                else:
+                    done = RayBatch.concat([arrived, self._route(rays, stats, out_rays)])
                 if arrived is not None:
                     done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
                 stats.bind(step.tok(done.pixel)).count_hops(done.hops)
@@ -371,12 +370,12 @@ class Shard:
                 with stats.phase("local_intersect"):
                     free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
                                                           shadow.tmax)
-                stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
-                if not len(self.remote):  # nothing elsewhere: the free ones all end here
-                    stats.count_hops(shadow.hops, free)
+                if not len(self.remote):  # nothing elsewhere: every shadow ray ends here
+                    stats.count_hops(shadow.hops)
                     step.splat(shadow.pixel[free], shadow.contribution[free])
                     shadow = ShadowRayBatch.empty()
                     continue
+                stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
                 shadow = shadow.take(free).replace(visited=shadow.visited[free] | self.bit)
                 with stats.phase("top_level"):
                     shadow, target = self.policy.route_shadow(
@@ -386,6 +385,19 @@ class Shard:
                 stats.bind(step.tok(done.pixel)).count_hops(done.hops)
                 step.splat(done.pixel, done.contribution.astype(np.float64))
                 shadow = ShadowRayBatch.empty()
+
+    def _route(self, rays: RayBatch, stats, out_rays: list) -> RayBatch:
+        """Route rays with their closest hit here so far: those leaving go into out_rays;
+        returns those that end here."""
+        with stats.phase("top_level"):
+            rays, target = self.policy.route_rays(rays, stats)
+        # Rays going to their hit's owner only to be shaded are not re-intersected:
+        # a second Embree call with tmax == t may pick a different triangle on an edge.
+        final = (target != DONE) & (target == hit_owner(self.world, rays.hit_inst))
+        if final.any():
+            rays = rays.replace(flags=rays.flags | (final * FLAG_SHADE).astype(np.uint8))
+        self._send(rays, target, out_rays)
+        return rays.take(target == DONE)
 
     def _pack(self, step: _Step, out_rays: list, out_shadow: list, out_camera: list,
               credits: dict[int, Fraction]) -> tuple[list, dict]:
