@@ -42,6 +42,8 @@ RAYHIT_FLOATS = 32
 # (8192 float32 ulps); see `_closest_box` for why the hit it reports is then the one it
 # reports with no limit.
 TFAR_MARGIN_REL = 2.0**-10
+# Below this (0, subnormal, negative), a stretch is no margin: Embree gets far.
+TFAR_MIN = 1e-30
 
 
 @njit(inline="always", **JIT)
@@ -166,7 +168,7 @@ def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, world_to_loca
     or before cut, the answer, is the same triangle, u and v."""
     o0, o1, o2, d0, d1, d2 = to_local_ray(world_to_local, b, origin, direction, r)
     tfar = far
-    if cut * (1.0 + TFAR_MARGIN_REL) < far:
+    if TFAR_MIN < cut and cut * (1.0 + TFAR_MARGIN_REL) < far:
         tfar = np.float32(cut * (1.0 + TFAR_MARGIN_REL))
     t, p, u, v = closest1(fn, scene_of_mesh[mesh_of[b]], ptr, rh, ri, o0, o1, o2, d0, d1, d2,
                           tfar)
