@@ -7,9 +7,11 @@ machine, and aiohttp spent more CPU per request than the service did.
 
     python -m bench.service.bench_service [--label after] [--jobs 500] [--smoke]
     python -m bench.service.bench_service --label before --service-root /tmp/before
+    python -m bench.service.bench_service --repeat 3 --versus before=/tmp/before@abc1234
 
 --service-root runs the service of another checkout (the commit before a change) with this
-client, so "before" and "after" are measured the same way. --profile DIR writes py-spy
+client, so "before" and "after" are measured the same way; --versus measures another
+checkout in the same run, round for round in turn with this one. --profile DIR writes py-spy
 stacks of every API process and of the client over the burst.
 """
 
@@ -412,6 +414,9 @@ def main(argv: list[str] | None = None) -> int:
                     "record; default: git rev-parse there)")
     ap.add_argument("--repeat", type=int, default=1,
                     help="rounds, each on a fresh service; latencies pooled")
+    ap.add_argument("--versus", action="append", default=[], metavar="LABEL=ROOT[@COMMIT]",
+                    help="also measure the service of checkout ROOT under LABEL, its rounds "
+                         "alternating with this one's (before/after under the same load)")
     ap.add_argument("--jobs", type=int, default=500, help="concurrent submissions")
     ap.add_argument("--sse-watchers", type=int, default=100)
     ap.add_argument("--grpc-streams", type=int, default=40)
@@ -438,35 +443,59 @@ def main(argv: list[str] | None = None) -> int:
     long = {**job, "width": 64, "height": 64, "spp": 16384, "tile_size": 64, "spp_per_pass": 2}
     watched = [long] if args.smoke else [long, {**long, "shards": args.long_shards}]
 
+    # (label, service root, commit): this run's, then every --versus one; their rounds
+    # alternate, so load from other work drifts over all of them alike.
+    services = [(args.label, args.service_root, args.service_commit)]
+    for spec in args.versus:
+        label, _, rest = spec.partition("=")
+        root, _, commit = rest.partition("@")
+        if label not in LABELS or not root:
+            ap.error(f"--versus {spec}: want LABEL=ROOT[@COMMIT], LABEL one of {LABELS}")
+        services.append((label, Path(root), commit or None))
     load_before = os.getloadavg()
-    rounds = []
+    rounds: dict[str, list] = {label: [] for label, _, _ in services}
     for _ in range(args.repeat):
-        load0 = os.getloadavg()[0]
-        with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
-            proc, host, port, target = start_service(args.service_root, Path(tmp) / "data",
-                                                     args.max_jobs, args.api_workers)
-            try:
-                one = asyncio.run(run(host, port, target, proc.pid, args, job, watched))
-            finally:
-                os.killpg(proc.pid, 15)
-                proc.wait(60)
-        one["load_average"] = [load0, os.getloadavg()[0]]
-        rounds.append(one)
-    result = pool(rounds)
-    shown = {k: v for k, v in vars(args).items() if k not in ("service_root", "profile")}
-    table = markdown(result, args.label, shown)
-    print(table)
-    ok = (result["succeeded"] == result["accepted_202"] == args.jobs * args.repeat
-          and result["lost"] == 0 and result["duplicated"] == 0)
-    if args.smoke:
-        return 0 if ok else 1
-    commit = args.service_commit or subprocess.run(
-        ["git", "rev-parse", "--short", "HEAD"], cwd=args.service_root, capture_output=True,
-        text=True).stdout.strip()
-    out = RESULTS / f"bench_service_{args.label}.json"
+        for label, root, _ in services:
+            rounds[label].append(_round(root, args, job, watched))
+    shown = {k: v for k, v in vars(args).items()
+             if k not in ("service_root", "profile", "versus")}
+    ok = True
+    for label, root, commit in services:
+        result = pool(rounds[label])
+        table = markdown(result, label, shown)
+        print(table)
+        ok &= (result["succeeded"] == result["accepted_202"] == args.jobs * args.repeat
+               and result["lost"] == 0 and result["duplicated"] == 0)
+        if not args.smoke:
+            _save(label, root, commit, result, table, job, watched, shown, load_before, argv)
+    if not args.smoke:
+        write_readme()
+    return 0 if ok else 1
+
+
+def _round(root: Path, args: argparse.Namespace, job: dict, watched: list[dict]) -> dict:
+    """One round on a fresh service of the checkout at root."""
+    load0 = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
+        proc, host, port, target = start_service(root, Path(tmp) / "data", args.max_jobs,
+                                                 args.api_workers)
+        try:
+            one = asyncio.run(run(host, port, target, proc.pid, args, job, watched))
+        finally:
+            os.killpg(proc.pid, 15)
+            proc.wait(60)
+    one["load_average"] = [load0, os.getloadavg()[0]]
+    return one
+
+
+def _save(label: str, root: Path, commit: str | None, result: dict, table: str, job: dict,
+          watched: list[dict], shown: dict, load_before: tuple, argv) -> None:
+    commit = commit or subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root,
+                                      capture_output=True, text=True).stdout.strip()
+    out = RESULTS / f"bench_service_{label}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     command = "python -m bench.service.bench_service " + " ".join(
-        a if not a.startswith("/") else "<checkout>" for a in (argv or sys.argv[1:]))
+        a if "/" not in a else re.sub(r"/\S*", "<checkout>", a) for a in (argv or sys.argv[1:]))
     out.write_text(json.dumps({"result": result, "job": job, "watched_jobs": watched,
                                "args": {k: str(v) for k, v in shown.items()},
                                "commit": commit, "command": command.strip(),
@@ -477,8 +506,6 @@ def main(argv: list[str] | None = None) -> int:
                                         "load_average_after": os.getloadavg()},
                                "markdown": table}, indent=1))
     print(f"\nwrote {out}")
-    write_readme()
-    return 0 if ok else 1
 
 
 if __name__ == "__main__":
