@@ -4,8 +4,9 @@ side in one run, on whatever cores this machine has.
 
 Per row: render wall (the pool already started; its start is `prepare_s`), CPU seconds per
 shard and in total (process CPU of every shard plus the coordinator's), coordinator CPU,
-busy fraction, the share of shard CPU in named phases, wavefront steps, parcels, ray bytes,
-and PSNR of proxy against exact at the same K.
+busy fraction, the share of shard CPU in named phases and outside the wavefront thread
+(Ray's own threads), wavefront steps, parcels, ray bytes, and PSNR of proxy against exact
+at the same K.
 
 Where the machine has fewer cores than K + 1, the walls measure oversubscription. So every
 distributed run also records its step trace, and bench/network/netmodel.py replays it on K
@@ -59,6 +60,7 @@ def run_one(scene, s: RenderSettings) -> tuple[dict, np.ndarray, dict | None]:
            "cpu_s": info.get("cpu_s"),
            "coordinator_cpu_s": info.get("coordinator_cpu_s", 0.0),
            "shard_cpu_s": [x["cpu_s"] for x in shards],
+           "wavefront_cpu_s": [x["wavefront_cpu_s"] for x in shards],
            "busy_fraction": [x["busy_fraction"] for x in shards],
            "named_cpu_fraction": [x["cpu_named_fraction"] for x in shards],
            "steps": sum(x["steps"] for x in shards), "parcels": sum(x["calls"] for x in shards),
@@ -146,9 +148,10 @@ def markdown(res: dict) -> str:
     m = res["machine"]
     out = [f"Machine: {m['nproc']} cores ({m['cpu_model']}), Ray {m['ray']}.", "",
            "| scene | renderer | K | render s | vs reference | CPU s (all) | CPU vs ref | "
-           "coordinator CPU s (share) | shard CPU s | busy | named CPU | steps | parcels | "
-           "ray MB | PSNR dB | model s, K cores | model vs ref |",
-           "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+           "coordinator CPU s (share) | shard CPU s | busy | named CPU | Ray threads | steps | "
+           "parcels | ray MB | PSNR dB | model s, K cores | model vs ref |",
+           "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"
+           "---:|"]
     for r in res["rows"]:
         named = [x for x in r["named_cpu_fraction"] if x is not None]
         psnr = r.get("psnr_vs_exact_db", r.get("psnr_vs_reference_db", ""))
@@ -158,7 +161,8 @@ def markdown(res: dict) -> str:
             f"{r['coordinator_cpu_s']:.2f} ({100 * r.get('coordinator_share', 0):.1f} %) | "
             f"{', '.join(f'{c:.1f}' for c in r['shard_cpu_s'])} | "
             f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | "
-            f"{min(named) if named else 1.0:.3f} | {r['steps']} | {r['parcels']} | "
+            f"{min(named) if named else 1.0:.3f} | {_ray_threads(r)} | {r['steps']} | "
+            f"{r['parcels']} | "
             f"{r['ray_bytes'] / 1e6:.1f} | {psnr if psnr != '' else ''} | "
             f"{_fmt(r.get('model_render_s'), '.2f')} | {_fmt(r.get('model_ratio'), '.2f', 'x')} |")
     for name, m in res.get("model", {}).items():
@@ -171,6 +175,13 @@ def markdown(res: dict) -> str:
                     f"links {m['link_bps'] / 1e9:.0f} Gbit/s. Against the walls measured where "
                     f"each shard and the coordinator had a core: {checks or 'none'}."]
     return "\n".join(out)
+
+
+def _ray_threads(r: dict) -> str:
+    """Share of the shards' process CPU outside the wavefront thread (Ray's own threads:
+    deliveries, polls, object transfers); blank for the reference and older results."""
+    wave, cpu = r.get("wavefront_cpu_s"), sum(r["shard_cpu_s"])
+    return "" if not wave or not cpu else f"{1 - sum(wave) / cpu:.2f}"
 
 
 def _fmt(x, spec: str, unit: str = "") -> str:

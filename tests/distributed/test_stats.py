@@ -13,8 +13,25 @@ SCENE = "city"  # the most secondary rays of the three demos
 
 
 @pytest.fixture(scope="module")
-def stats_by_k(ray_local, scenes) -> dict:
-    return {k: render(scenes[SCENE], settings(k)).stats.to_dict() for k in (1, 2, 4)}
+def results_by_k(ray_local, scenes) -> dict:
+    return {k: render(scenes[SCENE], settings(k)) for k in (1, 2, 4)}
+
+
+@pytest.fixture(scope="module")
+def stats_by_k(results_by_k) -> dict:
+    return {k: r.stats.to_dict() for k, r in results_by_k.items()}
+
+
+@pytest.mark.parametrize("k", (1, 2, 4), ids=lambda k: f"k{k}")
+def test_shard_cpu_splits_into_the_wavefront_thread_and_the_rest(results_by_k, k):
+    """A shard's process CPU counts every thread; the wavefront thread's own share is
+    reported beside it, so what Ray's threads cost is their difference."""
+    info = results_by_k[k].info
+    total = info["coordinator_cpu_s"]
+    for sh in info["shard_stats"]:
+        assert 0 < sh["wavefront_cpu_s"] <= sh["cpu_s"], sh
+        total += sh["cpu_s"]
+    assert info["cpu_s"] == pytest.approx(total, abs=1e-3)
 
 
 def test_transfers_are_zero_for_one_shard_and_positive_for_more(stats_by_k):

@@ -354,8 +354,8 @@ class Coordinator:
             if t is None:
                 continue
             d = self._done_totals[s]
-            for name in ("steps", "busy_s", "cpu_s", "bytes_in", "bytes_out", "parcels_in",
-                         "parcels_out"):
+            for name in ("steps", "busy_s", "cpu_s", "wavefront_cpu_s", "bytes_in", "bytes_out",
+                         "parcels_in", "parcels_out"):
                 d[name] = d.get(name, 0) + getattr(t, name)
             for key in ("phase_s", "phase_cpu_s"):
                 for name, v in getattr(t, key).items():
@@ -371,8 +371,8 @@ class Coordinator:
                  for k, v in self._done_totals[s].items()}
             t = self.totals[s]
             if t is not None:
-                for name in ("steps", "busy_s", "cpu_s", "bytes_in", "bytes_out",
-                             "parcels_in", "parcels_out"):
+                for name in ("steps", "busy_s", "cpu_s", "wavefront_cpu_s", "bytes_in",
+                             "bytes_out", "parcels_in", "parcels_out"):
                     d[name] = d.get(name, 0) + getattr(t, name)
                 for key in ("phase_s", "phase_cpu_s"):
                     for name, v in getattr(t, key).items():
@@ -391,6 +391,8 @@ class Coordinator:
                 "geometry_bytes": i["geometry_bytes"], "meshes": i.get("meshes"),
                 "load_s": i.get("load_s"), "busy_s": round(busy, 4),
                 "busy_fraction": round(busy / wall, 4), "cpu_s": round(cpu, 4),
+                # The rest of cpu_s is Ray's threads: deliveries, polls, object transfers.
+                "wavefront_cpu_s": round(float(t.get("wavefront_cpu_s", 0.0)), 4),
                 "cpu_named_fraction": round(named / cpu, 4) if cpu and t.get("steps") else None,
                 "phase_cpu_s": {k: round(v, 4) for k, v in
                                 sorted(t.get("phase_cpu_s", {}).items())},

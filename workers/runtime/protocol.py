@@ -135,6 +135,7 @@ class PollReply:
     steps: int = 0  # wavefront steps run this job
     busy_s: float = 0.0  # wall seconds inside steps
     cpu_s: float = 0.0  # process CPU seconds while the job ran (every thread)
+    wavefront_cpu_s: float = 0.0  # of which the wavefront thread's, in its steps
     phase_s: dict = field(default_factory=dict)
     phase_cpu_s: dict = field(default_factory=dict)
     bytes_in: int = 0

@@ -65,6 +65,7 @@ class ShardActor:
         self._steps = self._bytes_in = self._bytes_out = 0
         self._parcels_in = self._parcels_out = 0
         self._busy_s = 0.0
+        self._wavefront_cpu_s = 0.0  # the wavefront thread's own CPU (not Ray's threads)
         self._phase_s: dict[str, float] = {}
         self._phase_cpu_s: dict[str, float] = {}
         self._records: list[dict] = []
@@ -151,6 +152,7 @@ class ShardActor:
             return PollReply(
                 self.id, self.incarnation, self._epoch, returned, steps=self._steps,
                 busy_s=self._busy_s, cpu_s=time.process_time() - self._cpu0,
+                wavefront_cpu_s=self._wavefront_cpu_s,
                 phase_s=dict(self._phase_s), phase_cpu_s=dict(self._phase_cpu_s),
                 bytes_in=self._bytes_in, bytes_out=self._bytes_out,
                 parcels_in=self._parcels_in, parcels_out=self._parcels_out, trace=records)
@@ -182,7 +184,7 @@ class ShardActor:
                     self._cv.notify_all()
 
     def _run(self, epoch: int, peers: list, trace: bool, parcels: list[Parcel]) -> None:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         start = time.time()
         orders, credits, rays = [], {}, []
         for p in parcels:
@@ -209,6 +211,7 @@ class ShardActor:
             self._returned += res.returned.items()
             self._steps += 1
             self._busy_s += time.perf_counter() - t0
+            self._wavefront_cpu_s += time.thread_time() - c0
             self._bytes_in += res.bytes_in
             self._bytes_out += sum(b for _, _, b in sent)
             self._parcels_in += len(parcels)
