@@ -343,7 +343,7 @@ def findings(runs: dict[str, dict]) -> str:
         return f"{r['latency_ms']['POST /v1/jobs'][q]:.0f}"
 
     best = min(x["latency_ms"]["POST /v1/jobs"]["p99"] for x in a.get("rounds", [a]))
-    loads = [v for r in runs.values() for x in r["result"].get("rounds", [])
+    loads = [v for x in a.get("rounds", []) + b.get("rounds", [])
              for v in x["load_average"]] or [runs["after"]["host"]["load_average_before"][0]]
     lat = a["latency_ms"]
     met = [name for name, ok in (
@@ -355,17 +355,21 @@ def findings(runs: dict[str, dict]) -> str:
             f"burst {b['api_cpu_s_during_burst']} -> {a['api_cpu_s_during_burst']} s. "
             f"Latency targets met in the pooled figures: {', '.join(met) or 'none'}; the "
             f"best single round put POST p99 at {best:.0f} ms. During the burst the API "
-            f"process got {a['api_cpu_s_during_burst'] / a['burst_s']:.2f} of a core (its "
-            "CPU over the burst's wall time) while other engineers' work kept the 2 cores "
-            f"at a load average of {min(loads):.0f} to {max(loads):.0f}, and the load "
-            f"generator needed {a['client_cpu_s_during_burst']} s of CPU of its own: the "
-            "requests waited for a core more than for the service's work (see "
-            "`bench_admission` for the CPU of one admission in process).")
+            f"processes got {a['api_cpu_s_during_burst'] / a['burst_s']:.2f} of a core "
+            "(their CPU over the burst's wall time) at a load average of "
+            f"{min(loads):.0f} to {max(loads):.0f}, and the load generator needed "
+            f"{a['client_cpu_s_during_burst']} s of CPU of its own. One event loop admits "
+            "the burst's requests in turn, so the last one waits for the CPU of all of "
+            f"them ({a['api_cpu_s_during_burst']} s): POST p99 < 200 ms needs that below "
+            "about 0.15 s and a core free for it (see `bench_admission` for the CPU of one "
+            "admission in process).")
     if "after_2_workers" in runs:
-        a2 = runs["after_2_workers"]["result"]
-        text += (f" Two API workers: POST p99 {post(a2)} ms, {a2['api_cpu_s_during_burst']}"
-                 " s of CPU; on 2 cores shared with the client and other work a second "
-                 "worker adds a process to schedule, not a core.")
+        a2, c2 = runs["after_2_workers"]["result"], runs["after_2_workers"]["commit"]
+        text += (f" Two API workers (commit {c2}, load "
+                 f"{runs['after_2_workers']['host']['load_average_before'][0]:.0f}): POST p99 "
+                 f"{post(a2)} ms, {a2['api_cpu_s_during_burst']} s of CPU; on 2 cores shared "
+                 "with the client and other work a second worker adds a process to "
+                 "schedule, not a core.")
     return text
 
 
@@ -388,7 +392,8 @@ def write_readme() -> None:
                     "## Service under load (`bench/service/bench_service.py`)\n\n"
                     "`python -m bench.service.bench_service --label after --repeat 3` "
                     "(`results/bench_service_after.json`; `--label before --service-root "
-                    "<checkout>` measures another commit with the same client): starts "
+                    "<checkout>` measures another commit with the same client, `--versus "
+                    "before=<checkout>` in the same run, rounds alternating): starts "
                     "`nprt serve` on loopback, starts two long jobs (one reference, one "
                     "K = 2) and opens the SSE and gRPC watchers on them, then fires the "
                     "submissions at once, each on a new connection with its own "
