@@ -53,6 +53,8 @@ class Proxy:
         self.box = np.asarray(self.meta["box"], np.float64).reshape(2, 3)
         self.diag = np.float32(self.meta["diag"])
         self._sessions: dict[str, ort.InferenceSession] = {}
+        self._input_names: dict[str, str] = {}
+        self._line: tuple | None = None
         self._blob: bytes | None = None
         self.timing: dict[str, float] = {}
 
@@ -142,7 +144,9 @@ class Proxy:
         if len(x) == 0:
             return np.zeros(0, np.float32)
         sess = self.session(net)
-        name = sess.get_inputs()[0].name
+        name = self._input_names.get(net)
+        if name is None:
+            name = self._input_names[net] = sess.get_inputs()[0].name
         chunk = ROWS_PER_THREAD * max(1, self.threads)
         out = [sess.run(None, {name: x[s:s + chunk]})[0] for s in range(0, len(x), chunk)]
         return np.concatenate(out).reshape(-1).astype(np.float32, copy=False)
@@ -165,9 +169,14 @@ class Proxy:
         n = len(points)
         if n == 0:
             return np.zeros(0, np.float32), np.zeros(0, np.float32)
-        p, shift = to_proxy_box(self.box, points, directions)
         enc = self.meta["encoding"]
-        x = encode(self.box, p, directions, enc)
+        if enc == "line":  # compiled, the same bits (nprt.proxies.lineenc)
+            from nprt.proxies import lineenc
+
+            x, p, shift = lineenc.line_inputs(*self._line_constants()[:4], points, directions)
+        else:
+            p, shift = to_proxy_box(self.box, points, directions)
+            x = encode(self.box, p, directions, enc)
         vis = self.run("visibility", x)
         if min_visibility is None:
             rows = slice(None)
@@ -176,9 +185,25 @@ class Proxy:
             rows = np.flatnonzero(vis >= min_visibility)
             t = np.full(n, np.inf, np.float32)
         y = self.run("depth", x[rows])
-        t_box = depth_decode(self.box, p[rows], directions[rows], y, enc)
-        t[rows] = np.maximum(t_box + shift[rows], 0.0)
+        if enc == "line":
+            scale, centre = self._line_constants()[4:]
+            t[rows] = lineenc.line_depth(scale, centre, p[rows], directions[rows], y,
+                                         shift[rows])
+        else:
+            t_box = depth_decode(self.box, p[rows], directions[rows], y, enc)
+            t[rows] = np.maximum(t_box + shift[rows], 0.0)
         return vis, t
+
+    def _line_constants(self) -> tuple:
+        """The box's float32 constants of encoding.to_proxy_box / encode ("line": lo, hi,
+        centre, half diagonal) and of depth_decode (diagonal, centre), computed as they do."""
+        if self._line is None:
+            lo, hi = self.box.astype(np.float32)
+            self._line = (lo, hi, (0.5 * (lo + hi)).astype(np.float32),
+                          np.float32(0.5 * np.linalg.norm(hi - lo)),
+                          np.float32(np.linalg.norm(self.box[1] - self.box[0])),
+                          (0.5 * (self.box[0] + self.box[1])).astype(np.float32))
+        return self._line
 
 
 def _from_bytes(blob: bytes, threads: int) -> Proxy:

@@ -1,0 +1,73 @@
+"""The compiled "line" encoding (nprt.proxies.lineenc) gives the bits of the numpy
+definition in nprt.proxies.encoding, and a proxy's answers do not change with it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from nprt.proxies.cache import SHIPPED_DIR
+from nprt.proxies.encoding import depth_decode, encode, to_proxy_box
+from nprt.proxies.inference import Proxy
+from nprt.proxies.lineenc import line_depth, line_inputs
+
+
+def _queries(rng, n: int, box: np.ndarray):
+    """(n, 3) float32 points and unit directions with the awkward cases mixed in: points on
+    the box's planes and at -0.0, NaN points, zero direction components and zero rays."""
+    p = rng.uniform(-3, 3, (n, 3)).astype(np.float32)
+    d = rng.normal(size=(n, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    d[::7, 0] = 0.0
+    d[::17, 2] = -0.0
+    d[::29] = 0.0
+    p[::11, 1] = np.float32(box[0, 1])
+    p[::13, 2] = np.nan
+    p[::19, 0] = -0.0
+    return p, d
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_line_kernels_give_the_numpy_bits(seed):
+    rng = np.random.default_rng(seed)
+    lo = rng.uniform(-2, 0, 3)
+    lo[0] = 0.0 if seed % 2 else lo[0]  # a bound at +0.0 against points at -0.0
+    box = np.stack([lo, lo + rng.uniform(0.1, 4, 3)])
+    p, d = _queries(rng, 2000, box)
+    y = rng.uniform(-1, 2, len(p)).astype(np.float32)
+
+    slid, shift = to_proxy_box(box, p, d)
+    x = encode(box, slid, d, "line")
+    t = np.maximum(depth_decode(box, slid, d, y, "line") + shift, 0.0)
+
+    lo32, hi32 = box.astype(np.float32)
+    x2, slid2, shift2 = line_inputs(lo32, hi32, (0.5 * (lo32 + hi32)).astype(np.float32),
+                                    np.float32(0.5 * np.linalg.norm(hi32 - lo32)), p, d)
+    t2 = line_depth(np.float32(np.linalg.norm(box[1] - box[0])),
+                    (0.5 * (box[0] + box[1])).astype(np.float32), slid, d, y, shift)
+    for name, a, b in (("x", x, x2), ("points", slid, slid2), ("shift", shift, shift2),
+                       ("t", t, t2)):
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        differ = np.flatnonzero(a.view(np.uint32) != b.view(np.uint32))
+        assert not len(differ), f"{name} differs at rows/elements {differ[:5]}"
+
+
+def test_a_shipped_proxy_answers_as_the_numpy_pipeline_does():
+    blob = next(f for f in sorted(SHIPPED_DIR.glob("*.nprx")))
+    proxy = Proxy.from_bytes(blob.read_bytes())
+    assert proxy.meta["encoding"] == "line"
+    rng = np.random.default_rng(0)
+    p, d = _queries(rng, 3000, proxy.box)
+    p = np.nan_to_num(p)  # onnxruntime would pass NaN through; keep the comparison on numbers
+    for threshold in (None, float(proxy.meta["threshold"])):
+        vis, t = proxy.query(p, d, min_visibility=threshold)
+        slid, shift = to_proxy_box(proxy.box, p, d)
+        x = encode(proxy.box, slid, d, "line")
+        vis0 = proxy.run("visibility", x)
+        rows = slice(None) if threshold is None else np.flatnonzero(vis0 >= threshold)
+        t0 = np.full(len(p), np.inf, np.float32)
+        y = proxy.run("depth", x[rows])
+        t0[rows] = np.maximum(depth_decode(proxy.box, slid[rows], d[rows], y, "line")
+                              + shift[rows], 0.0)
+        assert vis.tobytes() == vis0.tobytes()
+        assert t.tobytes() == t0.tobytes()
