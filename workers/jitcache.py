@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 from pathlib import Path
 
 log = logging.getLogger(__name__)
@@ -32,13 +33,21 @@ def cold_kernel_modules() -> list[str]:
     indexes = [f for d in _cache_dirs() if d.is_dir() for f in d.glob("*.nbi")]
     cold = []
     for src in sorted(KERNELS.glob("*.py")):
-        if "@njit" not in src.read_text():
+        if not _compiles_alone(src.read_text()):
             continue
         newest = max((f.stat().st_mtime for f in indexes if f.name.startswith(src.stem + ".")),
                      default=None)
         if newest is None or newest < src.stat().st_mtime:
             cold.append(src.stem)
     return cold
+
+
+def _compiles_alone(source: str) -> bool:
+    """Whether a kernel module has a function numba compiles (and caches) on its own: one
+    whose every @njit is inline="always" is compiled inside its callers and never writes a
+    cache index, so it would look cold forever."""
+    decorators = re.findall(r"@njit\(([^)]*)\)|@njit\b", source)
+    return any('inline="always"' not in args for args in decorators)
 
 
 def note_cold_compile(where: str, distributed: bool) -> bool:

@@ -14,6 +14,7 @@ import numpy as np
 from numba import njit
 
 from nprt.scene.model import Camera, Material, Mesh
+from nprt.workers.kernels.pairs import to_local_ray
 from nprt.workers.kernels.shade import GAMMA64_3, LOCAL_REL, offset_origin
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.lights import FAR_T, LightSet
@@ -287,3 +288,23 @@ def generate_primary(cam: Camera, width: int, height: int, seed: int, pixel: np.
     t_near = cam.near_distance / (unit @ fwd)
     origin = eye[None] + t_near[:, None] * unit
     return origin, direction
+
+
+def to_local(table: InstanceTable, inst: np.ndarray, origin: np.ndarray,
+             direction: np.ndarray):
+    """Rays moved into their instance's local space by the traversal kernels' own inlined
+    step: inst (n,) int32; origin, direction (n, 3) world. Returns origin, direction
+    (n, 3) float32 local (direction not renormalised, so t is the same in both spaces)."""
+    return _to_local(np.asarray(inst, np.int32), table.world_to_local,
+                     np.array(origin, np.float64, order="C"),
+                     np.array(direction, np.float64, order="C"))
+
+
+@njit(cache=True)
+def _to_local(inst, world_to_local, origin, direction):
+    n = inst.shape[0]
+    lo, ld = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+    for x in range(n):
+        lo[x, 0], lo[x, 1], lo[x, 2], ld[x, 0], ld[x, 1], ld[x, 2] = to_local_ray(
+            world_to_local, inst[x], origin, direction, x)
+    return lo, ld

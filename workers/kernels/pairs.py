@@ -1,5 +1,5 @@
-"""Jitted kernels over (ray, instance) pairs: rays moved into an instance's local space
-(float64, then float32), the one way every traversal kernel does it."""
+"""A ray moved into an instance's local space (float64, then float32), the one way every
+traversal kernel does it; inlined into them (tests/workers/oracles.to_local runs it alone)."""
 
 from __future__ import annotations
 
@@ -23,15 +23,3 @@ def to_local_ray(world_to_local, i, origin, direction, r):
             np.float32((w[i, 0, 0] * d0 + w[i, 0, 2] * d2) + w[i, 0, 1] * d1),
             np.float32((w[i, 1, 0] * d0 + w[i, 1, 2] * d2) + w[i, 1, 1] * d1),
             np.float32((w[i, 2, 0] * d0 + w[i, 2, 2] * d2) + w[i, 2, 1] * d1))
-
-
-@njit(**JIT)
-def to_local(inst, world_to_local, origin, direction):
-    """Ray x moved by instance inst[x]: inst (n,) int32, world_to_local (m, 3, 4) float64,
-    origin, direction (n, 3) float64; returns origin, direction (n, 3) float32."""
-    n = inst.shape[0]
-    lo, ld = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
-    for x in range(n):
-        lo[x, 0], lo[x, 1], lo[x, 2], ld[x, 0], ld[x, 1], ld[x, 2] = to_local_ray(
-            world_to_local, inst[x], origin, direction, x)
-    return lo, ld

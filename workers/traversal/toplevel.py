@@ -7,7 +7,6 @@ import numpy as np
 
 from nprt.scene.model import Scene
 from nprt.workers.kernels import bvh as kernels
-from nprt.workers.kernels import pairs as pair_kernels
 
 # Boxes are padded so flat geometry (a ground quad) never yields a zero-width slab: by
 # BOX_PAD_REL of their diagonal, BOX_PAD_ABS (a box of one point), and BOX_PAD_COORD_REL
@@ -100,17 +99,6 @@ class InstanceTable:
 
     def __len__(self) -> int:
         return len(self.mesh)
-
-    def to_local(self, inst: np.ndarray, origin: np.ndarray, direction: np.ndarray):
-        """Move rays into their instance's local space in float64, then cast to float32.
-
-        inst : (n,) int32; origin (n, 3) float64, direction (n, 3) float32 world
-        returns origin, direction : (n, 3) float32 local (direction not renormalised,
-        so t is the same in both spaces)
-        """
-        return pair_kernels.to_local(np.asarray(inst, np.int32), self._world_to_local,
-                                np.array(origin, np.float64, order="C"),
-                                np.array(direction, np.float64, order="C"))
 
     def _columns(self, instances: np.ndarray) -> np.ndarray | None:
         """col_of (m,) int32: each instance's position in `instances` (-1: not there), when
