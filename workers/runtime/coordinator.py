@@ -22,6 +22,9 @@ Design:
 - Failure: a shard that dies (a failed call) or restarted unseen (a new incarnation in a
   poll or collect reply) may have lost rays, weight or film of any live pass. Every live
   pass is re-run in a new epoch; parcels of the old epoch are dropped where they arrive.
+  Weight lost without a fault (every shard idle for STALL_S while a pass waits) is handled
+  the same way, so a job never waits for ever; a pass re-run MAX_PASS_ATTEMPTS times
+  fails the job.
 
 Rejected alternatives: the coordinator routing every parcel (the earlier design: two
 hops and a decision per parcel, calls growing much faster than K); counting parcels sent
@@ -72,10 +75,42 @@ POLL_S = 0.25  # a shard's long poll; also how often a cancel is noticed
 BEGIN_TIMEOUT_S = 60.0  # every shard answering `begin` (a restarted one included)
 BEGIN_RETRY_S = 0.5
 SHARD_LOST = (RayActorError, ActorUnavailableError)
+# Every shard idle (no step running, nothing in its inbox) this long while a pass still
+# waits for weight: the weight can never come back (a lost parcel or a bug), and without
+# this the job would wait for ever. Parcels in flight reach their shard in milliseconds.
+STALL_S = 20.0
 
 
 class _Restarted(RuntimeError):
     """A shard answered with a new incarnation: Ray restarted it, and its state is gone."""
+
+
+class _Stalled(RuntimeError):
+    """Every shard has been idle for STALL_S while passes wait for weight."""
+
+
+class StallWatch:
+    """Notices weight that went missing: how long each shard has answered its polls idle
+    (no step running, nothing in its inbox, no weight handed back, no step or parcel since
+    its first idle answer), measured on the shard's own clock, so a coordinator that was
+    busy elsewhere and reads old answers late does not take them for a long silence."""
+
+    def __init__(self, k: int):
+        self.first: list[PollReply | None] = [None] * k  # first answer of the idle run
+        self.idle_s = [0.0] * k
+
+    def seen(self, reply: PollReply) -> None:
+        s, first = reply.shard, self.first[reply.shard]
+        quiet = reply.idle and not reply.returned
+        if quiet and first is not None and (reply.steps, reply.parcels_in) == (
+                first.steps, first.parcels_in):
+            self.idle_s[s] = reply.at - first.at  # still the same idle run
+        else:
+            self.first[s] = reply if quiet else None
+            self.idle_s[s] = 0.0
+
+    def stalled(self, waiting_for_weight: bool) -> bool:
+        return waiting_for_weight and min(self.idle_s) > STALL_S
 
 
 @dataclass
@@ -183,6 +218,7 @@ class Coordinator:
         epoch = self._begin()
         polls = {self._poll(s, epoch): s for s in range(self.k)}
         collects: dict = {}  # ref -> shard
+        watch = StallWatch(self.k)
         try:
             while True:
                 stop = cancel is not None and cancel.is_set()
@@ -201,7 +237,12 @@ class Coordinator:
                 try:
                     if ref in polls:
                         shard = polls.pop(ref)
-                        self._on_poll(shard, self._get(ref), live, epoch)
+                        reply = self._get(ref)
+                        self._on_poll(shard, reply, live, epoch)
+                        watch.seen(reply)
+                        if watch.stalled(any(not a.collecting for a in live.values())):
+                            raise _Stalled(f"every shard idle for {STALL_S:.0f} s while "
+                                           f"passes wait for weight")
                         polls[self._poll(shard, epoch)] = shard
                         done = [i for i, a in live.items()
                                 if a.weight == 1 and not a.collecting]
@@ -213,10 +254,13 @@ class Coordinator:
                     else:
                         shard = collects.pop(ref)
                         yield from self._on_collect(shard, self._get(ref), live)
-                except (*SHARD_LOST, _Restarted) as e:
+                except (*SHARD_LOST, _Restarted, _Stalled) as e:
                     lost = sorted(live)
-                    log.warning("shard %d lost (%s); re-running %d passes in flight",
-                                shard, type(e).__name__, len(lost))
+                    if isinstance(e, _Stalled):
+                        log.warning("%s (lost); re-running %d passes in flight", e, len(lost))
+                    else:
+                        log.warning("shard %d lost (%s); re-running %d passes in flight",
+                                    shard, type(e).__name__, len(lost))
                     for i in reversed(lost):  # oldest first again
                         self._requeue(live.pop(i).pass_, waiting, attempts)
                     self._end(epoch)
@@ -225,6 +269,7 @@ class Coordinator:
                     epoch = self._begin()
                     polls = {self._poll(s, epoch): s for s in range(self.k)}
                     collects = {}
+                    watch = StallWatch(self.k)
         finally:
             self.wall_s += time.perf_counter() - t_start
             self.cpu_s += time.process_time() - c_start

@@ -143,3 +143,5 @@ class PollReply:
     parcels_in: int = 0
     parcels_out: int = 0
     trace: list[dict] = field(default_factory=list)  # new step records (tracing jobs only)
+    idle: bool = False  # no step running and nothing in the inbox when it answered
+    at: float = 0.0  # the shard's time.monotonic() when it answered

@@ -155,7 +155,8 @@ class ShardActor:
                 wavefront_cpu_s=self._wavefront_cpu_s,
                 phase_s=dict(self._phase_s), phase_cpu_s=dict(self._phase_cpu_s),
                 bytes_in=self._bytes_in, bytes_out=self._bytes_out,
-                parcels_in=self._parcels_in, parcels_out=self._parcels_out, trace=records)
+                parcels_in=self._parcels_in, parcels_out=self._parcels_out, trace=records,
+                idle=not (self._running or self._inbox), at=time.monotonic())
 
     def collect(self, epoch: int, indices: list[int]) -> tuple[str, list]:
         """(incarnation, [(pass index, sums or None, stats dict or None)]) of finished
