@@ -94,6 +94,10 @@ class _Batch:
                 return self
         return self._trusted({name: arr[index] for name, arr in self.__dict__.items()})
 
+    def rows(self, start: int, stop: int):
+        """Rows start:stop as views of this batch's columns (no copy)."""
+        return self._trusted({name: arr[start:stop] for name, arr in self.__dict__.items()})
+
     def replace(self, **changes):
         n = len(self)
         for name, arr in changes.items():

@@ -461,11 +461,15 @@ class Shard:
 
     def _send(self, batch, target: np.ndarray, out: list) -> None:
         """Bucket the rows of batch leaving for another shard by target, one hop more."""
-        away = target != DONE
-        if not away.any():
+        away = np.flatnonzero(target != DONE)
+        if not len(away):
             return
-        moving = batch.take(away)
+        # One gather, grouped by target (stable: each target's rows keep their order), then
+        # a view per target, instead of a gather per target.
+        by_target = np.argsort(target[away], kind="stable")
+        t = target[away][by_target]
+        moving = batch.take(away[by_target])
         moving = moving.replace(hops=moving.hops + np.uint8(1))
-        t = target[away]
-        for dest in np.unique(t):
-            out[int(dest)].append(moving.take(t == dest))
+        dests, starts = np.unique(t, return_index=True)
+        for dest, a, b in zip(dests, starts, [*starts[1:], len(t)], strict=True):
+            out[int(dest)].append(moving.rows(int(a), int(b)))
