@@ -105,6 +105,20 @@ class QueueFull(RuntimeError):
     """insert() found max_queued jobs queued already; the message says how many."""
 
 
+def add_columns(db: sqlite3.Connection, have: set[str]) -> None:
+    """Add the columns of _ADDED_COLUMNS missing from `have` (the jobs table's columns as
+    read). Processes open the store at once (API workers, the gRPC child, the scheduler):
+    one that read the columns before another added one finds it there, which is fine."""
+    for name, decl in _ADDED_COLUMNS.items():
+        if name in have:
+            continue
+        try:
+            db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {decl}")
+        except sqlite3.OperationalError as e:
+            if "duplicate column name" not in str(e):
+                raise
+
+
 class JobStore:
     """A writing and a reading connection, each behind its own lock: writes are tiny (one
     row per pass) and SQLite serialises writers anyway; in WAL mode a read never waits for
@@ -122,10 +136,8 @@ class JobStore:
             # the last commits, and checkpoints on disk are re-read on restart anyway.
             self._db.execute("PRAGMA synchronous=NORMAL")
             self._db.executescript(_SCHEMA)
-            have = {r["name"] for r in self._db.execute("PRAGMA table_info(jobs)")}
-            for name, decl in _ADDED_COLUMNS.items():
-                if name not in have:
-                    self._db.execute(f"ALTER TABLE jobs ADD COLUMN {name} {decl}")
+            add_columns(self._db, {r["name"] for r in self._db.execute(
+                "PRAGMA table_info(jobs)")})
             self._db.executescript(_INDEXES)
             self._db.executescript(f"BEGIN IMMEDIATE;{_QUEUE_COUNTER}COMMIT;")
         self._rdb = sqlite3.connect(path, check_same_thread=False, isolation_level=None,

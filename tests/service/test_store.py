@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from nprt.service.checkpoint import clear_checkpoint, load_checkpoint, save_checkpoint
-from nprt.service.store import JobStore
+from nprt.service.store import JobStore, add_columns
 
 
 def test_store_uses_wal_and_lists_unfinished_oldest_first(tmp_path):
@@ -145,6 +145,21 @@ def test_database_of_an_older_service_gains_the_new_columns(tmp_path):
     rec = store.get("old")
     assert (rec.cancel_requested, rec.retries, rec.idempotency_key) == (False, 0, None)
     assert store.request_cancel("old") and store.get("old").cancel_requested
+
+
+def test_a_process_that_read_the_columns_before_another_added_them_opens_the_store(
+        tmp_path):
+    """API workers, the gRPC child and the scheduler open one store at once: a process
+    whose column list was read before another process added a column must not fail
+    (it did: "duplicate column name: idempotency_key", the gRPC child exiting on start)."""
+    path = tmp_path / "jobs.sqlite3"
+    JobStore(path).close()  # every column there now
+    db = sqlite3.connect(path, isolation_level=None)
+    add_columns(db, have={"seq", "id"})  # as read before the other process's ALTERs
+    cols = [r[1] for r in db.execute("PRAGMA table_info(jobs)")]
+    assert len(cols) == len(set(cols)) and "idempotency_key" in cols
+    with pytest.raises(sqlite3.OperationalError, match="no such table"):
+        add_columns(sqlite3.connect(tmp_path / "empty.sqlite3"), have=set())
 
 
 def test_checkpoint_round_trips_and_keeps_only_the_latest_pair(tmp_path):
