@@ -13,7 +13,7 @@ import ray
 def ray_local():
     if ray.is_initialized():
         ray.shutdown()
-    ray.init(num_cpus=3, include_dashboard=False, log_to_driver=False,
+    ray.init(address="local", num_cpus=3, include_dashboard=False, log_to_driver=False,
              logging_level=logging.WARNING)
     yield
     ray.shutdown()

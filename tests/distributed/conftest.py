@@ -27,7 +27,7 @@ def pytest_collection_modifyitems(items):
 
 
 def start_local_ray() -> None:
-    ray.init(num_cpus=RAY_CPUS, include_dashboard=False, log_to_driver=False,
+    ray.init(address="local", num_cpus=RAY_CPUS, include_dashboard=False, log_to_driver=False,
              logging_level=logging.WARNING)
 
 

@@ -4,6 +4,9 @@ cluster; `ray_local` restarts it for later modules."""
 
 from __future__ import annotations
 
+import os
+import shutil
+import tempfile
 import threading
 
 import pytest
@@ -27,18 +30,31 @@ def cluster(_ray_session):
     assert not leftover, f"threads of an earlier service still running: {leftover}"
     if ray.is_initialized():
         ray.shutdown()
-    c = Cluster(initialize_head=True, head_node_args=dict(
-        num_cpus=1, resources={"node0": 1}, object_store_memory=OBJECT_STORE_BYTES,
-        include_dashboard=False))
-    for i in range(1, NODES):
-        c.add_node(num_cpus=1, resources={f"node{i}": 1}, object_store_memory=OBJECT_STORE_BYTES)
+    # Cluster writes its address to <Ray's temp dir>/ray_current_cluster, where any
+    # ray.init() without an address on this host (another pytest-xdist worker's fixture)
+    # would join it: a private temp dir (short: socket paths) keeps it to this module.
+    previous, tmp = os.environ.get("RAY_TMPDIR"), tempfile.mkdtemp(prefix="nprt-mn-")
+    os.environ["RAY_TMPDIR"] = tmp
+    c = None
     try:  # the cluster's processes go even when joining it fails
+        c = Cluster(initialize_head=True, head_node_args=dict(
+            num_cpus=1, resources={"node0": 1}, object_store_memory=OBJECT_STORE_BYTES,
+            include_dashboard=False))
+        for i in range(1, NODES):
+            c.add_node(num_cpus=1, resources={f"node{i}": 1},
+                       object_store_memory=OBJECT_STORE_BYTES)
         c.wait_for_nodes()
         ray.init(address=c.address, log_to_driver=False, include_dashboard=False)
         yield c
     finally:
         ray.shutdown()
-        c.shutdown()
+        if c is not None:
+            c.shutdown()
+        if previous is None:
+            os.environ.pop("RAY_TMPDIR", None)
+        else:
+            os.environ["RAY_TMPDIR"] = previous
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _node_of(actor) -> str:

@@ -26,7 +26,7 @@ SETTINGS = RenderSettings(width=16, height=16, spp=1, bounces=1, shadow_rays=1, 
 def local_ray():
     started = not ray.is_initialized()
     if started:
-        ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False,
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False,
                  logging_level=logging.WARNING)
     yield
     if started:
