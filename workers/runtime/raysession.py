@@ -4,7 +4,12 @@ down by the last user) unless the process already joined one.
 Ray stays off the console unless nprt logs at DEBUG: no dashboard (`include_dashboard`),
 worker output stays in Ray's log files (`log_to_driver`), and Ray's own Python logger
 shows errors only (its start-up notices, such as the one that token authentication is on,
-are not for nprt's users). At DEBUG, Ray logs at INFO and forwards worker output."""
+are not for nprt's users). At DEBUG, Ray logs at INFO and forwards worker output.
+
+`include_dashboard=False` turns off the dashboard's UI and HTTP server only: Ray 2.60
+still starts a headless `dashboard.py` (usage stats) and the raylet's dashboard agent
+(runtime environments, metrics), and offers no switch for either (ray-project/ray#17770;
+PR #19420 declined one)."""
 
 from __future__ import annotations
 
