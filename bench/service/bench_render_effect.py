@@ -15,7 +15,6 @@ import os
 import platform
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -32,7 +31,7 @@ from bench.service.harness import (
     niceness,
     poll,
     render_cpu_s,
-    start_service,
+    running_service,
 )
 
 TARGET_MS = 20.0  # the bound on how far a render may move the API's p99
@@ -160,14 +159,8 @@ def main(argv: list[str] | None = None) -> int:
     long = {"scene": args.scene, "width": 128, "height": 128, "spp": 16384, "tile_size": 64,
             "spp_per_pass": 2, "bounces": 2, "shards": args.shards}
     load_before = os.getloadavg()
-    with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
-        proc, host, port, target = start_service(args.service_root, Path(tmp) / "data", 1,
-                                                 args.api_workers)
-        try:
-            raw = asyncio.run(run(host, port, target, proc.pid, args, small, long))
-        finally:
-            os.killpg(proc.pid, 15)
-            proc.wait(60)
+    with running_service(args.service_root, 1, args.api_workers) as (proc, host, port, target):
+        raw = asyncio.run(run(host, port, target, proc.pid, args, small, long))
     result = summarize(raw, args.shards)
     table = markdown(result, vars(args))
     args.service_root = str(args.service_root)

@@ -25,7 +25,6 @@ import platform
 import re
 import subprocess
 import sys
-import tempfile
 import time
 import uuid
 from collections import defaultdict
@@ -44,8 +43,8 @@ from bench.service.harness import (
     niceness,
     percentiles,
     poll,
+    running_service,
     start_profilers,
-    start_service,
     stop_profilers,
 )
 from bench.service.rawhttp import request_bytes
@@ -481,14 +480,8 @@ def main(argv: list[str] | None = None) -> int:
 def _round(root: Path, args: argparse.Namespace, job: dict, watched: list[dict]) -> dict:
     """One round on a fresh service of the checkout at root."""
     load0 = os.getloadavg()[0]
-    with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
-        proc, host, port, target = start_service(root, Path(tmp) / "data", args.max_jobs,
-                                                 args.api_workers)
-        try:
-            one = asyncio.run(run(host, port, target, proc.pid, args, job, watched))
-        finally:
-            os.killpg(proc.pid, 15)
-            proc.wait(60)
+    with running_service(root, args.max_jobs, args.api_workers) as (proc, host, port, target):
+        one = asyncio.run(run(host, port, target, proc.pid, args, job, watched))
     one["load_average"] = [load0, os.getloadavg()[0]]
     return one
 

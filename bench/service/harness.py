@@ -5,6 +5,7 @@ client over bench.service.rawhttp, and latency percentiles."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import random
@@ -66,6 +67,20 @@ def start_service(root: Path, data_dir: Path, max_jobs: int, api_workers: int = 
             time.sleep(0.1)
     proc.kill()
     raise RuntimeError("service did not start within 60 s")
+
+
+@contextlib.contextmanager
+def running_service(root: Path, max_jobs: int, api_workers: int = 1):
+    """start_service on a fresh data folder; yields (process, host, REST port, gRPC target)
+    and stops the service's whole process group on the way out."""
+    with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
+        proc, host, port, target = start_service(root, Path(tmp) / "data", max_jobs,
+                                                 api_workers)
+        try:
+            yield proc, host, port, target
+        finally:
+            os.killpg(proc.pid, 15)
+            proc.wait(60)
 
 
 # ---------------------------------------------------------------- API process accounting

@@ -37,19 +37,24 @@ def _occluded_all(fn, scene, o, d, tfar):
     return out
 
 
+def _rays_at_shared_edges(mesh, rng, n: int):
+    """(n, 3) float32 origins around the mesh and unit directions aimed at its vertices and
+    edge midpoints, where triangles sharing them tie."""
+    o = (mesh.vertices.mean(0) + rng.normal(size=(n, 3)) * 3).astype(np.float32)
+    f = mesh.faces[rng.integers(0, len(mesh.faces), n)]
+    a, b = mesh.vertices[f[:, 0]], mesh.vertices[f[:, 1]]
+    aim = np.where(rng.random((n, 1)) < 0.5, a, 0.5 * (a.astype(np.float64) + b))
+    d = aim - o
+    return o, (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+
 @pytest.mark.parametrize("which", [0, 2, 4])
 def test_compiled_queries_equal_embreex_bit_for_bit(which):
     mesh = family_meshes("tiny")[which]
     geo = MeshGeometry(mesh)
     rng = np.random.default_rng(which)
     n = 20000
-    o = (mesh.vertices.mean(0) + rng.normal(size=(n, 3)) * 3).astype(np.float32)
-    # Aimed at vertices and edge midpoints: ties between triangles sharing them.
-    f = mesh.faces[rng.integers(0, len(mesh.faces), n)]
-    a, b = mesh.vertices[f[:, 0]], mesh.vertices[f[:, 1]]
-    aim = np.where(rng.random((n, 1)) < 0.5, a, 0.5 * (a.astype(np.float64) + b))
-    d = aim - o
-    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    o, d = _rays_at_shared_edges(mesh, rng, n)
     tfar = np.where(rng.random(n) < 0.3, rng.uniform(0.5, 5, n), 1e30).astype(np.float32)
     want = geo.intersect_closest(o, d, tfar)
     t, prim, u, v = _closest_all(np.uint64(rtc.INTERSECT1), geo.rtc.handle, o, d, tfar)
@@ -77,12 +82,7 @@ def test_a_tfar_beyond_the_hit_by_the_margin_reports_the_hit_traced_without_a_li
     scene = geo.rtc.handle
     rng = np.random.default_rng(10 + which)
     n = 20000
-    o = (mesh.vertices.mean(0) + rng.normal(size=(n, 3)) * 3).astype(np.float32)
-    f = mesh.faces[rng.integers(0, len(mesh.faces), n)]
-    a, b = mesh.vertices[f[:, 0]], mesh.vertices[f[:, 1]]
-    aim = np.where(rng.random((n, 1)) < 0.5, a, 0.5 * (a.astype(np.float64) + b))
-    d = aim - o
-    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    o, d = _rays_at_shared_edges(mesh, rng, n)
     fn = np.uint64(rtc.INTERSECT1)
     t, prim, u, v = _closest_all(fn, scene, o, d, np.full(n, 1e30, np.float32))
     hit = prim >= 0
