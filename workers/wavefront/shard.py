@@ -466,8 +466,9 @@ class Shard:
             return
         # One gather, grouped by target (stable: each target's rows keep their order), then
         # a view per target, instead of a gather per target.
-        by_target = np.argsort(target[away], kind="stable")
-        t = target[away][by_target]
+        t = target[away]
+        by_target = np.argsort(t, kind="stable")
+        t = t[by_target]
         moving = batch.take(away[by_target])
         moving = moving.replace(hops=moving.hops + np.uint8(1))
         dests, starts = np.unique(t, return_index=True)
