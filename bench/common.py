@@ -45,7 +45,10 @@ def start_ray(num_cpus: int | None = None) -> None:
     import ray
 
     shared = os.environ.get("RAY_ADDRESS", "") not in ("", "local")
-    ray.init(num_cpus=None if shared else num_cpus, include_dashboard=False,
+    # "local" when no cluster is named: ray.init() with no address joins whatever Ray
+    # /tmp/ray/ray_current_cluster points at (a test's cluster, another bench's).
+    ray.init(address=None if shared else "local", num_cpus=None if shared else num_cpus,
+             include_dashboard=False,
              log_to_driver=False, logging_level=logging.WARNING)
 
 

@@ -102,14 +102,24 @@ class SplitStats:
     pass of each ray (a re-run pass drops exactly its own); stage times cannot be
     separated, so `finish` shares them out by rays traced.
 
+    Counts are kept as (t, ...) arrays for the step and added to the passes' RenderStats
+    once, in `finish`: a step calls the counters a dozen times, and a Python loop over
+    the passes in each call made the step's cost grow with passes x calls (0.12 ms per
+    pass per step, the largest part of a small step's glue on many cores).
+
     parts : (t,) RenderStats, one per pass; `bind(tok)` names the pass's index in parts
     (n,) int of every row of the batch that the next calls count (rows index it)."""
 
     def __init__(self, parts: list[RenderStats]):
+        t = len(parts)
         self.parts = parts
         self.times = RenderStats()
         self.tok = np.zeros(0, np.int64)
-        self._rays = np.zeros(len(parts))
+        self._rays = np.zeros((t, 3), np.int64)  # per pass, per kind
+        self._hops = np.zeros((t, MAX_HOPS + 1), np.int64)
+        self._sent = np.zeros((t, 3), np.int64)  # transfers per pass, per kind
+        self._sent_bytes = np.zeros((t, 3), np.int64)
+        self._counters: dict[str, np.ndarray] = {}  # name -> (t,) int64
 
     def bind(self, tok: np.ndarray) -> SplitStats:
         self.tok = tok
@@ -124,35 +134,49 @@ class SplitStats:
         return np.bincount(tok, minlength=len(self.parts))
 
     def count(self, name: str, rows=None) -> None:
-        for part, c in zip(self.parts, self._per_part(rows), strict=True):
-            if c:
-                part.counters[name] += int(c)
+        per = self._per_part(rows)
+        have = self._counters.get(name)
+        self._counters[name] = per if have is None else have + per
 
     def count_rays(self, kind: np.ndarray) -> None:
         """kind : (n,) uint8 of the bound batch. One bincount over (pass, kind): O(n)
         for any number of passes in the step."""
         t = len(self.parts)
-        per = np.bincount(self.tok * 3 + kind, minlength=3 * t).reshape(t, 3)
-        for part, row in zip(self.parts, per, strict=True):
-            for k, c in enumerate(row):
-                if c:
-                    part.rays[KIND_NAMES[k]] += int(c)
-        self._rays += per.sum(axis=1)
+        self._rays += np.bincount(self.tok * 3 + kind, minlength=3 * t).reshape(t, 3)
 
     def count_hops(self, hops: np.ndarray, rows=None) -> None:
         """hops : (n,) of the bound batch; rows: which of them finished."""
         tok = self.tok if rows is None else self.tok[rows]
         hops = hops if rows is None else hops[rows]
         width = MAX_HOPS + 1
-        per = np.bincount(tok * width + np.minimum(hops, MAX_HOPS),
-                          minlength=width * len(self.parts)).reshape(len(self.parts), width)
-        for part, row in zip(self.parts, per, strict=True):
-            part.hops += row
+        self._hops += np.bincount(tok * width + np.minimum(hops, MAX_HOPS),
+                                  minlength=width * len(self.parts)).reshape(-1, width)
+
+    def count_transfers(self, kind: np.ndarray, per_row: int) -> None:
+        """Rays of the bound batch sent to another shard: kind (n,) int of each row,
+        per_row bytes each."""
+        t = len(self.parts)
+        per = np.bincount(self.tok * 3 + kind, minlength=3 * t).reshape(t, 3)
+        self._sent += per
+        self._sent_bytes += per * per_row
 
     def finish(self) -> None:
-        share = self._rays / self._rays.sum() if self._rays.sum() else \
+        """Add the step's counts to each pass's RenderStats, and its phase times shared
+        out by rays traced."""
+        traced = self._rays.sum(axis=1)
+        share = traced / traced.sum() if traced.sum() else \
             np.full(len(self.parts), 1.0 / max(len(self.parts), 1))
-        for part, w in zip(self.parts, share, strict=True):
+        counters = list(self._counters.items())
+        for j, (part, w) in enumerate(zip(self.parts, share, strict=True)):
+            for k in np.flatnonzero(self._rays[j]):
+                part.rays[KIND_NAMES[k]] += int(self._rays[j, k])
+            for k in np.flatnonzero(self._sent[j]):
+                part.count_transfer(KIND_NAMES[k], int(self._sent[j, k]),
+                                    int(self._sent_bytes[j, k]))
+            part.hops += self._hops[j]
+            for name, per in counters:
+                if per[j]:
+                    part.counters[name] += int(per[j])
             for name, s in self.times.phase_s.items():
                 part.phase_s[name] += float(s * w)
             for name, s in self.times.phase_cpu_s.items():

@@ -35,7 +35,7 @@ from nprt.workers.stats.counters import RenderStats, SplitStats
 from nprt.workers.traversal.closest import resolve_closest
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.local import LocalGeometry
-from nprt.workers.wavefront.batch import FLAG_SHADE, KIND_NAMES, SHADOW, RayBatch, ShadowRayBatch
+from nprt.workers.wavefront.batch import FLAG_SHADE, PRIMARY, SHADOW, RayBatch, ShadowRayBatch
 from nprt.workers.wavefront.integrator import PathIntegrator
 from nprt.workers.wavefront.world import ShardWorld
 
@@ -289,7 +289,7 @@ class Shard:
             with times.phase("send"):
                 parcels_out, returned = self._pack(step, out_rays, out_shadow, out_camera,
                                                    credits)
-            step.stats.finish()
+        step.stats.finish()  # after the bookkeeping phase closes: its time is shared too
         return StepResult(parcels_out, returned, times, n_in, bytes_in)
 
     def _open(self, indices: list[int], times: RenderStats) -> _Step:
@@ -441,23 +441,17 @@ class Shard:
                          camera: tuple | None) -> None:
         """Transfers and bytes by kind, counted on each ray's pass; camera rays sent by
         name count as primary transfers of their 8 bytes."""
-        t = len(step.states)
+        stats = step.stats
         if camera is not None:
-            counts = np.bincount(step.tok(camera[0]), minlength=t)
-            per_row = sum(a.itemsize for a in camera)
-            for st, c in zip(step.states, counts, strict=True):
-                if c:
-                    st.stats.count_transfer(KIND_NAMES[0], int(c), int(c) * per_row)
-                    st.stats.counters["camera_rays_sent_by_name"] += int(c)
-        for batch, kinds in ((rays, None), (shadow, SHADOW)):
-            if not len(batch):
-                continue
-            per_row = batch.nbytes // len(batch)
-            kind = batch.kind if kinds is None else np.full(len(batch), kinds, np.int64)
-            per = np.bincount(step.tok(batch.pixel) * 3 + kind, minlength=3 * t)
-            for (j, k), c in np.ndenumerate(per.reshape(t, 3)):
-                if c:
-                    step.states[j].stats.count_transfer(KIND_NAMES[k], int(c), int(c) * per_row)
+            stats.bind(step.tok(camera[0]))
+            stats.count_transfers(np.full(len(camera[0]), PRIMARY, np.int64),
+                                  sum(a.itemsize for a in camera))
+            stats.count("camera_rays_sent_by_name")
+        for batch, kind in ((rays, None), (shadow, SHADOW)):
+            if len(batch):
+                stats.bind(step.tok(batch.pixel)).count_transfers(
+                    batch.kind if kind is None else np.full(len(batch), kind, np.int64),
+                    batch.nbytes // len(batch))
 
     def _send(self, batch, target: np.ndarray, out: list) -> None:
         """Bucket the rows of batch leaving for another shard by target, one hop more."""
