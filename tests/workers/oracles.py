@@ -3,7 +3,8 @@ plain formula a kernel must match bit for bit (`surface_at` for
 `nprt.workers.kernels.shade.surface`, `hit_point_error` and `offset_ray_origin` for its
 `point_error` and `offset_origin`, `sample_lights` for `next_event`'s light sampling,
 `cosine_hemisphere` for `bsdf_continue`, `uniform` for `nprt.workers.kernels.rng.uniform`,
-`intersect_quads` and `generate_primary` for `nprt.workers.kernels.quads`).
+`intersect_quads` and `generate_primary` for `nprt.workers.kernels.quads`,
+`environment_radiance` and `pdf_quad_hit` for `shade_hits`).
 No product code imports this module."""
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from numba import njit
 
 from nprt.scene.model import Camera, Material, Mesh
 from nprt.workers.kernels.pairs import to_local_ray
-from nprt.workers.kernels.shade import GAMMA64_3, LOCAL_REL, offset_origin
+from nprt.workers.kernels.shade import GAMMA64_3, LOCAL_REL, MIN_COS, offset_origin
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.lights import FAR_T, LightSet
 from nprt.workers.wavefront.surface import Surface
@@ -206,6 +207,28 @@ def sample_lights(lights: LightSet, pick: np.ndarray, u1: np.ndarray, u2: np.nda
         wi[dl] = -lights.dir_dir[li]
         value[dl] = lights.dir_irradiance[li] * lights.count
     return wi, dist, value, pdf
+
+
+def environment_radiance(lights: LightSet, direction: np.ndarray) -> np.ndarray:
+    """(n, 3) float32 unit directions -> (n, 3) float64 radiance of escaped rays (the
+    numpy formula of `nprt.workers.kernels.shade.shade_hits`' environment)."""
+    env = lights.environment
+    if env.kind == "sky":
+        w = np.clip(direction[:, 1].astype(np.float64), 0.0, 1.0)[:, None]
+        return (1 - w) * np.asarray(env.horizon)[None] + w * np.asarray(env.zenith)[None]
+    return np.broadcast_to(np.asarray(env.radiance, np.float64), (len(direction), 3))
+
+
+def pdf_quad_hit(lights: LightSet, light: np.ndarray, t: np.ndarray,
+                 direction: np.ndarray) -> np.ndarray:
+    """Solid-angle pdf with which next-event estimation would have sampled this quad
+    point, the 1/count light pick included (`shade_hits`' MIS weight of a quad hit).
+    light (n,) int; direction (n, 3); t (n,) -> (n,) float64."""
+    cos_l = np.abs(np.einsum("ij,ij->i", direction.astype(np.float64),
+                             lights.quad_normal[light]))
+    area = lights.quad_area[light]
+    with np.errstate(divide="ignore"):
+        return (t.astype(np.float64) ** 2) / (np.maximum(cos_l, MIN_COS) * area * lights.count)
 
 
 @njit(cache=False)

@@ -1,6 +1,7 @@
 """Jitted shading kernels: next-event light sampling, BSDF continuation and surface
 interactions, row by row with exactly the float operations (and their order)
-of the numpy formulas they replace, so film sums stay bit-identical.
+of the numpy formulas they replace, so film sums stay bit-identical. A wavefront's shading
+runs as two of them (`shade_hits`, then `scatter`) built of the same row functions.
 
 One fixed sum order, written out in the numpy oracles too (tests/workers/oracles.py):
 three-term dot products, instance transforms included, sum (p0 + p2) + p1 (`_dot`), then
@@ -15,7 +16,15 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from nprt.workers.kernels.rng import DIM_BSDF_U, DIM_LIGHT_BASE, DIM_RR, dim_key, uniform_keyed
+from nprt.workers.kernels.records import LIGHT_BASE, NO_HIT  # the wire's fixed sentinels
+from nprt.workers.kernels.rng import (
+    DIM_BSDF_U,
+    DIM_BSDF_V,
+    DIM_LIGHT_BASE,
+    DIM_RR,
+    dim_key,
+    uniform_keyed,
+)
 
 # error_model="numpy": x / 0.0 is inf or NaN (as in numpy), not a ZeroDivisionError.
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
@@ -32,7 +41,7 @@ GAMMA64_3 = 3 * _U64 / (1 - 3 * _U64)
 LOCAL_REL = 2 * GAMMA32_7
 _LOCAL_REL = LOCAL_REL
 # Floor of a light's cosine where it divides a pdf (the quad's solid-angle density, in
-# next_event here and in `LightSet.pdf_quad_hit` for MIS): a grazing sample gets a huge,
+# next_event and in shade_hits' MIS weight of a quad hit): a grazing sample gets a huge,
 # finite density (weight ~0), never a division by zero.
 MIN_COS = 1e-30
 # Russian roulette kills a path with probability 1 - max(throughput), at most this much,
@@ -108,56 +117,80 @@ def next_event(seed, S, rows, ray_of, pixel, sample, depth, p, p_err, ns, ng, al
     `nprt.workers.kernels.offset`), direction (m, 3) float32,
     tmax (m,) float32, contribution (m, 3) float32, pixel (m,) uint32; m = len(rows) * S.
     """
-    n_quads, n_points = len(q_area), len(pt_pos)
-    count = n_quads + n_points + len(dir_dir)
-    fcount = np.float64(count)
-    fS = np.float64(S)
-    m = len(rows) * S
-    o_p = np.empty((m, 3), np.float64)
-    o_dir = np.empty((m, 3), np.float32)
-    o_tmax = np.empty(m, np.float32)
-    o_con = np.empty((m, 3), np.float32)
-    o_pix = np.empty(m, np.uint32)
-    useed = np.uint64(seed)
-    keys = np.empty(3 * S, np.uint64)
-    for j in range(3 * S):
-        keys[j] = dim_key(useed, np.uint64(DIM_LIGHT_BASE + j))  # light s, draw k: j = 3 s + k
-    wi = np.empty(3)
-    val = np.empty(3)
+    out = _shadow_out(len(rows) * S)
+    keys = _light_keys(seed, S)
+    wi, val = np.empty(3), np.empty(3)
     k = 0
     for r in range(len(rows)):
         i = rows[r]
         j = ray_of[i]
-        px, sm, dp = pixel[j], sample[j], depth[j]
-        for s in range(S):
-            pick = uniform_keyed(keys[3 * s], px, sm, dp)
-            u1 = uniform_keyed(keys[3 * s + 1], px, sm, dp)
-            u2 = uniform_keyed(keys[3 * s + 2], px, sm, dp)
-            li = min(np.int64(pick * fcount), count - 1)
-            if li < n_quads:
-                dist, pdf_l = _sample_quad(li, u1, u2, p, i, q_corner, q_u, q_v, q_normal,
-                                           q_area, q_radiance, fcount, wi, val)
-            elif li < n_quads + n_points:
-                dist, pdf_l = _sample_point(li - n_quads, p, i, pt_pos, pt_intensity, fcount,
-                                            wi, val)
-            else:
-                dist, pdf_l = far_t, 0.0
-                ld = li - n_quads - n_points
-                for c in range(3):
-                    wi[c] = -dir_dir[ld, c]
-                    val[c] = dir_irradiance[ld, c] * fcount
-            ok, c0, c1, c2 = _light_contribution(wi, val, pdf_l, fS, ns, ng, albedo, thr, i)
-            if not ok:
-                continue
-            offset_origin(p, p_err, ng, i, o_p, k)
-            for c in range(3):
-                o_dir[k, c] = np.float32(wi[c])
-            o_con[k, 0], o_con[k, 1], o_con[k, 2] = (np.float32(c0), np.float32(c1),
-                                                     np.float32(c2))
-            o_tmax[k] = np.float32(dist * tmax_scale)
-            o_pix[k] = px
-            k += 1
+        k = _light_samples(keys, S, pixel[j], sample[j], depth[j], i, p, p_err, ns, ng,
+                           albedo, thr, q_corner, q_u, q_v, q_normal, q_area, q_radiance,
+                           pt_pos, pt_intensity, dir_dir, dir_irradiance, far_t, tmax_scale,
+                           wi, val, out, k)
+    o_p, o_dir, o_tmax, o_con, o_pix = out
     return k, o_p, o_dir, o_tmax, o_con, o_pix
+
+
+@njit(inline="always", **JIT)
+def _shadow_out(m):
+    """Room for m shadow rays: origin (m, 3) float64, direction (m, 3) float32, tmax (m,)
+    float32, contribution (m, 3) float32, pixel (m,) uint32."""
+    return (np.empty((m, 3), np.float64), np.empty((m, 3), np.float32),
+            np.empty(m, np.float32), np.empty((m, 3), np.float32), np.empty(m, np.uint32))
+
+
+@njit(inline="always", **JIT)
+def _light_keys(seed, S):
+    """(3 S,) uint64 dimension keys of S light samples: light s, draw k at 3 s + k."""
+    useed = np.uint64(seed)
+    keys = np.empty(3 * S, np.uint64)
+    for j in range(3 * S):
+        keys[j] = dim_key(useed, np.uint64(DIM_LIGHT_BASE + j))
+    return keys
+
+
+@njit(inline="always", **JIT)
+def _light_samples(keys, S, px, sm, dp, i, p, p_err, ns, ng, albedo, thr, q_corner, q_u, q_v,
+                   q_normal, q_area, q_radiance, pt_pos, pt_intensity, dir_dir, dir_irradiance,
+                   far_t, tmax_scale, wi, val, out, k):
+    """The kept light samples of hit i (of the ray of pixel px, sample sm, depth dp),
+    written to `out` (`_shadow_out`) from row k on; wi, val (3,) float64 scratch.
+    Returns the next free row."""
+    o_p, o_dir, o_tmax, o_con, o_pix = out
+    n_quads, n_points = len(q_area), len(pt_pos)
+    count = n_quads + n_points + len(dir_dir)
+    fcount = np.float64(count)
+    fS = np.float64(S)
+    for s in range(S):
+        pick = uniform_keyed(keys[3 * s], px, sm, dp)
+        u1 = uniform_keyed(keys[3 * s + 1], px, sm, dp)
+        u2 = uniform_keyed(keys[3 * s + 2], px, sm, dp)
+        li = min(np.int64(pick * fcount), count - 1)
+        if li < n_quads:
+            dist, pdf_l = _sample_quad(li, u1, u2, p, i, q_corner, q_u, q_v, q_normal,
+                                       q_area, q_radiance, fcount, wi, val)
+        elif li < n_quads + n_points:
+            dist, pdf_l = _sample_point(li - n_quads, p, i, pt_pos, pt_intensity, fcount,
+                                        wi, val)
+        else:
+            dist, pdf_l = far_t, 0.0
+            ld = li - n_quads - n_points
+            for c in range(3):
+                wi[c] = -dir_dir[ld, c]
+                val[c] = dir_irradiance[ld, c] * fcount
+        ok, c0, c1, c2 = _light_contribution(wi, val, pdf_l, fS, ns, ng, albedo, thr, i)
+        if not ok:
+            continue
+        offset_origin(p, p_err, ng, i, o_p, k)
+        for c in range(3):
+            o_dir[k, c] = np.float32(wi[c])
+        o_con[k, 0], o_con[k, 1], o_con[k, 2] = (np.float32(c0), np.float32(c1),
+                                                 np.float32(c2))
+        o_tmax[k] = np.float32(dist * tmax_scale)
+        o_pix[k] = px
+        k += 1
+    return k
 
 
 @njit(inline="always", **JIT)
@@ -219,6 +252,7 @@ def _light_contribution(wi, val, pdf_l, fS, ns, ng, albedo, thr, i):
     return True, c0, c1, c2
 
 
+
 @njit(**JIT)
 def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nmat, verts,
             faces, normals, uvs, mesh_vbase, mesh_fbase, mesh_has_n, mesh_has_uv, mesh_mat,
@@ -242,37 +276,50 @@ def surface(rows, inst, prim, u, v, direction, slot_of_mesh, inst_mesh, l2w, nma
     albedo = np.empty((n, 3))
     emission = np.empty((n, 3))
     p_err = np.empty((n, 3))
-    pl = np.empty(3)
-    gl = np.empty(3)
-    sl = np.empty(3)
+    scratch = (np.empty(3), np.empty(3), np.empty(3))
+    out = (p, ng, ns, albedo, p_err)
     for i in range(n):
         h = rows[i]
         it = inst[h]
         slot = slot_of_mesh[inst_mesh[it]]
         if slot < 0:
             return h, p, ng, ns, albedo, emission, p_err
-        b1, b2 = np.float64(u[h]), np.float64(v[h])
-        b0 = 1.0 - b1 - b2
-        f = mesh_fbase[slot] + prim[h]
-        t0, t1, t2 = faces[f, 0], faces[f, 1], faces[f, 2]
-        v_max = _local_hit(verts, normals, mesh_has_n[slot], t0, t1, t2, b0, b1, b2, pl, gl,
-                           sl)
         mat = mesh_mat[slot]
-        tx = mat_tex[mat]
-        if tx >= 0 and mesh_has_uv[slot]:
-            _texel(uvs, t0, t1, t2, b0, b1, b2, tex_base[tx], tex_h[tx], tex_w[tx], texels,
-                   albedo, i)
-        else:
-            for c in range(3):
-                albedo[i, c] = mat_albedo[mat, c]
         for c in range(3):
             emission[i, c] = mat_emission[mat, c]
-        for c in range(3):
-            p[i, c] = (_dot(l2w[it, c, 0], l2w[it, c, 1], l2w[it, c, 2], pl[0], pl[1], pl[2])
-                       + l2w[it, c, 3])
-        point_error(l2w, w2l, it, v_max, pl, p, i, p_err)
-        _world_normals(nmat, it, gl, sl, direction, h, ng, ns, i)
+        _surface_row(h, it, slot, mat, prim, u, v, direction, l2w, nmat, verts, faces, normals,
+                     uvs, mesh_fbase, mesh_has_n, mesh_has_uv, mat_albedo, mat_tex, tex_base,
+                     tex_h, tex_w, texels, w2l, scratch, out, i)
     return -1, p, ng, ns, albedo, emission, p_err
+
+
+@njit(inline="always", **JIT)
+def _surface_row(h, it, slot, mat, prim, u, v, direction, l2w, nmat, verts, faces, normals,
+                 uvs, mesh_fbase, mesh_has_n, mesh_has_uv, mat_albedo, mat_tex, tex_base,
+                 tex_h, tex_w, texels, w2l, scratch, out, i):
+    """Row i of out = (p, ng, ns, albedo, p_err) (as `surface` documents them) for hit
+    record h of instance it, whose mesh is in slot and has material mat; scratch: three
+    (3,) float64. (At most 30 arguments: Python passes more as *args, which numba cannot
+    inline.)"""
+    pl, gl, sl = scratch
+    p, ng, ns, albedo, p_err = out
+    b1, b2 = np.float64(u[h]), np.float64(v[h])
+    b0 = 1.0 - b1 - b2
+    f = mesh_fbase[slot] + prim[h]
+    t0, t1, t2 = faces[f, 0], faces[f, 1], faces[f, 2]
+    v_max = _local_hit(verts, normals, mesh_has_n[slot], t0, t1, t2, b0, b1, b2, pl, gl, sl)
+    tx = mat_tex[mat]
+    if tx >= 0 and mesh_has_uv[slot]:
+        _texel(uvs, t0, t1, t2, b0, b1, b2, tex_base[tx], tex_h[tx], tex_w[tx], texels,
+               albedo, i)
+    else:
+        for c in range(3):
+            albedo[i, c] = mat_albedo[mat, c]
+    for c in range(3):
+        p[i, c] = (_dot(l2w[it, c, 0], l2w[it, c, 1], l2w[it, c, 2], pl[0], pl[1], pl[2])
+                   + l2w[it, c, 3])
+    point_error(l2w, w2l, it, v_max, pl, p, i, p_err)
+    _world_normals(nmat, it, gl, sl, direction, h, ng, ns, i)
 
 
 @njit(inline="always", **JIT)
@@ -360,46 +407,218 @@ def bsdf_continue(seed, rows, ray_of, pixel, sample, depth, cos_phi, sin_phi, p,
     """
     k = len(rows)
     o_row = np.empty(k, np.int64)
-    o_p = np.empty((k, 3), np.float64)
-    o_d = np.empty((k, 3), np.float32)
-    o_t = np.empty((k, 3), np.float32)
-    o_pdf = np.empty(k, np.float32)
-    useed = np.uint64(seed)
-    key_u = dim_key(useed, np.uint64(DIM_BSDF_U))
-    key_rr = dim_key(useed, np.uint64(DIM_RR))
+    out = _continue_out(k)
+    key_u, key_rr = _bsdf_keys(seed)
     c = 0
     for j in range(k):
         i = rows[j]
         ray = ray_of[i]
-        px, sm, dp = pixel[ray], sample[ray], depth[ray]
-        u1 = uniform_keyed(key_u, px, sm, dp)
-        r = np.sqrt(u1)
-        x, y = r * cos_phi[j], r * sin_phi[j]
-        z = np.sqrt(max(0.0, 1.0 - u1))
-        n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
-        sign = 1.0 if n2 >= 0 else -1.0  # Duff et al. frame, as the oracle `frame`
-        a = -1.0 / (sign + n2)
-        b = n0 * n1 * a
-        d0 = x * (1.0 + sign * (n0 * n0) * a) + y * b + z * n0
-        d1 = x * (sign * b) + y * (sign + (n1 * n1) * a) + z * n1
-        d2 = x * (-sign * n0) + y * (-n1) + z * n2
-        if not _dot(d0, d1, d2, ng[i, 0], ng[i, 1], ng[i, 2]) > 0:
-            continue  # below the true surface: absorbed
-        t0, t1, t2 = thr[i, 0] * albedo[i, 0], thr[i, 1] * albedo[i, 1], thr[i, 2] * albedo[i, 2]
-        if t0 != t0 or t1 != t1 or t2 != t2:
-            continue  # t.max(axis=1) > 0 fails on NaN
-        if russian_roulette and np.int64(dp) + 1 >= rr_start_depth:
-            q = min(max(1.0 - max(max(t0, t1), t2), 0.0), RR_MAX_KILL)
-            if not uniform_keyed(key_rr, px, sm, dp) >= q:
-                continue
-            s = 1.0 - q
-            t0, t1, t2 = t0 / s, t1 / s, t2 / s
-        if not max(max(t0, t1), t2) > 0:
-            continue
-        o_row[c] = i
-        offset_origin(p, p_err, ng, i, o_p, c)
-        o_d[c, 0], o_d[c, 1], o_d[c, 2] = np.float32(d0), np.float32(d1), np.float32(d2)
-        o_t[c, 0], o_t[c, 1], o_t[c, 2] = np.float32(t0), np.float32(t1), np.float32(t2)
-        o_pdf[c] = np.float32(z / np.pi)
-        c += 1
+        if _bsdf_sample(key_u, key_rr, pixel[ray], sample[ray], depth[ray], cos_phi[j],
+                        sin_phi[j], i, p, p_err, ng, ns, albedo, thr, russian_roulette,
+                        rr_start_depth, out, c):
+            o_row[c] = i
+            c += 1
+    o_p, o_d, o_t, o_pdf = out
     return c, o_row, o_p, o_d, o_t, o_pdf
+
+
+@njit(inline="always", **JIT)
+def _continue_out(k):
+    """Room for k continuation rays: origin (k, 3) float64, direction, throughput (k, 3)
+    float32, pdf (k,) float32."""
+    return (np.empty((k, 3), np.float64), np.empty((k, 3), np.float32),
+            np.empty((k, 3), np.float32), np.empty(k, np.float32))
+
+
+@njit(inline="always", **JIT)
+def _bsdf_keys(seed):
+    """The dimension keys of the BSDF's u1 and of Russian roulette (uint64)."""
+    useed = np.uint64(seed)
+    return dim_key(useed, np.uint64(DIM_BSDF_U)), dim_key(useed, np.uint64(DIM_RR))
+
+
+@njit(inline="always", **JIT)
+def _bsdf_sample(key_u, key_rr, px, sm, dp, cos_phi, sin_phi, i, p, p_err, ng, ns, albedo, thr,
+                 russian_roulette, rr_start_depth, out, c):
+    """The continuation of hit i (of the ray of pixel px, sample sm, depth dp) written to
+    row c of `out` (`_continue_out`); False where the path ends (below the true surface,
+    no throughput left, Russian roulette)."""
+    o_p, o_d, o_t, o_pdf = out
+    u1 = uniform_keyed(key_u, px, sm, dp)
+    r = np.sqrt(u1)
+    x, y = r * cos_phi, r * sin_phi
+    z = np.sqrt(max(0.0, 1.0 - u1))
+    n0, n1, n2 = ns[i, 0], ns[i, 1], ns[i, 2]
+    sign = 1.0 if n2 >= 0 else -1.0  # Duff et al. frame, as the oracle `frame`
+    a = -1.0 / (sign + n2)
+    b = n0 * n1 * a
+    d0 = x * (1.0 + sign * (n0 * n0) * a) + y * b + z * n0
+    d1 = x * (sign * b) + y * (sign + (n1 * n1) * a) + z * n1
+    d2 = x * (-sign * n0) + y * (-n1) + z * n2
+    if not _dot(d0, d1, d2, ng[i, 0], ng[i, 1], ng[i, 2]) > 0:
+        return False  # below the true surface: absorbed
+    t0, t1, t2 = thr[i, 0] * albedo[i, 0], thr[i, 1] * albedo[i, 1], thr[i, 2] * albedo[i, 2]
+    if t0 != t0 or t1 != t1 or t2 != t2:
+        return False  # t.max(axis=1) > 0 fails on NaN
+    if russian_roulette and np.int64(dp) + 1 >= rr_start_depth:
+        q = min(max(1.0 - max(max(t0, t1), t2), 0.0), RR_MAX_KILL)
+        if not uniform_keyed(key_rr, px, sm, dp) >= q:
+            return False
+        s = 1.0 - q
+        t0, t1, t2 = t0 / s, t1 / s, t2 / s
+    if not max(max(t0, t1), t2) > 0:
+        return False
+    offset_origin(p, p_err, ng, i, o_p, c)
+    o_d[c, 0], o_d[c, 1], o_d[c, 2] = np.float32(d0), np.float32(d1), np.float32(d2)
+    o_t[c, 0], o_t[c, 1], o_t[c, 2] = np.float32(t0), np.float32(t1), np.float32(t2)
+    o_pdf[c] = np.float32(z / np.pi)
+    return True
+
+
+# -- one wavefront's shading in two kernels (numpy's sines between them) ----------------
+
+_TWO_PI = 2.0 * np.pi  # phi = 2 pi u2, in numpy's order (the constant first)
+
+
+@njit(**JIT)
+def shade_hits(seed, bounces, S, direction, tmax, throughput, pixel, sample, depth, pdf_prev,
+               hit_inst, hit_prim, hit_u, hit_v, env_sky, env_a, env_b, q_normal, q_area,
+               q_radiance, n_lights, slot_of_mesh, inst_mesh, l2w, nmat, verts, faces, normals,
+               uvs, mesh_vbase, mesh_fbase, mesh_has_n, mesh_has_uv, mesh_mat, mat_albedo,
+               mat_emission, mat_tex, tex_base, tex_h, tex_w, texels, w2l):
+    """The first half of `PathIntegrator.shade` for rays (n,) with a final hit record (the
+    RayBatch columns of those names): film contributions of escaped rays (environment),
+    quad lights hit (MIS-weighted against S light samples of n_lights) and emissive
+    surfaces, and the surfaces of hits that go on (depth < bounces).
+
+    env_sky: sky (horizon env_a to zenith env_b) or constant (radiance env_a), (3,)
+    float64 each; q_normal (L, 3), q_area (L,), q_radiance (L, 3) float64;
+    then the tables of `surface` (`SurfaceTables.kernel_tables()`).
+    returns bad (the first ray whose mesh is not held, else -1), m, f_pix (n,) uint32 and
+    f_rgb (n, 3) float64 (the contributions in the first m rows; rows of zero left out: they
+    add nothing), then per hit that goes on (g,): go_ray int64 (its ray), p, p_err, ng, ns,
+    albedo, thr (g, 3) float64 (thr: the ray's throughput), phi float64 (2 pi u2 of its
+    BSDF sample).
+    """
+    n = pixel.shape[0]
+    bad, g = -1, 0
+    lit = False  # a surface hit here emits: then every surface hit adds thr * emission
+    for j in range(n):
+        it = hit_inst[j]
+        if it < 0:
+            continue
+        slot = slot_of_mesh[inst_mesh[it]]
+        if slot < 0:
+            bad, g = j, 0
+            break
+        mat = mesh_mat[slot]
+        if mat_emission[mat, 0] != 0 or mat_emission[mat, 1] != 0 or mat_emission[mat, 2] != 0:
+            lit = True
+        if depth[j] < bounces:
+            g += 1
+    f_pix = np.empty(n, np.uint32)
+    f_rgb = np.empty((n, 3))
+    go_ray = np.empty(g, np.int64)
+    p, p_err, ng = np.empty((g, 3)), np.empty((g, 3)), np.empty((g, 3))
+    ns, albedo, thr = np.empty((g, 3)), np.empty((g, 3)), np.empty((g, 3))
+    phi = np.empty(g)
+    if bad >= 0:
+        return bad, 0, f_pix, f_rgb, go_ray, p, p_err, ng, ns, albedo, thr, phi
+    key_v = dim_key(np.uint64(seed), np.uint64(DIM_BSDF_V))
+    fS, fcount = np.float64(S), np.float64(n_lights)
+    scratch = (np.empty(3), np.empty(3), np.empty(3))
+    out = (p, ng, ns, albedo, p_err)
+    m = i = 0
+    for j in range(n):
+        it = hit_inst[j]
+        t0, t1, t2 = (np.float64(throughput[j, 0]), np.float64(throughput[j, 1]),
+                      np.float64(throughput[j, 2]))
+        if it == NO_HIT:
+            if env_sky:
+                y = np.float64(direction[j, 1])
+                w = 0.0 if y < 0.0 else (1.0 if y > 1.0 else y)  # np.clip: NaN stays NaN
+                m = _film(f_pix, f_rgb, m, pixel[j], t0 * ((1 - w) * env_a[0] + w * env_b[0]),
+                          t1 * ((1 - w) * env_a[1] + w * env_b[1]),
+                          t2 * ((1 - w) * env_a[2] + w * env_b[2]))
+            else:
+                m = _film(f_pix, f_rgb, m, pixel[j], t0 * env_a[0], t1 * env_a[1],
+                          t2 * env_a[2])
+        elif it < NO_HIT:
+            li = LIGHT_BASE - it
+            w = 1.0  # camera rays, and S = 0: no MIS
+            if S > 0:
+                cos_l = abs(_dot(np.float64(direction[j, 0]), np.float64(direction[j, 1]),
+                                 np.float64(direction[j, 2]), q_normal[li, 0],
+                                 q_normal[li, 1], q_normal[li, 2]))
+                cos_l = MIN_COS if cos_l < MIN_COS else cos_l  # np.maximum: NaN stays
+                tt = np.float64(tmax[j])
+                pdf_l = fS * (tt * tt / ((cos_l * q_area[li]) * fcount))
+                pdf_b = np.float64(pdf_prev[j])
+                if pdf_b > 0:
+                    w = pdf_b / (pdf_b + pdf_l)
+            m = _film(f_pix, f_rgb, m, pixel[j], t0 * (q_radiance[li, 0] * w),
+                      t1 * (q_radiance[li, 1] * w), t2 * (q_radiance[li, 2] * w))
+        else:
+            slot = slot_of_mesh[inst_mesh[it]]
+            mat = mesh_mat[slot]
+            if lit:
+                m = _film(f_pix, f_rgb, m, pixel[j], t0 * mat_emission[mat, 0],
+                          t1 * mat_emission[mat, 1], t2 * mat_emission[mat, 2])
+            if depth[j] < bounces:
+                go_ray[i] = j
+                thr[i, 0], thr[i, 1], thr[i, 2] = t0, t1, t2
+                _surface_row(j, it, slot, mat, hit_prim, hit_u, hit_v, direction, l2w, nmat,
+                             verts, faces, normals, uvs, mesh_fbase, mesh_has_n, mesh_has_uv,
+                             mat_albedo, mat_tex, tex_base, tex_h, tex_w, texels, w2l, scratch,
+                             out, i)
+                phi[i] = _TWO_PI * uniform_keyed(key_v, pixel[j], sample[j], depth[j])
+                i += 1
+    return -1, m, f_pix, f_rgb, go_ray, p, p_err, ng, ns, albedo, thr, phi
+
+
+@njit(inline="always", **JIT)
+def _film(f_pix, f_rgb, m, px, v0, v1, v2):
+    """Add contribution (v0, v1, v2) of pixel px at row m unless it is zero (NaN is kept);
+    returns the next free row."""
+    if v0 != 0 or v1 != 0 or v2 != 0:
+        f_pix[m] = px
+        f_rgb[m, 0], f_rgb[m, 1], f_rgb[m, 2] = v0, v1, v2
+        return m + 1
+    return m
+
+
+@njit(**JIT)
+def scatter(seed, S, go_ray, pixel, sample, depth, p, p_err, ns, ng, albedo, thr, cos_phi,
+            sin_phi, q_corner, q_u, q_v, q_normal, q_area, q_radiance, pt_pos, pt_intensity,
+            dir_dir, dir_irradiance, far_t, tmax_scale, russian_roulette, rr_start_depth):
+    """The second half of `PathIntegrator.shade`: `next_event` and `bsdf_continue` of the
+    hits (g,) of `shade_hits` that go on, hit i of ray go_ray[i], in one loop. cos_phi,
+    sin_phi (g,) float64 of its phi (numpy's); the light arrays as `next_event` takes them;
+    S: 0 for no light samples.
+    returns k and the shadow rays in the first k rows of origin (g S, 3) float64,
+    direction (g S, 3) float32, tmax (g S,) float32, contribution (g S, 3) float32, pixel
+    (g S,) uint32; then c and the continuation rays in the first c rows of origin (g, 3)
+    float64, direction, throughput (g, 3) float32, pdf (g,) float32, pixel, sample (g,)
+    uint32, depth (g,) uint8 (the hit's depth + 1).
+    """
+    g = go_ray.shape[0]
+    shadow = _shadow_out(g * S)
+    keys = _light_keys(seed, S)
+    cont = _continue_out(g)
+    key_u, key_rr = _bsdf_keys(seed)
+    r_pix, r_sample, r_depth = np.empty(g, np.uint32), np.empty(g, np.uint32), np.empty(g, np.uint8)
+    wi, val = np.empty(3), np.empty(3)
+    k = c = 0
+    for i in range(g):
+        j = go_ray[i]
+        px, sm, dp = pixel[j], sample[j], depth[j]
+        k = _light_samples(keys, S, px, sm, dp, i, p, p_err, ns, ng, albedo, thr, q_corner,
+                           q_u, q_v, q_normal, q_area, q_radiance, pt_pos, pt_intensity,
+                           dir_dir, dir_irradiance, far_t, tmax_scale, wi, val, shadow, k)
+        if _bsdf_sample(key_u, key_rr, px, sm, dp, cos_phi[i], sin_phi[i], i, p, p_err, ng, ns,
+                        albedo, thr, russian_roulette, rr_start_depth, cont, c):
+            r_pix[c], r_sample[c], r_depth[c] = px, sm, np.uint8(dp + 1)
+            c += 1
+    s_p, s_dir, s_tmax, s_con, s_pix = shadow
+    o_p, o_d, o_t, o_pdf = cont
+    return k, s_p, s_dir, s_tmax, s_con, s_pix, c, o_p, o_d, o_t, o_pdf, r_pix, r_sample, r_depth

@@ -15,13 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from nprt.scene.model import Camera, Material, Mesh
+from nprt.workers.kernels import quads
 from nprt.workers.kernels import shade as shade_kernels
-from nprt.workers.kernels.rng import DIM_BSDF_V, uniform_rows
 from nprt.workers.passes import Pass
 from nprt.workers.settings import RenderSettings
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.batch import (
-    LIGHT_BASE,
     NO_HIT,
     ORIGIN_DTYPE,
     PRIMARY,
@@ -29,7 +28,7 @@ from nprt.workers.wavefront.batch import (
     RayBatch,
     ShadowRayBatch,
 )
-from nprt.workers.wavefront.camera import generate_primary
+from nprt.workers.wavefront.camera import camera_frame
 from nprt.workers.wavefront.lights import FAR_T, LightSet
 from nprt.workers.wavefront.surface import SurfaceTables
 
@@ -49,16 +48,24 @@ class Shaded:
 
 
 def new_rays(origin, direction, throughput, pixel, sample, depth, kind, pdf_prev) -> RayBatch:
+    """Rays that start here (no hit, no hop yet). Columns already of their dtype are taken
+    as they are, not copied (batches never write their columns)."""
     n = len(pixel)
     return RayBatch(
         origin=np.asarray(origin, ORIGIN_DTYPE), direction=np.asarray(direction, np.float32),
         tmax=np.full(n, INF_T, np.float32), throughput=np.asarray(throughput, np.float32),
-        pixel=pixel.astype(np.uint32), sample=sample.astype(np.uint32),
-        depth=depth.astype(np.uint8), kind=np.full(n, kind, np.uint8),
+        pixel=np.asarray(pixel, np.uint32), sample=np.asarray(sample, np.uint32),
+        depth=np.asarray(depth, np.uint8), kind=np.full(n, kind, np.uint8),
         visited=np.zeros(n, np.uint64), pdf_prev=np.asarray(pdf_prev, np.float32),
         hit_inst=np.full(n, NO_HIT, np.int32), hit_prim=np.full(n, -1, np.int32),
         hit_u=np.zeros(n, np.float32), hit_v=np.zeros(n, np.float32),
         hops=np.zeros(n, np.uint8), flags=np.zeros(n, np.uint8))
+
+
+def _owned(a: np.ndarray) -> np.ndarray:
+    """a itself, or a writable C-ordered copy where it is not one (a column read back from
+    Ray's object store is read-only: numba would compile the kernels again for it)."""
+    return a if a.flags.writeable and a.flags.c_contiguous else np.array(a, order="C")
 
 
 class PathIntegrator:
@@ -70,6 +77,8 @@ class PathIntegrator:
         self.table, self.lights = table, lights
         self._lights_cache = None
         self._surfaces: SurfaceTables | None = None  # built on first use
+        self._frame: tuple | None = None  # the camera frame (`camera_frame`), made once
+        self._env: tuple | None = None  # the environment as the kernel takes it
 
     def primary(self, p: Pass) -> RayBatch:
         """Camera rays of one pass: every pixel of the tile times every sample of the chunk."""
@@ -79,76 +88,63 @@ class PathIntegrator:
 
     def camera_rays(self, pixel: np.ndarray, sample: np.ndarray) -> RayBatch:
         """The camera rays of (pixel, sample) pairs, (n,) uint32 each: a function of them
-        and the seed only, so any shard makes the same rays."""
-        o, d = generate_primary(self.camera, self.s.width, self.s.height, self.s.seed,
-                                pixel, sample)
+        and the seed only, so any shard makes the same rays (`generate_primary`'s, with
+        the camera frame made once)."""
+        if self._frame is None:
+            self._frame = camera_frame(self.camera, self.s.width, self.s.height)
+        o, d = quads.camera_rays(np.uint64(self.s.seed & 0xFFFFFFFFFFFFFFFF), self.s.width,
+                                 self.s.height, np.ascontiguousarray(pixel, np.uint32),
+                                 np.ascontiguousarray(sample, np.uint32), *self._frame,
+                                 float(self.camera.near_distance))
         n = len(pixel)
-        return new_rays(o, d, np.ones((n, 3)), pixel, sample, np.zeros(n, np.uint8),
-                        PRIMARY, np.zeros(n))
+        return new_rays(o, d, np.ones((n, 3), np.float32), pixel, sample,
+                        np.zeros(n, np.uint8), PRIMARY, np.zeros(n, np.float32))
 
     def shade(self, rays: RayBatch) -> Shaded:
-        """Rays whose hit record (tmax, hit_inst, hit_prim, hit_u, hit_v) is final."""
-        pix_parts, rgb_parts = [], []
-        thr = rays.throughput.astype(np.float64)
-        escaped = rays.hit_inst == NO_HIT
-        if escaped.any():
-            pix_parts.append(rays.pixel[escaped])
-            rgb_parts.append(thr[escaped] * self.lights.environment_radiance(
-                rays.direction[escaped]))
-        on_light = rays.hit_inst <= LIGHT_BASE
-        if on_light.any():
-            pix_parts.append(rays.pixel[on_light])
-            rgb_parts.append(thr[on_light] * self._light_emission(rays.take(on_light)))
-        surf = np.flatnonzero(rays.hit_inst >= 0)  # (h,) rays that hit an instance
-        shadow, secondary = ShadowRayBatch.empty(), RayBatch.empty()
-        if len(surf):
-            sf = self._surface_at(rays, surf)
-            t = thr[surf]
-            if sf.emission.any():
-                pix_parts.append(rays.pixel[surf])
-                rgb_parts.append(t * sf.emission)
-            go = rays.depth[surf] < self.s.bounces
-            if go.any():
-                shadow = self._next_event(rays, surf, sf, t, go)
-                secondary = self._continue(rays, surf, sf, t, go)
-        if pix_parts:
-            pixel, rgb = np.concatenate(pix_parts), np.concatenate(rgb_parts)
-        else:
-            pixel, rgb = np.zeros(0, np.uint32), np.zeros((0, 3))
-        return Shaded(pixel, rgb, shadow, secondary)
-
-    def _surface_at(self, rays: RayBatch, surf: np.ndarray):
-        """Surfaces of rays[surf], through the kernel."""
+        """Rays whose hit record (tmax, hit_inst, hit_prim, hit_u, hit_v) is final: film
+        contributions, then S shadow rays and a BSDF ray per hit that goes on. Two kernels
+        (`shade_kernels.shade_hits`, then `scatter`), numpy's sines between them."""
         if self._surfaces is None:
             self._surfaces = SurfaceTables(self.meshes, self.materials, self.table)
-        return self._surfaces.at(rays.hit_inst, rays.hit_prim, rays.hit_u, rays.hit_v,
-                                 rays.direction, rows=surf)
+        L, S = self.lights, self.s.shadow_rays
+        bad, m, f_pix, f_rgb, go_ray, p, p_err, ng, ns, albedo, thr, phi = \
+            shade_kernels.shade_hits(
+                self.s.seed, self.s.bounces, S, *(_owned(getattr(rays, c)) for c in (
+                    "direction", "tmax", "throughput", "pixel", "sample", "depth",
+                    "pdf_prev", "hit_inst", "hit_prim", "hit_u", "hit_v")),
+                *self._environment(), *self._light_arrays()[3:6], L.count,
+                *self._surfaces.kernel_tables())
+        if bad >= 0:
+            self._surfaces.refuse(int(rays.hit_inst[bad]))
+        shadow, secondary = ShadowRayBatch.empty(), RayBatch.empty()
+        if len(go_ray):
+            k, s_o, s_d, s_t, s_c, s_pix, c, o, d, t, pdf, pix, smp, dep = \
+                shade_kernels.scatter(
+                    self.s.seed, S if L.count else 0, go_ray, _owned(rays.pixel),
+                    _owned(rays.sample), _owned(rays.depth), p, p_err, ns, ng, albedo, thr,
+                    np.cos(phi), np.sin(phi), *self._light_arrays(), float(FAR_T),
+                    float(SHADOW_TMAX_SCALE), self.s.russian_roulette, RR_START_DEPTH)
+            if k:
+                shadow = ShadowRayBatch(
+                    origin=s_o[:k], direction=s_d[:k], tmax=s_t[:k], contribution=s_c[:k],
+                    pixel=s_pix[:k], visited=np.zeros(k, np.uint64), hops=np.zeros(k, np.uint8))
+            if c:
+                secondary = new_rays(o[:c], d[:c], t[:c], pix[:c], smp[:c], dep[:c], SECONDARY,
+                                     pdf[:c])
+        return Shaded(f_pix[:m], f_rgb[:m], shadow, secondary)
 
-    def _light_emission(self, r: RayBatch) -> np.ndarray:
-        """(n, 3) f64 quad radiance, MIS-weighted against next-event sampling."""
-        light = LIGHT_BASE - r.hit_inst  # (n,) light index
-        le = self.lights.quad_radiance[light]
-        pdf_b = r.pdf_prev.astype(np.float64)
-        if self.s.shadow_rays == 0:
-            return le
-        pdf_l = self.s.shadow_rays * self.lights.pdf_quad_hit(light, r.tmax, r.direction)
-        w = np.where(pdf_b > 0, pdf_b / (pdf_b + pdf_l), 1.0)  # camera rays: no MIS
-        return le * w[:, None]
-
-    def _next_event(self, rays: RayBatch, surf: np.ndarray, sf, thr: np.ndarray,
-                    go: np.ndarray) -> ShadowRayBatch:
-        """S shadow rays per hit where go; hit i is rays[surf[i]]."""
-        S = self.s.shadow_rays
-        if S == 0 or self.lights.count == 0:
-            return ShadowRayBatch.empty()
-        k, origin, wi, tmax, contrib, pix = shade_kernels.next_event(
-            self.s.seed, S, np.flatnonzero(go), surf, rays.pixel, rays.sample, rays.depth,
-            sf.p, sf.p_err, sf.ns, sf.ng, sf.albedo, thr, *self._light_arrays(),
-            float(FAR_T), float(SHADOW_TMAX_SCALE))
-        return ShadowRayBatch(
-            origin=origin[:k], direction=wi[:k], tmax=tmax[:k],
-            contribution=contrib[:k], pixel=pix[:k],
-            visited=np.zeros(k, np.uint64), hops=np.zeros(k, np.uint8))
+    def _environment(self) -> tuple:
+        """The environment as `shade_kernels.shade_hits` takes it: sky or not, then
+        horizon and zenith, or the constant radiance twice, (3,) float64."""
+        if self._env is None:
+            env = self.lights.environment
+            if env.kind == "sky":
+                self._env = (True, np.array(env.horizon, np.float64),
+                             np.array(env.zenith, np.float64))
+            else:
+                rad = np.array(env.radiance, np.float64)
+                self._env = (False, rad, rad)
+        return self._env
 
     def _light_arrays(self) -> tuple:
         """The light arrays as the kernels take them: owned, writable, C-ordered float64
@@ -161,18 +157,3 @@ class PathIntegrator:
                     L.quad_radiance, L.point_pos, L.point_intensity, L.dir_dir,
                     L.dir_irradiance))
         return self._lights_cache
-
-    def _continue(self, rays: RayBatch, surf: np.ndarray, sf, thr: np.ndarray,
-                  go: np.ndarray) -> RayBatch:
-        """One BSDF ray per hit where go (absorbed or terminated ones dropped)."""
-        g = np.flatnonzero(go)
-        u2 = uniform_rows(self.s.seed, surf[g], rays.pixel, rays.sample,
-                                        rays.depth, DIM_BSDF_V)
-        phi = 2.0 * np.pi * u2  # sines in numpy: its SIMD versions need not round like libm's
-        c, k, origin, d, t, pdf = shade_kernels.bsdf_continue(
-            self.s.seed, g, surf, rays.pixel, rays.sample, rays.depth, np.cos(phi),
-            np.sin(phi), sf.p, sf.p_err, sf.ng, sf.ns, sf.albedo, thr, self.s.russian_roulette,
-            RR_START_DEPTH)
-        k = surf[k[:c]]
-        return new_rays(origin[:c], d[:c], t[:c], rays.pixel[k],
-                        rays.sample[k], rays.depth[k] + 1, SECONDARY, pdf[:c])

@@ -1,8 +1,9 @@
 """Lights as arrays: quad area lights (sampled and intersectable, for MIS), point and
 directional lights (sampled only), and the environment seen by escaped rays.
 
-Next-event estimation picks one light uniformly per shadow ray; `pdf_quad_hit` gives
-the same density for BSDF rays that hit a quad, so both strategies share one MIS weight.
+Next-event estimation picks one light uniformly per shadow ray; `shade_hits`
+(nprt.workers.kernels.shade) gives the same density to BSDF rays that hit a quad, so both
+strategies share one MIS weight.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ import numpy as np
 from nprt.scene.model import Environment, Scene
 from nprt.workers.kernels import quads
 from nprt.workers.kernels.sampling import normalize
-from nprt.workers.kernels.shade import MIN_COS
 
 # "No limit" as a float32 distance: the tmax of shadow rays toward directional lights,
 # and the tfar Embree traces to (nprt.workers.traversal.local).
@@ -77,22 +77,3 @@ class LightSet:
         state = self.__dict__.copy()
         state.pop("_quads", None)
         return state
-
-    def pdf_quad_hit(self, light: np.ndarray, t: np.ndarray,
-                     direction: np.ndarray) -> np.ndarray:
-        """Solid-angle pdf with which NEE would have sampled this quad point, including
-        the 1/count light pick. light (n,) int; direction (n, 3); t (n,) -> (n,) f64."""
-        cos_l = np.abs(np.einsum("ij,ij->i", direction.astype(np.float64),
-                                 self.quad_normal[light]))
-        area = self.quad_area[light]
-        with np.errstate(divide="ignore"):
-            return (t.astype(np.float64) ** 2) / (np.maximum(cos_l, MIN_COS) * area * self.count)
-
-    def environment_radiance(self, direction: np.ndarray) -> np.ndarray:
-        """(n, 3) float32 unit directions -> (n, 3) float64 radiance of escaped rays."""
-        env = self.environment
-        n = len(direction)
-        if env.kind == "sky":
-            w = np.clip(direction[:, 1].astype(np.float64), 0.0, 1.0)[:, None]
-            return (1 - w) * np.asarray(env.horizon)[None] + w * np.asarray(env.zenith)[None]
-        return np.broadcast_to(np.asarray(env.radiance, np.float64), (n, 3))

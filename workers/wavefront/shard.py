@@ -25,7 +25,7 @@ import numpy as np
 from nprt.scene.model import Mesh
 from nprt.workers.filmsum import MAX_EXP, FilmSums
 from nprt.workers.kernels import tiles
-from nprt.workers.kernels.filmsum import accumulate
+from nprt.workers.kernels.filmsum import splat
 from nprt.workers.passes import Pass, count_tiles, pass_at
 from nprt.workers.routing.exact import DONE, hit_owner, nearest_unvisited, visited_bit
 from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
@@ -44,29 +44,32 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class _PassState:
-    """One pass's share of the film here: contributions are kept, not summed, until
-    `collect` (see the module docstring)."""
+    """One pass's share of the film here, added up as its contributions arrive (`_Step.splat`)
+    as exact integers (nprt.workers.filmsum): the same for any order of the contributions and
+    any split of them over steps and shards. A finished pass is collected whole, so no step
+    writes it while `collect` reads it."""
 
     pass_: Pass
     stats: RenderStats = field(default_factory=RenderStats)
-    index: list = field(default_factory=list)  # (n,) int64 pixel index within the tile
-    rgb: list = field(default_factory=list)  # (n, 3) float64 radiance
+    film: FilmSums = field(init=False)
+    # Rare: contributions the words cannot hold (not finite, or beyond 2^MAX_EXP), kept as
+    # (index (k,) int64 within the tile, rgb (k, 3) float64) to be summed at `collect`.
+    outside: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.film = FilmSums.zeros(self.pass_.n_pixels)
 
     def sums(self) -> FilmSums:
-        """This shard's share of the pass's film as exact integers (nprt.workers.filmsum):
-        the same for any order of the contributions and any split of them over shards."""
-        n = self.pass_.n_pixels
-        out = FilmSums.zeros(n)
-        if not self.index:
-            return out
-        idx, rgb = np.concatenate(self.index), np.concatenate(self.rgb)
-        outside = np.zeros(len(idx), bool)
-        if accumulate(idx, rgb, out.words, outside):
-            # Rare (not finite, or beyond 2^MAX_EXP): float sums in a canonical order.
-            rows = np.flatnonzero(outside)
-            i, v = idx[rows], np.where(np.abs(rgb[rows]) < 2.0 ** MAX_EXP, 0.0, rgb[rows])
+        """This shard's share of the pass's film, its float sums of the contributions
+        outside the words in a canonical order."""
+        out = self.film
+        if self.outside:
+            i = np.concatenate([idx for idx, _ in self.outside])
+            rgb = np.concatenate([rgb for _, rgb in self.outside])
+            v = np.where(np.abs(rgb) < 2.0 ** MAX_EXP, 0.0, rgb)
             order = np.lexsort((v[:, 2], v[:, 1], v[:, 0], i))
-            out.rest = np.stack([np.bincount(i[order], weights=v[order, c], minlength=n)
+            out.rest = np.stack([np.bincount(i[order], weights=v[order, c],
+                                             minlength=self.pass_.n_pixels)
                                  for c in range(3)], axis=1)
         return out
 
@@ -109,21 +112,28 @@ class _Step:
         return tok
 
     def splat(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
-        """Keep rgb (n, 3) float64 for each pass's film."""
+        """Add rgb (n, 3) float32 or float64 at pixel (n,) uint32 to each pass's film."""
         if len(pixel) == 0:
             return
-        local = tiles.tile_index(pixel, self.s.width, self.s.tile_size)
-        rgb = np.asarray(rgb, np.float64)
-        if len(self.states) == 1:
-            self.states[0].index.append(local)
-            self.states[0].rgb.append(rgb)
-            return
-        tok = self.tok(pixel)
-        for i, st in enumerate(self.states):
-            rows = np.flatnonzero(tok == i)
-            if len(rows):
-                st.index.append(local[rows])
-                st.rgb.append(rgb[rows])
+        pixel = np.ascontiguousarray(pixel, np.uint32)
+        rgb = np.ascontiguousarray(rgb)
+        outside = np.zeros(len(pixel), bool)
+        tok = _EVERY_ROW if len(self.states) == 1 else self.tok(pixel)
+        flagged = 0
+        for j, st in enumerate(self.states):
+            p = st.pass_
+            flagged += splat(pixel, rgb, tok, j, self.s.width, p.x0, p.y0, p.x1 - p.x0,
+                             st.film.words, outside)
+        if flagged:  # rare: kept for `_PassState.sums`
+            rows = np.flatnonzero(outside)
+            local = tiles.tile_index(pixel[rows], self.s.width, self.s.tile_size)
+            for j, st in enumerate(self.states):
+                mine = slice(None) if len(tok) == 0 else np.flatnonzero(tok[rows] == j)
+                if len(local[mine]):
+                    st.outside.append((local[mine], np.asarray(rgb[rows][mine], np.float64)))
+
+
+_EVERY_ROW = np.zeros(0, np.int64)  # `splat`'s tok of a step with one pass
 
 
 class Shard:

@@ -89,13 +89,24 @@ class SurfaceTables:
             np.ascontiguousarray(rows, np.int64), np.ascontiguousarray(inst, np.int32),
             np.ascontiguousarray(prim, np.int32),
             np.ascontiguousarray(u, np.float32), np.ascontiguousarray(v, np.float32),
-            np.ascontiguousarray(direction, np.float32), self.slot_of_mesh, self.inst_mesh,
-            self.l2w, self.nmat, self.verts, self.faces,
-            self.normals, self.uvs, self.vbase, self.fbase, self.has_n, self.has_uv,
-            self.mesh_mat, self.mat_albedo, self.mat_emission, self.mat_tex, self.tex_base,
-            self.tex_h, self.tex_w, self.texels, self.w2l)
+            np.ascontiguousarray(direction, np.float32), *self.kernel_tables())
         if bad >= 0:
-            m = int(self.inst_mesh[inst[bad]])  # bad: an index into inst
-            raise KeyError(f"mesh {m} of instance {int(inst[bad])} is not held here "
-                           f"(held: {self.held})")
+            self.refuse(int(inst[bad]))  # bad: an index into inst
         return Surface(p, ng, ns, albedo, emission, p_err)
+
+    def kernel_tables(self) -> tuple:
+        """The tables in the order the kernels take them (`shade_kernels.surface`'s
+        arguments after direction)."""
+        made = self.__dict__.get("_kernel_tables")
+        if made is None:
+            made = self._kernel_tables = (
+                self.slot_of_mesh, self.inst_mesh, self.l2w, self.nmat, self.verts,
+                self.faces, self.normals, self.uvs, self.vbase, self.fbase, self.has_n,
+                self.has_uv, self.mesh_mat, self.mat_albedo, self.mat_emission, self.mat_tex,
+                self.tex_base, self.tex_h, self.tex_w, self.texels, self.w2l)
+        return made
+
+    def refuse(self, inst: int):
+        """Raise the error of a hit on instance `inst`, whose mesh is not held here."""
+        m = int(self.inst_mesh[inst])
+        raise KeyError(f"mesh {m} of instance {inst} is not held here (held: {self.held})")
