@@ -475,6 +475,7 @@ class Shard:
         t = t[by_target]
         moving = batch.take(away[by_target])
         moving = moving.replace(hops=moving.hops + np.uint8(1))
-        dests, starts = np.unique(t, return_index=True)
+        starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])  # t is sorted: no np.unique
+        dests = t[starts]
         for dest, a, b in zip(dests, starts, [*starts[1:], len(t)], strict=True):
             out[int(dest)].append(moving.rows(int(a), int(b)))
