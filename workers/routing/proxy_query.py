@@ -8,8 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nprt.workers.kernels.sampling import normalize
-from nprt.workers.routing.exact import first_of_runs
+from nprt.workers.routing import proxy_pairs
 from nprt.workers.wavefront.world import ShardWorld
 
 
@@ -55,11 +54,11 @@ class QueryKnobs:
 def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.ndarray,
             direction: np.ndarray, tmax: np.ndarray, knobs: QueryKnobs, known=None,
             visited: np.ndarray | None = None) -> Prediction:
-    """origin, direction (n, 3) float32 world; tmax (n,) float32; remote (m,) int32: the
-    instances to ask proxies about; known: LocalGeometry of other remote instances,
-    intersected exactly; visited: (n,) uint64 shard bitmask of each ray, whose shards' boxes
-    are not asked about (their geometry was intersected exactly, and the ray carries what it
-    found)."""
+    """origin (n, 3) float64 (or float32), direction (n, 3) float32 world; tmax (n,) float32;
+    remote (m,) int32: the instances to ask proxies about; known: LocalGeometry of other
+    remote instances, intersected exactly; visited: (n,) uint64 shard bitmask of each ray,
+    whose shards' boxes are not asked about (their geometry was intersected exactly, and the
+    ray carries what it found)."""
     n = len(origin)
     best_t, best_i = _known_hits(known, origin, direction, tmax)
     ray, inst = _asked_boxes(world, remote, origin, direction, tmax, visited)
@@ -67,20 +66,60 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     if len(ray) == 0:
         return Prediction(best_t, best_i, np.zeros(n, bool), np.zeros(n, bool),
                           np.zeros(n, bool), np.full(n, -1, np.int32), none, none)
+    table = world.table
+    tmax = np.ascontiguousarray(tmax, np.float32)
     # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
-    q = _box_queries(world.table, inst, origin[ray], direction[ray], tmax[ray])
-    mesh = world.table.mesh[inst].astype(np.int64)
-    a = _answers(proxies, q, mesh, knobs)
-    internal, inner_hits = _closest_confident(ray, inst, q, a, best_t, best_i)
-    uncertain, first_open = _open_boxes(n, ray, inst, q, a, best_t)
+    crosses, internal, t_box, length, point, qdir = proxy_pairs.box_queries(
+        ray, inst.astype(np.int32, copy=False), np.ascontiguousarray(origin, np.float64),
+        np.ascontiguousarray(direction, np.float64), tmax, table.kernel_arrays()[2],
+        np.ascontiguousarray(table.local_bounds, np.float64))
+    mesh = table.mesh[inst].astype(np.int64)
+    thr_m, margin_m, has_m = _mesh_constants(proxies, knobs, table.n_mesh)
+    has = crosses & has_m[mesh]  # crossed, and its mesh has a proxy
+    vis, tp = _ask_nets(proxies, mesh, has, point, qdir, thr_m)
+    internal_win, uncertain, ambiguous, first_open = proxy_pairs.decide(
+        ray, inst, mesh, crosses, internal, t_box, length, tmax[ray], has, has, vis, tp,
+        thr_m, np.asarray(knobs.band, np.float64), margin_m, best_t, best_i)
     # An internal t is the surface nearest the box exit; the ray's first surface in that box
     # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
-    ambiguous = inner_hits - internal > 0
     if knobs.exact_if_ambiguous:
         uncertain |= ambiguous
-    asked = a.has_proxy
-    return Prediction(best_t, best_i, uncertain, internal, ambiguous, first_open,
-                      ray[asked].astype(np.int64), mesh[asked])
+    return Prediction(best_t, best_i, uncertain, internal_win, ambiguous, first_open,
+                      ray[has].astype(np.int64), mesh[has])
+
+
+def _mesh_constants(proxies: dict, knobs: QueryKnobs, n_mesh: int):
+    """Per base mesh: thr (meshes,) float32 visibility threshold, margin (meshes,) float64
+    internal margin in local units before dividing by the pair's length (world to local
+    scale), has (meshes,) bool (a proxy answers for it)."""
+    thr = np.zeros(n_mesh, np.float32)
+    margin = np.zeros(n_mesh)
+    has = np.zeros(n_mesh, bool)
+    for m, proxy in proxies.items():
+        if m >= n_mesh:
+            continue
+        has[m] = True
+        thr[m] = proxy.meta["threshold"] if knobs.threshold is None else knobs.threshold
+        p90 = proxy.meta.get("report", {}).get("depth_err_rel_p90", 0.0)
+        margin[m] = knobs.internal_margin * p90 * float(proxy.diag)
+    return thr, margin, has
+
+
+def _ask_nets(proxies: dict, mesh: np.ndarray, ask: np.ndarray, point, qdir, thr_m):
+    """Each mesh's nets on its pairs where `ask` (p,) bool, in pair order: vis (p,) float32
+    (0 where not asked) and tp (p,) float32 the proxy's t in local units (inf where not asked
+    or below the threshold)."""
+    p = len(mesh)
+    vis = np.zeros(p, np.float32)
+    tp = np.full(p, np.inf, np.float32)
+    rows = np.flatnonzero(ask)
+    rows = rows[np.argsort(mesh[rows], kind="stable")]  # grouped by mesh, pair order within
+    cut = np.flatnonzero(np.diff(mesh[rows])) + 1
+    for group in np.split(rows, cut) if len(rows) else ():
+        m = int(mesh[group[0]])
+        vis[group], tp[group] = proxies[m].query(point[group], qdir[group],
+                                                 min_visibility=float(thr_m[m]))
+    return vis, tp
 
 
 def _known_hits(known, origin, direction, tmax):
@@ -104,113 +143,3 @@ def _asked_boxes(world, remote, origin, direction, tmax, visited):
         keep = (visited[ray] >> owner) & np.uint64(1) == 0
         ray, inst = ray[keep], inst[keep]
     return ray, inst
-
-
-@dataclass(frozen=True)
-class _Answers:
-    """Per (ray, box) pair: has_proxy (p,) bool (crossed, and its mesh has a proxy); unsure
-    (p,) bool (in the band, or internal and near the origin); hit (p,) bool (a confident hit
-    before tmax); t (p,) float32 world t of the predicted surface."""
-
-    has_proxy: np.ndarray
-    unsure: np.ndarray
-    hit: np.ndarray
-    t: np.ndarray
-
-
-def _answers(proxies: dict, q, mesh: np.ndarray, knobs: QueryKnobs) -> _Answers:
-    """Run each mesh's nets on its pairs and apply the external / internal rules."""
-    p = len(mesh)
-    vis = np.zeros(p, np.float32)
-    t_proxy = np.full(p, np.inf)
-    thr = np.zeros(p, np.float32)
-    margin = np.zeros(p)  # world-t half-width of the internal case's unsure zone
-    for m in np.unique(mesh[q.crosses]):
-        proxy = proxies.get(int(m))
-        if proxy is None:  # no proxy for this mesh: only exact forwarding can tell
-            continue
-        rows = np.flatnonzero(q.crosses & (mesh == m))
-        thr[rows] = proxy.meta["threshold"] if knobs.threshold is None else knobs.threshold
-        v, tp = proxy.query(q.point[rows], q.qdir[rows], min_visibility=float(thr[rows[0]]))
-        vis[rows], t_proxy[rows] = v, tp / q.length[rows]
-        p90 = proxy.meta.get("report", {}).get("depth_err_rel_p90", 0.0)
-        margin[rows] = knobs.internal_margin * p90 * float(proxy.diag) / q.length[rows]
-    has_proxy = q.crosses & np.isin(mesh, np.fromiter(proxies, np.int64, len(proxies)))
-    near_origin = q.internal & (vis >= thr) & (np.abs(t_proxy - q.t_box) < margin)
-    unsure = has_proxy & ((np.abs(vis - thr) < knobs.band[mesh]) | near_origin)
-    hit = has_proxy & ~unsure & (vis >= thr)
-    hit &= ~q.internal | (t_proxy <= q.t_box)  # internal: the surface lies behind the origin
-    t = np.where(q.internal, q.t_box - t_proxy, q.t_box + t_proxy).astype(np.float32)
-    return _Answers(has_proxy, unsure, hit & (t < q.tmax), t)
-
-
-def _closest_confident(ray, inst, q, a: _Answers, best_t, best_i):
-    """Lower best_t / best_i (in place) to each ray's closest confident hit; ties go to the
-    lowest instance. Returns internal (n,) bool (the winner is an internal answer) and
-    inner_hits (n,) int64 (confident internal hits per ray)."""
-    n = len(best_t)
-    r, t, i, inner = ray[a.hit], a.t[a.hit], inst[a.hit], q.internal[a.hit]
-    inner_hits = np.bincount(r[inner], minlength=n)
-    order = np.lexsort((i, t, r))
-    r, t, i, inner = r[order], t[order], i[order], inner[order]
-    first = first_of_runs(r)
-    r, t, i, inner = r[first], t[first], i[first], inner[first]
-    better = t < best_t[r]
-    best_t[r[better]], best_i[r[better]] = t[better], i[better]
-    internal = np.zeros(n, bool)
-    internal[r[better]] = inner[better]
-    return internal, inner_hits
-
-
-def _open_boxes(n, ray, inst, q, a: _Answers, best_t):
-    """A box no proxy answers with confidence (in the band, or without a proxy) matters only
-    if the ray enters it before its closest confident hit: only then can it hide a nearer
-    surface. (Shadow rays use `uncertain` only where nothing occludes: best_t is inf.)
-    Returns uncertain (n,) bool and first_open (n,) int32 (the open box entered first)."""
-    uncertain = np.zeros(n, bool)
-    first_open = np.full(n, -1, np.int32)
-    t_enter = np.where(q.internal, 0.0, q.t_box)
-    open_ = (a.unsure | (q.crosses & ~a.has_proxy)) & (t_enter < best_t[ray])
-    uncertain[ray[open_]] = True
-    o = np.flatnonzero(open_)
-    o = o[np.lexsort((inst[o], t_enter[o], ray[o]))]  # per ray, nearest entry first
-    lead = first_of_runs(ray[o])
-    first_open[ray[o[lead]]] = inst[o[lead]]
-    return uncertain, first_open
-
-
-@dataclass(frozen=True)
-class _BoxQueries:
-    """Per (ray, instance) pair: crosses (p,) bool (the ray meets the local mesh box before
-    tmax); internal (p,) bool (origin inside it); t_box (p,) float64 world-t of the query
-    point; point, qdir (p, 3) float32 local query point and unit direction; length (p,)
-    float64 local units per unit of world t."""
-
-    crosses: np.ndarray
-    internal: np.ndarray
-    t_box: np.ndarray
-    point: np.ndarray
-    qdir: np.ndarray
-    length: np.ndarray
-    tmax: np.ndarray
-
-
-def _box_queries(table, inst, origin, direction, tmax) -> _BoxQueries:
-    """inst (p,) int32; origin, direction (p, 3) float32 world; tmax (p,) float32."""
-    m = table.world_to_local[inst]  # (p, 3, 4) float64
-    o = np.einsum("pij,pj->pi", m[:, :, :3], origin.astype(np.float64)) + m[:, :, 3]
-    d = np.einsum("pij,pj->pi", m[:, :, :3], direction.astype(np.float64))
-    lo, hi = table.local_bounds[inst, 0], table.local_bounds[inst, 1]  # (p, 3)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = 1.0 / d
-        t0, t1 = (lo - o) * inv, (hi - o) * inv
-        t_enter = np.fmax.reduce(np.fmin(t0, t1), axis=1)
-        t_exit = np.fmin.reduce(np.fmax(t0, t1), axis=1)
-    crosses = (t_exit >= np.maximum(t_enter, 0.0)) & (t_enter < tmax)
-    internal = t_enter <= 0.0
-    # External rays query at the entry point; internal ones at the exit, reversed.
-    t_box = np.where(internal, t_exit, t_enter)
-    unit = normalize(d)
-    point = (o + t_box[:, None] * d).astype(np.float32)
-    qdir = np.where(internal[:, None], -unit, unit).astype(np.float32)
-    return _BoxQueries(crosses, internal, t_box, point, qdir, np.linalg.norm(d, axis=1), tmax)

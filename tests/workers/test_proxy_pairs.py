@@ -1,0 +1,171 @@
+"""The compiled proxy-query kernels (nprt.workers.routing.proxy_pairs) give the bits of the
+numpy formulas they replaced (tests/workers/proxy_oracles.py): the pair geometry on awkward
+transforms and rays, the decision rules with ties everywhere, and predict as a whole on a
+demo scene with its shipped proxies."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from nprt.scene.model import Camera, Instance, Scene
+from nprt.scene.store import open_scene
+from nprt.workers.routing import proxy_pairs
+from nprt.workers.routing.proxy_query import QueryKnobs, predict
+from nprt.workers.runtime.placement import plan_placement
+from nprt.workers.runtime.protocol import ShardConfig
+from nprt.workers.settings import RenderSettings
+from nprt.workers.traversal.toplevel import InstanceTable
+from nprt.workers.wavefront.shard import Shard
+from nprt.workers.wavefront.world import ShardWorld
+from tests.workers import proxy_oracles as oracle
+from tests.workers.helpers import mesh_from_trimesh, trs
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(p,) bool per row: the same bits, or NaN on both sides."""
+    a, b = a.reshape(len(a), -1), b.reshape(len(b), -1)
+    eq = (a == b) & (np.signbit(a) == np.signbit(b)) if a.dtype.kind == "f" else a == b
+    if a.dtype.kind == "f":
+        eq |= np.isnan(a) & np.isnan(b)
+    return eq.all(axis=1)
+
+
+def _table(rng) -> InstanceTable:
+    """Boxes at scales 1e-3..1e3, rotated, up to 1e6 from the origin, one axis-aligned."""
+    meshes = (mesh_from_trimesh(trimesh.creation.box((1.0, 2.0, 0.5)), "a"),
+              mesh_from_trimesh(trimesh.creation.icosphere(1), "b"))
+    inst = [Instance(0, np.eye(4))]
+    for k in range(40):
+        axis = rng.normal(size=3)
+        scale = 10.0 ** rng.uniform(-3, 3)
+        pos = rng.uniform(-5, 5, 3) * (1.0 if k % 3 else 10.0 ** rng.uniform(0, 5))
+        inst.append(Instance(k % 2, trs(pos, scale, axis, rng.uniform(0, 360))))
+    return InstanceTable(Scene(meshes, tuple(inst), camera=Camera(
+        eye=(0, 0, -5), target=(0, 0, 0), up=(0, 1, 0), fov_deg=40)))
+
+
+def _rays(rng, table: InstanceTable, n: int):
+    """(n, 3) float64 origins near the boxes (some inside, some on a box plane), (n, 3) float32
+    directions with zero and -0.0 components and all-zero rays, (n,) float32 tmax."""
+    lo, hi = table.world_bounds[:, 0], table.world_bounds[:, 1]
+    pick = rng.integers(0, len(lo), n)
+    c, r = 0.5 * (lo[pick] + hi[pick]), 0.5 * (hi[pick] - lo[pick])
+    origin = c + r * rng.uniform(-2, 2, (n, 3))
+    origin[::9, 1] = 0.0  # instance 0's box planes are at y = +-1
+    origin[::9, 0] = rng.uniform(-0.5, 0.5, len(origin[::9]))
+    d = rng.normal(size=(n, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    d[::5, 0] = 0.0
+    d[::7, 2] = -0.0
+    d[::31] = 0.0
+    tmax = np.where(rng.random(n) < 0.3, np.inf, rng.uniform(0.5, 50, n) * r.max(1))
+    return origin, d, tmax.astype(np.float32)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_box_queries_give_the_numpy_bits(seed):
+    rng = np.random.default_rng(seed)
+    table = _table(rng)
+    origin, direction, tmax = _rays(rng, table, 3000)
+    ray = rng.integers(0, len(origin), 20000).astype(np.int64)
+    inst = rng.integers(0, len(table), len(ray)).astype(np.int32)
+    q = oracle.box_queries(table, inst, origin[ray], direction[ray], tmax[ray])
+    got = proxy_pairs.box_queries(ray, inst, origin, direction.astype(np.float64), tmax,
+                                  table.kernel_arrays()[2], table.local_bounds)
+    assert q.crosses.any() and q.internal.any() and (q.crosses & ~q.internal).any()
+    for name, want, have in zip(("crosses", "internal", "t_box", "length", "point", "qdir"),
+                                (q.crosses, q.internal, q.t_box, q.length, q.point, q.qdir),
+                                got, strict=True):
+        assert want.dtype == have.dtype, name
+        differ = np.flatnonzero(~_same(want, have))
+        assert not len(differ), f"{name} differs at pairs {differ[:5]}"
+
+
+def _pairs(rng, n: int, p: int, meshes: int):
+    """Synthetic pairs with ties: t_box on a coarse grid (equal entries and equal predicted
+    t), visibilities on the threshold and the band's edges, internal pairs, boxes without a
+    proxy, rays with several pairs and known hits tied with proxy hits."""
+    ray = np.sort(rng.integers(0, n, p)).astype(np.int64)
+    inst = rng.integers(0, 60, p).astype(np.int32)
+    mesh = (inst % meshes).astype(np.int64)
+    q = oracle.BoxQueries(
+        crosses=rng.random(p) < 0.9, internal=rng.random(p) < 0.25,
+        t_box=rng.integers(1, 8, p).astype(np.float64) * 0.5,
+        point=np.zeros((p, 3), np.float32), qdir=np.zeros((p, 3), np.float32),
+        length=rng.choice([0.5, 1.0, 2.0], p),
+        tmax=np.where(rng.random(p) < 0.2, 2.5, np.inf).astype(np.float32))
+    thr_m = rng.choice([0.4, 0.5], meshes).astype(np.float32)
+    band = rng.choice([0.0, 0.1, 0.25], meshes)
+    margin_m = rng.choice([0.0, 0.5], meshes)
+    has_m = rng.random(meshes) < 0.8
+    has = q.crosses & has_m[mesh]
+    vis = np.where(has, rng.choice([0.1, 0.4, 0.5, 0.6, 0.75, 0.9, 1.0], p), 0).astype(np.float32)
+    tp = np.where(has & (vis >= thr_m[mesh]), rng.integers(0, 4, p) * 0.5, np.inf)
+    best_t = np.where(rng.random(n) < 0.3, rng.integers(1, 8, n) * 0.5, np.inf)
+    best_i = np.where(np.isfinite(best_t), rng.integers(0, 60, n), -1).astype(np.int32)
+    return (ray, inst, mesh, q, has, vis, tp.astype(np.float32), thr_m, band, margin_m,
+            best_t.astype(np.float32), best_i)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_decide_gives_the_numpy_bits_ties_included(seed):
+    rng = np.random.default_rng(seed)
+    n = 300
+    ray, inst, mesh, q, has, vis, tp, thr_m, band, margin_m, best_t, best_i = _pairs(
+        rng, n, 2000, 5)
+    t_proxy = np.where(has, tp / q.length, np.inf)
+    a = oracle.answer_rules(q, mesh, vis, t_proxy, np.where(has, thr_m[mesh], 0),
+                            np.where(has, margin_m[mesh] / q.length, 0.0), has, band)
+    want_t, want_i = best_t.copy(), best_i.copy()
+    internal, inner_hits = oracle.closest_confident(ray, inst, q, a, want_t, want_i)
+    uncertain, first_open = oracle.open_boxes(n, ray, inst, q, a, want_t)
+    ambiguous = inner_hits - internal > 0
+
+    got = proxy_pairs.decide(ray, inst, mesh, q.crosses, q.internal, q.t_box, q.length,
+                             q.tmax, has, has, vis, tp, thr_m, band, margin_m, best_t, best_i)
+    assert a.hit.any() and a.unsure.any() and ambiguous.any() and (first_open >= 0).any()
+    assert best_t.tobytes() == want_t.tobytes() and best_i.tobytes() == want_i.tobytes()
+    for name, want, have in zip(("internal", "uncertain", "ambiguous", "first_open"),
+                                (internal, uncertain, ambiguous, first_open), got, strict=True):
+        assert want.dtype == have.dtype and want.tobytes() == have.tobytes(), name
+
+
+@pytest.fixture(scope="module", params=["forest:small", "city:small"])
+def policies(request):
+    """Every shard's ProxyPolicy of a small demo at K = 3 (shipped proxies; the tiny demos
+    replicate every mesh)."""
+    scene = open_scene(request.param).load()
+    s = RenderSettings(width=8, height=8, spp=1, shards=3, mode="proxy")
+    placed = plan_placement(scene, s)
+    world = ShardWorld.build(scene, placed.owner)
+    out = []
+    for sid in range(s.shards):
+        held = placed.shard_meshes[sid]
+        proxies = {m: p for m, p in placed.proxies.items() if m not in held}
+        sh = Shard(ShardConfig(sid, s.shards, s), world, {m: scene.meshes[m] for m in held},
+                   proxies)
+        sh.begin(s)
+        out.append((world, sh.policy))
+    return out
+
+
+def test_predict_gives_the_numpy_oracles_answers_on_a_scene(policies):
+    rng = np.random.default_rng(3)
+    fields = ("t", "inst", "uncertain", "internal", "ambiguous", "first_open", "asked_ray",
+              "asked_mesh")
+    asked = 0
+    for world, policy in policies:
+        origin, direction, tmax = _rays(rng, world.table, 4000)
+        visited = rng.integers(0, 8, len(origin)).astype(np.uint64)
+        for knobs in (policy.secondary, policy.shadow,
+                      QueryKnobs(None, np.full(len(policy.secondary.band), 0.2), 0.5, False)):
+            args = (world, policy.proxies, policy.modeled, origin, direction, tmax, knobs,
+                    policy.known, visited)
+            want, got = oracle.predict_numpy(*args), predict(*args)
+            asked += len(want.asked_ray)
+            for f in fields:
+                a, b = getattr(want, f), getattr(got, f)
+                assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
+    assert asked > 1000
