@@ -101,6 +101,46 @@ def _next_leaf(bvh, stack, top, line, tmax):
     return top, 0, 0
 
 
+@njit(inline="always", **JIT)
+def _node_enter(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2):
+    """Where a ray enters node c's box (`nprt.workers.kernels.bvh._node_hit`'s arithmetic:
+    no later than it enters any box below), or inf if it misses it."""
+    t_enter = max(max((node_box[c, s0, 0] - o0) * i0, (node_box[c, s1, 1] - o1) * i1),
+                  (node_box[c, s2, 2] - o2) * i2)
+    t_exit = min(min((node_box[c, 1 - s0, 0] - o0) * i0, (node_box[c, 1 - s1, 1] - o1) * i1),
+                 (node_box[c, 1 - s2, 2] - o2) * i2)
+    return t_enter if t_exit >= max(t_enter, 0.0) else np.inf
+
+
+@njit(inline="always", **JIT)
+def _push_near(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2, s0, s1, s2, lim):
+    """Push node c with its entry distance if the ray enters it no later than lim (and
+    at all: a node missed, or entered at inf, holds no box a slab test passes)."""
+    t = _node_enter(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2)
+    if t <= lim and t < np.inf:
+        stack[top], stack_t[top] = c, t
+        top += 1
+    return top
+
+
+@njit(inline="always", **JIT)
+def _push_pair(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2, s0, s1, s2, lim):
+    """Push children c and c + 1 entered no later than lim (as `_push_near`), the nearer
+    last (popped first)."""
+    ta = _node_enter(node_box, c, o0, o1, o2, i0, i1, i2, s0, s1, s2)
+    tb = _node_enter(node_box, c + 1, o0, o1, o2, i0, i1, i2, s0, s1, s2)
+    near, far_c, t_near, t_far = c, c + 1, ta, tb
+    if tb < ta:
+        near, far_c, t_near, t_far = c + 1, c, tb, ta
+    if t_far <= lim and t_far < np.inf:
+        stack[top], stack_t[top] = far_c, t_far
+        top += 1
+    if t_near <= lim and t_near < np.inf:
+        stack[top], stack_t[top] = near, t_near
+        top += 1
+    return top
+
+
 def _buffers(n: int, k: int):
     """Output rows: ray (c,) int64, col (c,) int32, t_enter, t_exit (c,) float64, with
     room for four crossings per ray (scenes of overlapping boxes average about three, and

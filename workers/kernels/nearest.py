@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from nprt.workers.kernels.bvh import JIT, _next_leaf, _slab
+from nprt.workers.kernels.bvh import JIT, _push_near, _push_pair, _slab
 
 NONE = -1  # no unvisited box before tmax
 
@@ -21,10 +21,14 @@ def bvh_nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node
     """origin (n, 3) float64, direction (n, 3) float64, tmax (n,) float64; boxes and the
     BVH arrays from `bvh_build`; in_set (m,) bool: boxes to consider; box_owner (m,) int32
     shard of each box; visited (n,) uint64 shard bitmask; stack (nodes + 1,) int32 scratch.
-    Returns (n,) int32 owner, or NONE."""
+    Returns (n,) int32 owner, or NONE.
+
+    Nodes are visited nearer child first, so the first candidate found is usually the
+    nearest and the rest of the tree is culled at it; the answer, a minimum, does not
+    depend on the order."""
     n = origin.shape[0]
     out = np.full(n, NONE, np.int32)
-    bvh = (node_box, node_child, node_start, node_count, prim)
+    stack_t = np.empty(stack.shape[0])
     for r in range(n):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
         d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
@@ -40,16 +44,25 @@ def bvh_nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node
                                            i0, i1, i2, tm, best_t, best_o)
             out[r] = best_o
             continue
-        line = (o0, o1, o2, i0, i1, i2, s0, s1, s2)
-        top, lo, hi = _next_leaf(bvh, stack, -1, line, tm)
-        while lo < hi:
-            for x in range(lo, hi):
+        # A node entered after the best so far cannot hold a better box; one entered
+        # exactly at it may hold a tie with a lower owner (hence <=, in `_push_*`). A node
+        # is entered no later than any box below it, and a box passing the slab test
+        # before tm is entered before tm.
+        top = _push_near(node_box, 0, stack, stack_t, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2,
+                         tm)
+        while top > 0:
+            top -= 1
+            if not stack_t[top] <= min(tm, best_t):
+                continue  # culled since it was pushed
+            node = stack[top]
+            c = node_child[node]
+            if c >= 0:
+                top = _push_pair(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2,
+                                 s0, s1, s2, min(tm, best_t))
+                continue
+            for x in range(node_start[node], node_start[node] + node_count[node]):
                 best_t, best_o = _consider(boxes, prim[x], in_set, box_owner, seen, o0, o1,
                                            o2, i0, i1, i2, tm, best_t, best_o)
-            # A node entered after the best so far cannot hold a better box; one entered
-            # exactly at it may hold a tie with a lower owner.
-            top, lo, hi = _next_leaf(bvh, stack, top, line,
-                                     min(tm, np.nextafter(best_t, np.inf)))
         out[r] = best_o
     return out
 

@@ -9,7 +9,7 @@ import numpy as np
 from nprt.workers.kernels.nearest import NONE as NO_OWNER
 from nprt.workers.kernels.nearest import bvh_nearest_owner as nearest_owner
 from nprt.workers.runtime.protocol import EVERYWHERE
-from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL
+from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL, NearestRemote
 from nprt.workers.traversal.toplevel import BVH_MIN_INSTANCES
 from nprt.workers.wavefront.batch import RayBatch, ShadowRayBatch
 from nprt.workers.wavefront.world import ShardWorld
@@ -79,11 +79,46 @@ def nearest_by_crossings(world: ShardWorld, remote: np.ndarray, origin, directio
     return target
 
 
-def route_exact(world: ShardWorld, shard: int, remote: np.ndarray, rays: RayBatch) -> np.ndarray:
+def candidate_owner(world: ShardWorld, remote: np.ndarray) -> np.ndarray:
+    """(m,) int32: the owner of each instance of remote (m,) int32, -1 for the others: the
+    boxes a routing walk (`LocalGeometry.closest_routed`) may pick as the next stop."""
+    cand = np.full(len(world.table), -1, np.int32)
+    cand[remote] = world.owner[remote]
+    return cand
+
+
+def next_stop(near: NearestRemote, tmax: np.ndarray) -> np.ndarray:
+    """`nearest_unvisited` from what the routing walk kept, cut at the final tmax (n,)
+    float32 (no larger than the walk's, rows where it is are the caller's: see
+    `stale`): the walk's candidate is the nearest box of a superset of those crossed
+    before the final stretched tmax, so it is their nearest (same owner on ties) when it
+    lies before that cut, and there is none when it does not.
+    returns (n,) int32 target shard or DONE"""
+    box_tmax = np.asarray(tmax, np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
+    return np.where(near.t_enter < box_tmax, near.owner, DONE).astype(np.int32)
+
+
+def _routed(world, remote, origin, direction, tmax, visited, near) -> np.ndarray:
+    """nearest_unvisited, from the walk's answer where there is one."""
+    if near is None:
+        return nearest_unvisited(world, remote, origin, direction, tmax, visited)
+    target = next_stop(near, tmax)
+    # A tmax that grew after the walk (never, as hits only shorten it) is asked again.
+    stale = np.flatnonzero(~(np.asarray(tmax, np.float32) <= near.walk_tmax)
+                           & ~(np.isnan(tmax) & np.isnan(near.walk_tmax)))
+    if len(stale):
+        target[stale] = nearest_unvisited(world, remote, origin[stale], direction[stale],
+                                          tmax[stale], visited[stale])
+    return target
+
+
+def route_exact(world: ShardWorld, shard: int, remote: np.ndarray, rays: RayBatch,
+                near: NearestRemote | None = None) -> np.ndarray:
     """Closest-hit rays: forward until no unvisited box lies before the hit, then go to
-    the shard that owns the hit to be shaded."""
-    target = nearest_unvisited(world, remote, rays.origin, rays.direction, rays.tmax,
-                               rays.visited)
+    the shard that owns the hit to be shaded. near: the routing walk's answer for these
+    rays (`LocalGeometry.closest_routed` with `candidate_owner(world, remote)`); without
+    it the top level is walked again."""
+    target = _routed(world, remote, rays.origin, rays.direction, rays.tmax, rays.visited, near)
     done = target == DONE
     owner = hit_owner(world, rays.hit_inst)
     elsewhere = done & (owner != EVERYWHERE) & (owner != shard)
@@ -91,7 +126,9 @@ def route_exact(world: ShardWorld, shard: int, remote: np.ndarray, rays: RayBatc
     return target
 
 
-def route_shadow_exact(world: ShardWorld, remote: np.ndarray, shadow: ShadowRayBatch):
-    """Unoccluded-so-far shadow rays: forward to the next unvisited box's shard."""
-    return nearest_unvisited(world, remote, shadow.origin, shadow.direction, shadow.tmax,
-                             shadow.visited)
+def route_shadow_exact(world: ShardWorld, remote: np.ndarray, shadow: ShadowRayBatch,
+                       near: NearestRemote | None = None):
+    """Unoccluded-so-far shadow rays: forward to the next unvisited box's shard. near: as
+    in `route_exact` (`LocalGeometry.occluded_routed`)."""
+    return _routed(world, remote, shadow.origin, shadow.direction, shadow.tmax,
+                   shadow.visited, near)

@@ -12,12 +12,18 @@ from __future__ import annotations
 import numpy as np
 
 from nprt.proxies.accuracy import counter_name, job_bands
-from nprt.workers.routing.exact import DONE, hit_owner, route_exact, route_shadow_exact
+from nprt.workers.routing.exact import (
+    DONE,
+    candidate_owner,
+    hit_owner,
+    route_exact,
+    route_shadow_exact,
+)
 from nprt.workers.routing.proxy_query import QueryKnobs, predict
 from nprt.workers.runtime.protocol import EVERYWHERE
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import SplitStats
-from nprt.workers.traversal.local import LocalGeometry
+from nprt.workers.traversal.local import LocalGeometry, NearestRemote
 from nprt.workers.wavefront.batch import (
     FLAG_EXACT,
     FLAG_INTERNAL,
@@ -30,15 +36,21 @@ from nprt.workers.wavefront.world import ShardWorld
 
 
 class ExactPolicy:
+    """cand_owner (m,) int32: what the shard's routing walks take (`candidate_owner`), so
+    that `near`, their answer, spares route_* a second walk of the top level."""
+
     def __init__(self, world: ShardWorld, shard: int, remote: np.ndarray):
         self.world, self.shard, self.remote = world, shard, remote
+        self.cand_owner = candidate_owner(world, remote)
 
-    def route_rays(self, rays: RayBatch, stats: SplitStats) -> tuple[RayBatch, np.ndarray]:
-        return rays, route_exact(self.world, self.shard, self.remote, rays)
+    def route_rays(self, rays: RayBatch, stats: SplitStats, near: NearestRemote | None = None
+                   ) -> tuple[RayBatch, np.ndarray]:
+        return rays, route_exact(self.world, self.shard, self.remote, rays, near)
 
-    def route_shadow(self, shadow: ShadowRayBatch, stats: SplitStats):
+    def route_shadow(self, shadow: ShadowRayBatch, stats: SplitStats,
+                     near: NearestRemote | None = None):
         """Returns (shadow rays still live, their targets)."""
-        return shadow, route_shadow_exact(self.world, self.remote, shadow)
+        return shadow, route_shadow_exact(self.world, self.remote, shadow, near)
 
     def _owner_of(self, inst: np.ndarray) -> np.ndarray:
         """Shard owning each hit instance, DONE when it is here (or none)."""

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from nprt.workers.kernels import records
-from nprt.workers.traversal.local import LocalGeometry
+from nprt.workers.traversal.local import LocalGeometry, NearestRemote
 from nprt.workers.wavefront.batch import RayBatch
 from nprt.workers.wavefront.lights import LightSet
 
@@ -18,6 +18,21 @@ def resolve_closest(rays: RayBatch, geometry: LocalGeometry, lights: LightSet) -
     them in the same way)."""
     t, inst, prim, u, v = geometry.intersect_closest(rays.origin, rays.direction, rays.tmax,
                                                      rays.hit_inst, rays.hit_prim)
+    return _with_lights(rays, lights, t, inst, prim, u, v)
+
+
+def resolve_closest_routed(rays: RayBatch, geometry: LocalGeometry, lights: LightSet,
+                           cand_owner: np.ndarray) -> tuple[RayBatch, NearestRemote]:
+    """`resolve_closest`, and from the same walk of the top level exact forwarding's next
+    stop among the boxes of cand_owner (m,) int32 (`LocalGeometry.closest_routed`), for
+    `nprt.workers.routing.exact.route_exact` to cut at the final tmax."""
+    t, inst, prim, u, v, near = geometry.closest_routed(
+        rays.origin, rays.direction, rays.tmax, rays.hit_inst, rays.hit_prim, cand_owner,
+        rays.visited)
+    return _with_lights(rays, lights, t, inst, prim, u, v), near
+
+
+def _with_lights(rays, lights, t, inst, prim, u, v) -> RayBatch:
     tl, light = lights.intersect_quads(rays.origin, rays.direction, t)
     tmax, hit_inst, hit_prim, hit_u, hit_v = records.with_lights(
         t, inst, prim, u, v, rays.hit_inst, rays.hit_prim, rays.hit_u, rays.hit_v, tl,

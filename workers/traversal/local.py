@@ -4,6 +4,8 @@ instances; the reference renderer holds one for all of them."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from nprt.workers.kernels import crossings, records
@@ -16,6 +18,22 @@ from nprt.workers.wavefront.lights import FAR_T
 # t Embree gives a hit may round below its box's float64 entry distance, and a hit tied
 # with tmax must still be found for the tie rule. Hits themselves are cut at tmax exactly.
 BOX_TMAX_SLACK_REL = 2.0**-16
+
+
+@dataclass(frozen=True, eq=False)
+class NearestRemote:
+    """What a routing walk (`LocalGeometry.closest_routed`, `occluded_routed`) found for
+    exact forwarding, before the final hit cuts it: per ray, t_enter (n,) float64, the
+    nearest entry of a candidate box on a shard the ray had not visited, crossed before
+    walk_tmax (n,) float32 (the tmax the ray came with) stretched by BOX_TMAX_SLACK_REL
+    (inf: none), and owner (n,) int32 its shard (-1: none; on equal entries the lowest)."""
+
+    t_enter: np.ndarray
+    owner: np.ndarray
+    walk_tmax: np.ndarray
+
+    def take(self, index: np.ndarray) -> NearestRemote:
+        return NearestRemote(self.t_enter[index], self.owner[index], self.walk_tmax[index])
 
 
 class LocalGeometry:
@@ -31,15 +49,22 @@ class LocalGeometry:
             raise ValueError(f"instances reference meshes {sorted(missing)} not held here")
         self._scene_of_mesh = None
         self._walk_inputs = None
+        self._routed = None  # (cand_owner, its walk inputs)
 
     def __repr__(self) -> str:
         return f"LocalGeometry({len(self.geometry)} meshes, {len(self.instances)} instances)"
 
-    def _walk(self) -> tuple:
-        """The top-level inputs of the walking kernels for these instances (made once)."""
-        if self._walk_inputs is None:
-            self._walk_inputs = self.table.walk_inputs(self.instances)
-        return self._walk_inputs
+    def _walk(self, cand_owner: np.ndarray | None = None) -> tuple:
+        """The top-level inputs of the walking kernels for these instances (made once),
+        routing among the candidates of cand_owner (m,) int32 when given (made once for
+        the last array passed: a policy keeps one)."""
+        if cand_owner is None:
+            if self._walk_inputs is None:
+                self._walk_inputs = self.table.walk_inputs(self.instances)
+            return self._walk_inputs
+        if self._routed is None or self._routed[0] is not cand_owner:
+            self._routed = (cand_owner, self.table.walk_inputs(self.instances, cand_owner))
+        return self._routed[1]
 
     def _scenes(self) -> np.ndarray:
         """(M,) uint64 Embree scene of each base mesh held here (0 elsewhere)."""
@@ -64,6 +89,18 @@ class LocalGeometry:
         returns t (n,) float32 (tmax where no hit), inst (n,) int32 (-1), prim (n,) int32,
         u, v (n,) float32
         """
+        return self._closest(origin, direction, tmax, hit_inst, hit_prim, None, None)[:5]
+
+    def closest_routed(self, origin, direction, tmax, hit_inst, hit_prim,
+                       cand_owner: np.ndarray, visited: np.ndarray):
+        """`intersect_closest` and, from the same walk of the top level, exact forwarding's
+        next stop (`NearestRemote`) among the boxes of cand_owner (m,) int32 (the owner of
+        each box it may visit next, -1 elsewhere) on shards not in visited (n,) uint64.
+        Returns t, inst, prim, u, v, NearestRemote."""
+        return self._closest(origin, direction, tmax, hit_inst, hit_prim, cand_owner,
+                             visited)
+
+    def _closest(self, origin, direction, tmax, hit_inst, hit_prim, cand_owner, visited):
         n = len(origin)
         tmax = np.ascontiguousarray(tmax, np.float32)
         # Each ray's closest candidate so far: smaller t, then the lower instance (an
@@ -75,6 +112,7 @@ class LocalGeometry:
         o = np.ascontiguousarray(origin, np.float64)
         d = np.ascontiguousarray(direction, np.float64)
         mesh_of, _, w2l = self.table.kernel_arrays()
+        route, seen, near_t, near_owner = _route_outputs(n, cand_owner, visited)
         # Each ray walks the top level nearest box first and traces each box it reaches
         # until boxes are entered beyond its closest hit so far (exact: no hit there can
         # win or tie). Embree gets tfar = that hit's t (or tmax) stretched by
@@ -84,23 +122,49 @@ class LocalGeometry:
         # hit). With the margin it reports what it reports with tfar = FAR_T (see
         # crossings._closest_box, tests/workers/test_rtc.py).
         crossings.closest_walk(np.uint64(rtc.INTERSECT1), o, d, tmax, BOX_TMAX_SLACK_REL, FAR_T,
-                               *self._walk(), mesh_of, self._scenes(), w2l, run_t, run_inst,
-                               run_prim, run_u, run_v)
+                               *self._walk(cand_owner), mesh_of, self._scenes(), w2l, run_t,
+                               run_inst, run_prim, run_u, run_v, route, seen, near_t,
+                               near_owner)
         use_record = hit_inst is not None
         if not use_record:
             hit_inst = hit_prim = np.zeros(n, np.int32)
-        return records.local_winners(run_t, run_inst, run_prim, run_u, run_v, tmax,
-                                     np.ascontiguousarray(hit_inst, np.int32),
-                                     np.ascontiguousarray(hit_prim, np.int32), use_record)
+        out = records.local_winners(run_t, run_inst, run_prim, run_u, run_v, tmax,
+                                    np.ascontiguousarray(hit_inst, np.int32),
+                                    np.ascontiguousarray(hit_prim, np.int32), use_record)
+        return (*out, NearestRemote(near_t, near_owner, tmax) if route else None)
 
     def intersect_occluded(self, origin: np.ndarray, direction: np.ndarray,
                            tmax: np.ndarray) -> np.ndarray:
         """(n,) bool: some instance here blocks the segment (0, tmax). Shapes as above."""
+        return self._occluded(origin, direction, tmax, None, None)[0]
+
+    def occluded_routed(self, origin, direction, tmax, cand_owner: np.ndarray,
+                        visited: np.ndarray):
+        """`intersect_occluded` and, from the same walk, exact forwarding's next stop for
+        the rays not occluded here (as `closest_routed`; meaningless for occluded rays).
+        Returns occluded (n,) bool, NearestRemote."""
+        return self._occluded(origin, direction, tmax, cand_owner, visited)
+
+    def _occluded(self, origin, direction, tmax, cand_owner, visited):
+        n = len(origin)
         tmax = np.ascontiguousarray(tmax, np.float32)
-        occluded = np.zeros(len(origin), bool)
+        occluded = np.zeros(n, bool)
         o = np.ascontiguousarray(origin, np.float64)
         d = np.ascontiguousarray(direction, np.float64)
         mesh_of, _, w2l = self.table.kernel_arrays()
-        crossings.occluded_walk(np.uint64(rtc.OCCLUDED1), o, d, tmax, *self._walk(), mesh_of,
-                                self._scenes(), w2l, occluded)
-        return occluded
+        route, seen, near_t, near_owner = _route_outputs(n, cand_owner, visited)
+        crossings.occluded_walk(np.uint64(rtc.OCCLUDED1), o, d, tmax, BOX_TMAX_SLACK_REL,
+                                *self._walk(cand_owner), mesh_of, self._scenes(), w2l,
+                                occluded, route, seen, near_t, near_owner)
+        return occluded, NearestRemote(near_t, near_owner, tmax) if route else None
+
+
+def _route_outputs(n: int, cand_owner, visited) -> tuple:
+    """(route, visited (n,) uint64, near_t (n,) float64, near_owner (n,) int32) for the
+    walking kernels; empty arrays when they do not route."""
+    if cand_owner is None:
+        return False, np.zeros(0, np.uint64), np.zeros(0), np.zeros(0, np.int32)
+    seen = np.ascontiguousarray(visited, np.uint64)
+    if seen.shape != (n,):
+        raise ValueError(f"visited must have shape ({n},), got {seen.shape}")
+    return True, seen, np.full(n, np.inf), np.full(n, -1, np.int32)

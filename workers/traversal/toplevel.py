@@ -115,21 +115,56 @@ class InstanceTable:
             return None
         return col_of
 
-    def walk_inputs(self, instances: np.ndarray) -> tuple:
+    def walk_inputs(self, instances: np.ndarray, cand_owner: np.ndarray | None = None
+                    ) -> tuple:
         """What the walking kernels (`nprt.workers.kernels.crossings.closest_walk`) take
-        for a set of instances: boxes (m, 2, 3) float64 (world_bounds), members (k,) int64,
-        col_of (m,) int32, use_bvh, flat (6, k) float64 (the members' boxes as rows lo x,
-        y, z, hi x, y, z, for the flat loop), then the BVH's node_box, node_child,
-        node_start, node_count, prim (placeholders without one); owned and writable."""
+        for a set of instances: boxes (m, 2, 3) float64 (world_bounds), members (k',)
+        int64 (the instances, then the routing candidates), n_local = k, col_of (m,) int32
+        (position in `instances`, -1 elsewhere; all -1 for the flat loop), cand_owner (m,)
+        int32, use_bvh, flat (6, k') float64 (the members' boxes as rows lo x, y, z, hi x,
+        y, z, for the flat loop), then the BVH's node_box, node_child, node_start,
+        node_count, prim (placeholders without one); owned and writable.
+
+        cand_owner (m,) int32: with it, the walks also route (the owner, >= 0, of each
+        box that exact forwarding may visit next; -1 for the others and for every box of
+        `instances`). The flat loop then tests members and candidates, so the BVH serves
+        when they are more than FLAT_WALK_MAX together."""
         members = np.array(instances, np.int64)
-        col_of = self._columns(members)
-        bounds = np.asarray(self.world_bounds, np.float64)[members]  # (k, 2, 3)
+        n_local = len(members)
+        m = len(self)
+        if cand_owner is None:
+            col_of = self._columns(members)
+            cand = np.full(m, -1, np.int32)
+            bvh_ok = col_of is not None and n_local > FLAT_WALK_MAX
+        else:
+            cand = np.array(cand_owner, np.int32)
+            if cand.shape != (m,):
+                raise ValueError(f"walk_inputs: cand_owner must have shape ({m},), got "
+                                 f"{cand.shape}")
+            if len(members) and (cand[members] >= 0).any():
+                raise ValueError("walk_inputs: a routing candidate is one of the instances "
+                                 "walked here")
+            col_of = self._routed_columns(members)
+            members = np.concatenate([members, np.flatnonzero(cand >= 0)])
+            bvh_ok = col_of is not None and len(members) > FLAT_WALK_MAX
+        bounds = np.asarray(self.world_bounds, np.float64)[members]  # (k', 2, 3)
         flat = np.ascontiguousarray(bounds.reshape(len(members), 6).T)
-        if col_of is None or len(members) <= FLAT_WALK_MAX:
+        if not bvh_ok:
             boxes = np.array(self.world_bounds, np.float64, order="C")
-            return (boxes, members, np.full(len(self), -1, np.int32), False, flat,
+            return (boxes, members, n_local, np.full(m, -1, np.int32), cand, False, flat,
                     *_no_bvh())
-        return (self._bvh[0], members, col_of, True, flat, *self._bvh[1:])
+        return (self._bvh[0], members, n_local, col_of, cand, True, flat, *self._bvh[1:])
+
+    def _routed_columns(self, instances: np.ndarray) -> np.ndarray | None:
+        """`_columns` for a walk that also routes: any number of unique, valid instances
+        (the walk visits the table's BVH for the candidates anyway); None without a
+        BVH."""
+        k, m = len(instances), len(self)
+        if self._bvh is None or (k and (instances.min() < 0 or instances.max() >= m)):
+            return None
+        col_of = np.full(m, -1, np.int32)
+        col_of[instances] = np.arange(k, dtype=np.int32)
+        return col_of if np.count_nonzero(col_of >= 0) == k else None
 
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
         """Slab test of rays against a set of instance boxes, in float64.

@@ -32,7 +32,7 @@ from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
 from nprt.workers.runtime.protocol import EVERYWHERE, MeshRequest, Parcel, ShardConfig
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats, SplitStats
-from nprt.workers.traversal.closest import resolve_closest
+from nprt.workers.traversal.closest import resolve_closest, resolve_closest_routed
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.local import LocalGeometry
 from nprt.workers.wavefront.batch import FLAG_SHADE, PRIMARY, SHADOW, RayBatch, ShadowRayBatch
@@ -352,6 +352,9 @@ class Shard:
         # Every instance is here and the policy forwards only to other shards' instances
         # (the reference): every ray ends here, so routing and visited bits are skipped.
         alone = not len(self.remote) and type(self.policy) is ExactPolicy
+        # Under the exact policy the local walks also find each ray's next stop (one walk
+        # of the top level a ray; nprt.workers.routing.exact.next_stop).
+        fused = None if alone or type(self.policy) is not ExactPolicy else self.policy.cand_owner
         while len(rays) or len(shadow):
             if len(rays):
                 settled = (rays.flags & FLAG_SHADE) != 0
@@ -361,12 +364,17 @@ class Shard:
                 stats.bind(step.tok(rays.pixel)).count_rays(rays.kind)
                 if not alone:
                     rays = rays.replace(visited=rays.visited | self.bit)
+                near = None
                 with stats.phase("local_intersect"):
-                    rays = resolve_closest(rays, self.local, self.world.lights)
+                    if fused is None:
+                        rays = resolve_closest(rays, self.local, self.world.lights)
+                    else:
+                        rays, near = resolve_closest_routed(rays, self.local,
+                                                            self.world.lights, fused)
                 if alone:
                     done = RayBatch.concat([arrived, rays])
                 else:
-                    done = RayBatch.concat([arrived, self._route(rays, stats, out_rays)])
+                    done = RayBatch.concat([arrived, self._route(rays, stats, out_rays, near)])
                 if arrived is not None:
                     done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
                 stats.bind(step.tok(done.pixel)).count_hops(done.hops)
@@ -377,9 +385,15 @@ class Shard:
                 rays = shaded.secondary
             if len(shadow):
                 stats.bind(step.tok(shadow.pixel)).count_rays(np.full(len(shadow), SHADOW))
+                near = None
                 with stats.phase("local_intersect"):
-                    free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
-                                                          shadow.tmax)
+                    if fused is None:
+                        free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
+                                                              shadow.tmax)
+                    else:
+                        occluded, near = self.local.occluded_routed(
+                            shadow.origin, shadow.direction, shadow.tmax, fused, shadow.visited)
+                        free = ~occluded
                 if not len(self.remote):  # nothing elsewhere: every shadow ray ends here
                     stats.count_hops(shadow.hops)
                     step.splat(shadow.pixel[free], shadow.contribution[free])
@@ -388,19 +402,26 @@ class Shard:
                 stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
                 shadow = shadow.take(free).replace(visited=shadow.visited[free] | self.bit)
                 with stats.phase("top_level"):
-                    shadow, target = self.policy.route_shadow(
-                        shadow, stats.bind(step.tok(shadow.pixel)))
+                    if near is None:
+                        shadow, target = self.policy.route_shadow(
+                            shadow, stats.bind(step.tok(shadow.pixel)))
+                    else:
+                        shadow, target = self.policy.route_shadow(
+                            shadow, stats.bind(step.tok(shadow.pixel)), near.take(free))
                 self._send(shadow, target, out_shadow)
                 done = shadow.take(target == DONE)
                 stats.bind(step.tok(done.pixel)).count_hops(done.hops)
                 step.splat(done.pixel, done.contribution.astype(np.float64))
                 shadow = ShadowRayBatch.empty()
 
-    def _route(self, rays: RayBatch, stats, out_rays: list) -> RayBatch:
+    def _route(self, rays: RayBatch, stats, out_rays: list, near=None) -> RayBatch:
         """Route rays with their closest hit here so far: those leaving go into out_rays;
-        returns those that end here."""
+        returns those that end here. near: the routing walk's answer (exact policy)."""
         with stats.phase("top_level"):
-            rays, target = self.policy.route_rays(rays, stats)
+            if near is None:
+                rays, target = self.policy.route_rays(rays, stats)
+            else:
+                rays, target = self.policy.route_rays(rays, stats, near)
         # Rays going to their hit's owner only to be shaded are not re-intersected:
         # a second Embree call with tmax == t may pick a different triangle on an edge.
         final = (target != DONE) & (target == hit_owner(self.world, rays.hit_inst))
