@@ -53,7 +53,7 @@ class Proxy:
         self.box = np.asarray(self.meta["box"], np.float64).reshape(2, 3)
         self.diag = np.float32(self.meta["diag"])
         self._sessions: dict[str, ort.InferenceSession] = {}
-        self._input_names: dict[str, str] = {}
+        self._calls: dict = {}
         self._line: tuple | None = None
         self._blob: bytes | None = None
         self.timing: dict[str, float] = {}
@@ -140,16 +140,29 @@ class Proxy:
         return self._sessions[net]
 
     def run(self, net: str, x: np.ndarray) -> np.ndarray:
-        """Raw net output y (n,) float32 for encoded inputs x (n, k) float32."""
+        """Raw net output y (n,) float32 for encoded inputs x (n, k) float32 (C-contiguous)."""
         if len(x) == 0:
             return np.zeros(0, np.float32)
-        sess = self.session(net)
-        name = self._input_names.get(net)
-        if name is None:
-            name = self._input_names[net] = sess.get_inputs()[0].name
+        call = self._calls.get(net)
+        if call is None:
+            call = self._calls[net] = self._caller(net)
         chunk = ROWS_PER_THREAD * max(1, self.threads)
-        out = [sess.run(None, {name: x[s:s + chunk]})[0] for s in range(0, len(x), chunk)]
+        if len(x) <= chunk:
+            return call(x).reshape(-1).astype(np.float32, copy=False)
+        out = [call(x[s:s + chunk]) for s in range(0, len(x), chunk)]
         return np.concatenate(out).reshape(-1).astype(np.float32, copy=False)
+
+    def _caller(self, net: str):
+        """x -> the net's first output. The session's own binding where there is one: the
+        Python wrapper's checks of names and arguments cost 10-15 us a call, as much as a
+        call of a width-16 net on 50 rows, and shards make tens of thousands of calls."""
+        sess = self.session(net)
+        name = sess.get_inputs()[0].name
+        outputs = [sess.get_outputs()[0].name]
+        inner = getattr(sess, "_sess", None)
+        if inner is None or not hasattr(inner, "run"):
+            return lambda x: sess.run(outputs, {name: x})[0]
+        return lambda x: inner.run(outputs, {name: x}, None)[0]
 
     def query(self, points: np.ndarray, directions: np.ndarray,
               min_visibility: float | None = None):
@@ -173,7 +186,7 @@ class Proxy:
         if enc == "line":  # compiled, the same bits (nprt.proxies.lineenc)
             from nprt.proxies import lineenc
 
-            x, p, shift = lineenc.line_inputs(*self._line_constants()[:4], points, directions)
+            x, p, shift = lineenc.line_inputs(*self.line_constants()[:4], points, directions)
         else:
             p, shift = to_proxy_box(self.box, points, directions)
             x = encode(self.box, p, directions, enc)
@@ -186,7 +199,7 @@ class Proxy:
             t = np.full(n, np.inf, np.float32)
         y = self.run("depth", x[rows])
         if enc == "line":
-            scale, centre = self._line_constants()[4:]
+            scale, centre = self.line_constants()[4:]
             t[rows] = lineenc.line_depth(scale, centre, p[rows], directions[rows], y,
                                          shift[rows])
         else:
@@ -194,7 +207,7 @@ class Proxy:
             t[rows] = np.maximum(t_box + shift[rows], 0.0)
         return vis, t
 
-    def _line_constants(self) -> tuple:
+    def line_constants(self) -> tuple:
         """The box's float32 constants of encoding.to_proxy_box / encode ("line": lo, hi,
         centre, half diagonal) and of depth_decode (diagonal, centre), computed as they do."""
         if self._line is None:

@@ -37,6 +37,32 @@ def _clip(v, lo, hi):  # np.clip: NaN stays NaN; a tie (+0 against -0 too) gives
     return x if x < hi else hi
 
 
+@njit(inline="always")
+def _inputs_row(lo, hi, centre, half, pt, dr, x, p, shift, i, c):
+    """One row of line_inputs: pt, dr (3,) float32 views of the query; writes row i of x, p,
+    shift (c (3,) float32 scratch)."""
+    s = np.float32(np.nan)
+    for a in range(3):
+        c[a] = _clip(pt[a], lo[a], hi[a])
+        t0 = (lo[a] - c[a]) / dr[a]
+        t1 = (hi[a] - c[a]) / dr[a]
+        s = _fmin(t0, t1) if a == 0 else _fmax(s, _fmin(t0, t1))
+    # np.minimum(s, 0.0) then nan_to_num: NaN, -inf and anything not below 0 (-0.0
+    # too: np.minimum gives its second zero) become +0.
+    if not (-np.inf < s < _ZERO):
+        s = _ZERO
+    shift[i] = s
+    dot = _ZERO
+    for a in range(3):
+        p[i, a] = c[a] + s * dr[a]
+        r = p[i, a] - centre[a]
+        dot = r * dr[a] if a == 0 else dot + r * dr[a]
+    for a in range(3):
+        q = (p[i, a] - centre[a]) - dot * dr[a]
+        x[i, a] = _HALF + _HALF * q / half
+        x[i, 3 + a] = _HALF * (dr[a] + _ONE)
+
+
 @njit(**JIT)
 def line_inputs(lo, hi, centre, half, points, directions):
     """lo, hi, centre (3,) float32 (centre = 0.5 * (lo + hi) in float32), half float32;
@@ -48,27 +74,36 @@ def line_inputs(lo, hi, centre, half, points, directions):
     shift = np.empty(n, np.float32)
     c = np.empty(3, np.float32)
     for i in range(n):
-        s = np.float32(np.nan)
-        for a in range(3):
-            c[a] = _clip(points[i, a], lo[a], hi[a])
-            t0 = (lo[a] - c[a]) / directions[i, a]
-            t1 = (hi[a] - c[a]) / directions[i, a]
-            s = _fmin(t0, t1) if a == 0 else _fmax(s, _fmin(t0, t1))
-        # np.minimum(s, 0.0) then nan_to_num: NaN, -inf and anything not below 0 (-0.0
-        # too: np.minimum gives its second zero) become +0.
-        if not (-np.inf < s < _ZERO):
-            s = _ZERO
-        shift[i] = s
-        dot = _ZERO
-        for a in range(3):
-            p[i, a] = c[a] + s * directions[i, a]
-            r = p[i, a] - centre[a]
-            dot = r * directions[i, a] if a == 0 else dot + r * directions[i, a]
-        for a in range(3):
-            q = (p[i, a] - centre[a]) - dot * directions[i, a]
-            x[i, a] = _HALF + _HALF * q / half
-            x[i, 3 + a] = _HALF * (directions[i, a] + _ONE)
+        _inputs_row(lo, hi, centre, half, points[i], directions[i], x, p, shift, i, c)
     return x, p, shift
+
+
+@njit(**JIT)
+def line_inputs_rows(lo, hi, centre, half, which, rows, points, directions):
+    """line_inputs for several proxies at once: lo, hi, centre (g, 3) float32 and half (g,)
+    float32 per proxy; which (r,) int64 the proxy of each output row, rows (r,) int64 the
+    row of points, directions (n, 3) float32 it encodes. Returns x (r, 6), p (r, 3) and
+    shift (r,) float32, row i as line_inputs gives it for points[rows[i]]."""
+    r = len(rows)
+    x = np.empty((r, 6), np.float32)
+    p = np.empty((r, 3), np.float32)
+    shift = np.empty(r, np.float32)
+    c = np.empty(3, np.float32)
+    for i in range(r):
+        g = which[i]
+        _inputs_row(lo[g], hi[g], centre[g], half[g], points[rows[i]], directions[rows[i]],
+                    x, p, shift, i, c)
+    return x, p, shift
+
+
+@njit(inline="always")
+def _depth_row(scale, centre, pt, dr, y, shift):
+    along = _ZERO
+    for a in range(3):
+        v = (pt[a] - centre[a]) * dr[a]
+        along = v if a == 0 else along + v
+    d = (y * scale - along) + shift
+    return d if (d != d or d > _ZERO) else _ZERO  # np.maximum(d, 0.0): NaN stays
 
 
 @njit(**JIT)
@@ -79,10 +114,21 @@ def line_depth(scale, centre, points, directions, y, shift):
     n = points.shape[0]
     t = np.empty(n, np.float32)
     for i in range(n):
-        along = _ZERO
-        for a in range(3):
-            v = (points[i, a] - centre[a]) * directions[i, a]
-            along = v if a == 0 else along + v
-        d = (y[i] * scale - along) + shift[i]
-        t[i] = d if (d != d or d > _ZERO) else _ZERO  # np.maximum(d, 0.0): NaN stays
+        t[i] = _depth_row(scale, centre, points[i], directions[i], y[i], shift[i])
+    return t
+
+
+@njit(**JIT)
+def line_depth_rows(scale, centre, which, rows, points, directions, y, shift, asked):
+    """line_depth for several proxies at once: scale (g,) float32 and centre (g, 3) float32
+    per proxy; which (r,) int64 the proxy of each row; points (r, 3) float32 (line_inputs'
+    p); directions (n, 3) float32 read at rows (r,) int64; y, shift (r,) float32; asked (r,)
+    bool (the depth net ran). Returns t (r,) float32, inf where not asked."""
+    r = len(which)
+    t = np.full(r, np.inf, np.float32)
+    for i in range(r):
+        if asked[i]:
+            g = which[i]
+            t[i] = _depth_row(scale[g], centre[g], points[i], directions[rows[i]], y[i],
+                              shift[i])
     return t

@@ -9,7 +9,7 @@ import pytest
 from nprt.proxies.cache import SHIPPED_DIR
 from nprt.proxies.encoding import depth_decode, encode, to_proxy_box
 from nprt.proxies.inference import Proxy
-from nprt.proxies.lineenc import line_depth, line_inputs
+from nprt.proxies.lineenc import line_depth, line_depth_rows, line_inputs, line_inputs_rows
 
 
 def _queries(rng, n: int, box: np.ndarray):
@@ -71,3 +71,33 @@ def test_a_shipped_proxy_answers_as_the_numpy_pipeline_does():
                               + shift[rows], 0.0)
         assert vis.tobytes() == vis0.tobytes()
         assert t.tobytes() == t0.tobytes()
+
+
+def test_the_many_proxy_kernels_give_each_proxys_bits():
+    """line_inputs_rows / line_depth_rows (several proxies in one call, rows gathered) give
+    what line_inputs / line_depth give proxy by proxy."""
+    rng = np.random.default_rng(5)
+    boxes = [np.stack([lo, lo + rng.uniform(0.1, 4, 3)]) for lo in rng.uniform(-2, 0, (3, 3))]
+    lo, hi = (np.array([b[k] for b in boxes], np.float32) for k in (0, 1))
+    centre = (0.5 * (lo + hi)).astype(np.float32)
+    half = np.array([np.float32(0.5 * np.linalg.norm(b.astype(np.float32)[1]
+                                                     - b.astype(np.float32)[0]))
+                     for b in boxes])
+    scale = np.array([np.float32(np.linalg.norm(b[1] - b[0])) for b in boxes])
+    mid = np.array([(0.5 * (b[0] + b[1])).astype(np.float32) for b in boxes])
+    p, d = _queries(rng, 900, boxes[0])
+    rows = rng.permutation(len(p))[:600].astype(np.int64)
+    which = np.sort(rng.integers(0, 3, len(rows)))
+    x, slid, shift = line_inputs_rows(lo, hi, centre, half, which, rows, p, d)
+    y = rng.uniform(-1, 2, len(rows)).astype(np.float32)
+    asked = rng.random(len(rows)) < 0.7
+    t = line_depth_rows(scale, mid, which, rows, slid, d, y, shift, asked)
+    for g in range(3):
+        sel = which == g
+        x1, slid1, shift1 = line_inputs(lo[g], hi[g], centre[g], half[g], p[rows[sel]],
+                                        d[rows[sel]])
+        t1 = line_depth(scale[g], mid[g], slid1, d[rows[sel]], y[sel], shift1)
+        t1[~asked[sel]] = np.inf
+        for name, a, b in (("x", x1, x[sel]), ("points", slid1, slid[sel]),
+                           ("shift", shift1, shift[sel]), ("t", t1, t[sel])):
+            assert a.tobytes() == b.tobytes(), (name, g)

@@ -108,17 +108,41 @@ def _mesh_constants(proxies: dict, knobs: QueryKnobs, n_mesh: int):
 def _ask_nets(proxies: dict, mesh: np.ndarray, ask: np.ndarray, point, qdir, thr_m):
     """Each mesh's nets on its pairs where `ask` (p,) bool, in pair order: vis (p,) float32
     (0 where not asked) and tp (p,) float32 the proxy's t in local units (inf where not asked
-    or below the threshold)."""
+    or below the threshold). The "line" encoding of every mesh's pairs is one compiled pass
+    before the nets and one after (the bits of Proxy.query, mesh by mesh)."""
     p = len(mesh)
     vis = np.zeros(p, np.float32)
     tp = np.full(p, np.inf, np.float32)
     rows = np.flatnonzero(ask)
+    if not len(rows):
+        return vis, tp
     rows = rows[np.argsort(mesh[rows], kind="stable")]  # grouped by mesh, pair order within
-    cut = np.flatnonzero(np.diff(mesh[rows])) + 1
-    for group in np.split(rows, cut) if len(rows) else ():
-        m = int(mesh[group[0]])
-        vis[group], tp[group] = proxies[m].query(point[group], qdir[group],
-                                                 min_visibility=float(thr_m[m]))
+    cut = np.r_[0, np.flatnonzero(np.diff(mesh[rows])) + 1, len(rows)]
+    group = [proxies[int(m)] for m in mesh[rows[cut[:-1]]]]
+    if any(g.meta["encoding"] != "line" for g in group):
+        for proxy, s, e in zip(group, cut[:-1], cut[1:], strict=True):
+            sel = rows[s:e]
+            vis[sel], tp[sel] = proxy.query(point[sel], qdir[sel],
+                                            min_visibility=float(thr_m[mesh[sel[0]]]))
+        return vis, tp
+    from nprt.proxies import lineenc
+
+    consts = [g.line_constants() for g in group]
+    which = np.repeat(np.arange(len(group)), np.diff(cut))
+    x, on_box, shift = lineenc.line_inputs_rows(
+        *(np.array([c[k] for c in consts]) for k in range(4)), which, rows, point, qdir)
+    v = np.empty(len(rows), np.float32)
+    y = np.zeros(len(rows), np.float32)
+    deep = np.zeros(len(rows), bool)  # the depth net ran
+    for proxy, s, e in zip(group, cut[:-1], cut[1:], strict=True):
+        v[s:e] = proxy.run("visibility", x[s:e])
+        sel = s + np.flatnonzero(v[s:e] >= thr_m[mesh[rows[s]]])
+        y[sel] = proxy.run("depth", x[sel])
+        deep[sel] = True
+    vis[rows] = v
+    tp[rows] = lineenc.line_depth_rows(np.array([c[4] for c in consts]),
+                                       np.array([c[5] for c in consts]), which, rows, on_box,
+                                       qdir, y, shift, deep)
     return vis, tp
 
 
