@@ -1,8 +1,8 @@
-"""PathIntegrator.shade (two fused kernels) against the stages it replaced, composed as
-before: the surface, next-event and BSDF kernels with numpy between them. Same film
-contributions (rows of zero aside: they add nothing), same shadow and continuation rays,
-bit for bit, on a render's own batches with every light type, emission, both
-environments, S = 0 and Russian roulette."""
+"""PathIntegrator.shade (kernels throughout: shade_hits, then the surface, next-event and
+BSDF kernels on the hits that go on) against the numpy glue it replaced, composed as before
+around the same kernels. Same film contributions (rows of zero aside: they add nothing),
+same shadow and continuation rays, bit for bit, on a render's own batches with every light
+type, emission, both environments, S = 0 and Russian roulette."""
 
 from __future__ import annotations
 
@@ -29,8 +29,8 @@ from tests.workers.oracles import environment_radiance, pdf_quad_hit
 
 
 def staged_shade(integ: PathIntegrator, rays: RayBatch):
-    """`PathIntegrator.shade` before the fused kernels: film (pixel, rgb), shadow and
-    secondary batches."""
+    """`PathIntegrator.shade` before shade_hits: film (pixel, rgb), shadow and secondary
+    batches."""
     s, lights = integ.s, integ.lights
     pix_parts, rgb_parts = [], []
     thr = rays.throughput.astype(np.float64)

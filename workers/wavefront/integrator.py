@@ -68,6 +68,11 @@ def _owned(a: np.ndarray) -> np.ndarray:
     return a if a.flags.writeable and a.flags.c_contiguous else np.array(a, order="C")
 
 
+# The ray columns the shading kernels read, in `shade_kernels.shade_hits`' order first.
+_SHADE_COLUMNS = ("direction", "tmax", "throughput", "pixel", "sample", "depth", "pdf_prev",
+                  "hit_inst", "hit_prim", "hit_u", "hit_v")
+
+
 class PathIntegrator:
     """meshes : the base meshes held here (index -> Mesh); others cannot be shaded here."""
 
@@ -102,35 +107,43 @@ class PathIntegrator:
 
     def shade(self, rays: RayBatch) -> Shaded:
         """Rays whose hit record (tmax, hit_inst, hit_prim, hit_u, hit_v) is final: film
-        contributions, then S shadow rays and a BSDF ray per hit that goes on. Two kernels
-        (`shade_kernels.shade_hits`, then `scatter`), numpy's sines between them."""
+        contributions, then S shadow rays and a BSDF ray per hit that goes on. Kernels
+        throughout (`shade_kernels.shade_hits`, `surface`, `next_event`, `bsdf_continue`),
+        numpy's sines between them."""
         if self._surfaces is None:
             self._surfaces = SurfaceTables(self.meshes, self.materials, self.table)
-        L, S = self.lights, self.s.shadow_rays
-        bad, m, f_pix, f_rgb, go_ray, p, p_err, ng, ns, albedo, thr, phi = \
-            shade_kernels.shade_hits(
-                self.s.seed, self.s.bounces, S, *(_owned(getattr(rays, c)) for c in (
-                    "direction", "tmax", "throughput", "pixel", "sample", "depth",
-                    "pdf_prev", "hit_inst", "hit_prim", "hit_u", "hit_v")),
-                *self._environment(), *self._light_arrays()[3:6], L.count,
-                *self._surfaces.kernel_tables())
+        tables, L, S = self._surfaces, self.lights, self.s.shadow_rays
+        cols = {c: _owned(getattr(rays, c)) for c in _SHADE_COLUMNS}
+        bad, m, f_pix, f_rgb, go_ray, thr, phi = shade_kernels.shade_hits(
+            self.s.seed, self.s.bounces, S, *(cols[c] for c in _SHADE_COLUMNS[:7]),
+            cols["hit_inst"], *self._environment(), *self._light_arrays()[3:6], L.count,
+            tables.slot_of_mesh, tables.inst_mesh, tables.mesh_mat, tables.mat_emission)
         if bad >= 0:
-            self._surfaces.refuse(int(rays.hit_inst[bad]))
+            tables.refuse(int(rays.hit_inst[bad]))
         shadow, secondary = ShadowRayBatch.empty(), RayBatch.empty()
-        if len(go_ray):
-            k, s_o, s_d, s_t, s_c, s_pix, c, o, d, t, pdf, pix, smp, dep = \
-                shade_kernels.scatter(
-                    self.s.seed, S if L.count else 0, go_ray, _owned(rays.pixel),
-                    _owned(rays.sample), _owned(rays.depth), p, p_err, ns, ng, albedo, thr,
-                    np.cos(phi), np.sin(phi), *self._light_arrays(), float(FAR_T),
-                    float(SHADOW_TMAX_SCALE), self.s.russian_roulette, RR_START_DEPTH)
-            if k:
-                shadow = ShadowRayBatch(
-                    origin=s_o[:k], direction=s_d[:k], tmax=s_t[:k], contribution=s_c[:k],
-                    pixel=s_pix[:k], visited=np.zeros(k, np.uint64), hops=np.zeros(k, np.uint8))
+        g = len(go_ray)
+        if g:
+            pixel, sample, depth = cols["pixel"], cols["sample"], cols["depth"]
+            _, p, ng, ns, albedo, _, p_err = shade_kernels.surface(
+                go_ray, cols["hit_inst"], cols["hit_prim"], cols["hit_u"], cols["hit_v"],
+                cols["direction"], *tables.kernel_tables())
+            hits = np.arange(g)
+            if S and L.count:
+                k, origin, wi, tmax, contrib, pix = shade_kernels.next_event(
+                    self.s.seed, S, hits, go_ray, pixel, sample, depth, p, p_err, ns, ng,
+                    albedo, thr, *self._light_arrays(), float(FAR_T), float(SHADOW_TMAX_SCALE))
+                if k:
+                    shadow = ShadowRayBatch(
+                        origin=origin[:k], direction=wi[:k], tmax=tmax[:k],
+                        contribution=contrib[:k], pixel=pix[:k],
+                        visited=np.zeros(k, np.uint64), hops=np.zeros(k, np.uint8))
+            c, row, origin, d, t, pdf = shade_kernels.bsdf_continue(
+                self.s.seed, hits, go_ray, pixel, sample, depth, np.cos(phi), np.sin(phi), p,
+                p_err, ng, ns, albedo, thr, self.s.russian_roulette, RR_START_DEPTH)
             if c:
-                secondary = new_rays(o[:c], d[:c], t[:c], pix[:c], smp[:c], dep[:c], SECONDARY,
-                                     pdf[:c])
+                ray = go_ray[row[:c]]
+                secondary = new_rays(origin[:c], d[:c], t[:c], pixel[ray], sample[ray],
+                                     depth[ray] + 1, SECONDARY, pdf[:c])
         return Shaded(f_pix[:m], f_rgb[:m], shadow, secondary)
 
     def _environment(self) -> tuple:
