@@ -24,34 +24,39 @@ def accumulate(idx, rgb, words, outside):
     Values the words cannot hold (not finite, or |v| >= 2^MAX_EXP) are left out and flagged
     in outside (m,) bool; returns how many rows have one."""
     flagged = 0
+    w4 = words.reshape((1, words.shape[0], 3, 2))
     for i in range(idx.shape[0]):
-        flagged += _add(words, idx[i], rgb, i, outside)
+        flagged += _add(w4, 0, idx[i], rgb, i, outside)
     return flagged
 
 
 @njit(**JIT)
-def splat(pixel, rgb, tok, slot, width, x0, y0, tile_w, words, outside):
-    """`accumulate` of the rows of one pass, indexed by their pixel within its tile: the
-    rows i with tok[i] == slot (every row where tok is empty). pixel (m,) uint32 linear
-    y * width + x; rgb (m, 3) float32 or float64; tok (m,) or (0,) int64; the pass's tile
-    starts at column x0, row y0 and is tile_w pixels wide; words (n, 3, 2) int64 its
-    film; outside (m,) bool as `accumulate`'s. Returns how many rows were flagged."""
-    w = np.uint32(width)
-    every = tok.shape[0] == 0
+def splat(pixel, rgb, width, tile_size, slot_of_tile, x0, y0, tile_w, words, outside):
+    """`accumulate` of a step's contributions, each at its pixel's index in the tile of its
+    pass: pixel (m,) uint32 linear y * width + x; rgb (m, 3) float32 or float64;
+    slot_of_tile (tiles,) int64 the pass of each row-major tile of edge tile_size (-1:
+    none; such rows are dropped); x0, y0, tile_w (t,) int64 each pass's tile origin and
+    width; words (t, n, 3, 2) int64 the passes' films; outside (m,) bool as
+    `accumulate`'s. Returns how many rows were flagged."""
+    w, ts = np.uint32(width), np.uint32(tile_size)  # 32-bit divisions: twice as fast
+    tiles_x = (w + ts - np.uint32(1)) // ts
     flagged = 0
     for i in range(pixel.shape[0]):
-        if not every and tok[i] != slot:
-            continue
         p = pixel[i]
-        y = p // w  # 32-bit divisions: twice as fast
-        idx = (np.int64(y) - y0) * tile_w + (np.int64(p - y * w) - x0)
-        flagged += _add(words, idx, rgb, i, outside)
+        y = p // w
+        x = p - y * w
+        j = slot_of_tile[(y // ts) * tiles_x + x // ts]
+        if j < 0:
+            continue
+        idx = (np.int64(y) - y0[j]) * tile_w[j] + (np.int64(x) - x0[j])
+        flagged += _add(words, j, idx, rgb, i, outside)
     return flagged
 
 
 @njit(inline="always", **JIT)
-def _add(words, p, rgb, i, outside):
-    """Add row i of rgb at pixel p; returns 1 if the row was flagged here, else 0."""
+def _add(words, j, p, rgb, i, outside):
+    """Add row i of rgb at pixel p of film j of words (t, n, 3, 2); returns 1 if the row
+    was flagged here, else 0."""
     flagged = 0
     for c in range(3):
         v = np.float64(rgb[i, c])
@@ -63,10 +68,10 @@ def _add(words, p, rgb, i, outside):
         q = np.rint(v * _SCALE)  # exact scaling; one rounding to the quantum
         hi = np.floor(q * _INV_WORD)
         lo = np.int64(q - hi * _WORD)  # exact: q's low bits, in [0, 2^60)
-        words[p, c, 0] += np.int64(hi)
-        s = words[p, c, 1] + lo
+        words[j, p, c, 0] += np.int64(hi)
+        s = words[j, p, c, 1] + lo
         if s >= _LO_END:
             s -= _LO_END
-            words[p, c, 0] += 1
-        words[p, c, 1] = s
+            words[j, p, c, 0] += 1
+        words[j, p, c, 1] = s
     return flagged

@@ -51,25 +51,22 @@ class _PassState:
 
     pass_: Pass
     stats: RenderStats = field(default_factory=RenderStats)
-    film: FilmSums = field(init=False)
+    film: FilmSums | None = None  # None until a step adds to it (`_Step` holds its words)
     # Rare: contributions the words cannot hold (not finite, or beyond 2^MAX_EXP), kept as
     # (index (k,) int64 within the tile, rgb (k, 3) float64) to be summed at `collect`.
     outside: list = field(default_factory=list)
 
-    def __post_init__(self):
-        self.film = FilmSums.zeros(self.pass_.n_pixels)
-
     def sums(self) -> FilmSums:
         """This shard's share of the pass's film, its float sums of the contributions
         outside the words in a canonical order."""
-        out = self.film
+        n = self.pass_.n_pixels
+        out = FilmSums.zeros(n) if self.film is None else self.film
         if self.outside:
             i = np.concatenate([idx for idx, _ in self.outside])
             rgb = np.concatenate([rgb for _, rgb in self.outside])
             v = np.where(np.abs(rgb) < 2.0 ** MAX_EXP, 0.0, rgb)
             order = np.lexsort((v[:, 2], v[:, 1], v[:, 0], i))
-            out.rest = np.stack([np.bincount(i[order], weights=v[order, c],
-                                             minlength=self.pass_.n_pixels)
+            out.rest = np.stack([np.bincount(i[order], weights=v[order, c], minlength=n)
                                  for c in range(3)], axis=1)
         return out
 
@@ -97,6 +94,18 @@ class _Step:
         self.lookup = lookup  # (tiles,) int64 -> index into states, -1: none in this step
         self._tok_of, self._tok = None, None  # the last pixel column tok was asked for
         self.stats = SplitStats([st.stats for st in states])
+        # The passes' films side by side, (t, n, 3, 2) int64, so one pass over a batch adds
+        # it to all of them; each pass's film is a view of its slot from now on (what an
+        # earlier step added is copied in).
+        n = max((st.pass_.n_pixels for st in states), default=0)
+        self.words = np.zeros((len(states), n, 3, 2), np.int64)
+        for j, st in enumerate(states):
+            view = self.words[j, :st.pass_.n_pixels]
+            if st.film is not None:
+                view[...] = st.film.words
+            st.film = FilmSums(view)
+        self.tiles = np.array([(st.pass_.x0, st.pass_.y0, st.pass_.x1 - st.pass_.x0)
+                               for st in states], np.int64).reshape(-1, 3).T.copy()  # (3, t)
 
     def tok(self, pixel: np.ndarray) -> np.ndarray:
         """pixel (n,) uint32 -> (n,) int64 index of its pass in this step. The last answer
@@ -118,22 +127,16 @@ class _Step:
         pixel = np.ascontiguousarray(pixel, np.uint32)
         rgb = np.ascontiguousarray(rgb)
         outside = np.zeros(len(pixel), bool)
-        tok = _EVERY_ROW if len(self.states) == 1 else self.tok(pixel)
-        flagged = 0
-        for j, st in enumerate(self.states):
-            p = st.pass_
-            flagged += splat(pixel, rgb, tok, j, self.s.width, p.x0, p.y0, p.x1 - p.x0,
-                             st.film.words, outside)
-        if flagged:  # rare: kept for `_PassState.sums`
+        x0, y0, width = self.tiles
+        if splat(pixel, rgb, self.s.width, self.s.tile_size, self.lookup, x0, y0, width,
+                 self.words, outside):  # rare: kept for `_PassState.sums`
             rows = np.flatnonzero(outside)
+            tok = tiles.pass_slots(pixel[rows], self.s.width, self.s.tile_size, self.lookup)
             local = tiles.tile_index(pixel[rows], self.s.width, self.s.tile_size)
             for j, st in enumerate(self.states):
-                mine = slice(None) if len(tok) == 0 else np.flatnonzero(tok[rows] == j)
-                if len(local[mine]):
-                    st.outside.append((local[mine], np.asarray(rgb[rows][mine], np.float64)))
-
-
-_EVERY_ROW = np.zeros(0, np.int64)  # `splat`'s tok of a step with one pass
+                mine = np.flatnonzero(tok == j)
+                if len(mine):
+                    st.outside.append((local[mine], np.asarray(rgb[rows[mine]], np.float64)))
 
 
 class Shard:
