@@ -43,8 +43,9 @@ def add_serve_parsers(subparsers) -> None:
         p.add_argument("--grpc-port", type=int, default=50051, help="gRPC port" + disable)
     p = subparsers.choices["serve"]
     p.add_argument("--port", type=int, default=8000, help="REST port")
-    p.add_argument("--workers", type=int, default=1,
-                   help="HTTP API worker processes sharing the port and the store")
+    p.add_argument("--workers", type=int, default=None,
+                   help="HTTP API worker processes sharing the port and the store "
+                        "(default: NPRT_API_WORKERS, else 2 on a host with 2 or more cores)")
     p.add_argument("--api-only", action="store_true",
                    help="no scheduler: only store and serve jobs (run `nprt scheduler` once "
                         "per data directory elsewhere)")
@@ -153,6 +154,13 @@ def _start_grpc(args: argparse.Namespace, settings, port: int):
     return child
 
 
+def default_api_workers() -> int:
+    """Two HTTP workers where there are two cores: in a burst of submissions one event loop
+    admits them in turn, the last waiting for the CPU of all, and a health check or a
+    dashboard's read waits behind them (bench/README.md, "Service under load")."""
+    return 2 if (os.cpu_count() or 1) >= 2 else 1
+
+
 def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -179,11 +187,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     try:
         if grpc_port is not None:
             grpc = _start_grpc(args, settings, grpc_port)
-        if args.workers > 1:  # each worker builds its app from NPRT_* (app_from_env)
+        workers = args.workers or settings.api_workers or default_api_workers()
+        if workers > 1:  # each worker builds its app from NPRT_* (app_from_env)
             for name, value in settings.model_dump(exclude_none=True).items():
                 os.environ[f"NPRT_{name.upper()}"] = str(value)
             os.environ.pop("NPRT_GRPC_PORT", None)  # gRPC is the child's
-            uvicorn.run("nprt.service.app:app_from_env", factory=True, workers=args.workers,
+            uvicorn.run("nprt.service.app:app_from_env", factory=True, workers=workers,
                         **options)
         else:
             app = create_app(settings)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Literal
 
 from pydantic import Field
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -62,17 +63,29 @@ class ServiceSettings(BaseSettings):
                                              "default admits a burst of 500)")
     retry_after_s: int = Field(2, ge=1, le=3600,
                                description="Retry-After of a 429 or 503 answer, seconds")
+    api_workers: int | None = Field(
+        None, ge=1, le=64, description="HTTP API worker processes of `nprt serve` "
+                                       "(--workers), sharing the port and the store; unset: "
+                                       "2 on a host with 2 or more cores, else 1")
+    scheduler_cpu: Literal["idle", "batch", "off"] = Field(
+        "idle", description="CPU policy of the scheduler and everything it starts (Ray, "
+                            "renders): idle (SCHED_IDLE: an API worker of the same session "
+                            "that wakes preempts a render at once), batch (SCHED_BATCH), "
+                            "off (as started); service/priority.py")
     scheduler_nice: int = Field(10, ge=0, le=19,
-                                description="niceness the scheduler process (and the Ray "
-                                            "processes it starts) runs at, as batch work in "
-                                            "a session of its own, so that renders yield "
-                                            "the CPU to API workers (0: none of it)")
+                                description="niceness of the scheduler and the Ray "
+                                            "processes it starts, unless scheduler_cpu is off")
+    scheduler_own_session: bool = Field(
+        False, description="run the scheduler in a session (an autogroup) of its own: the "
+                            "kernel then shares the CPU between it and the API's session "
+                            "before the CPU policy counts, so renders take up to half of "
+                            "it from the API")
     scheduler_session_nice: int = Field(
         0, ge=0, le=19,
         description="nice of the scheduler session's autogroup (Linux autogroup scheduling "
-                    "shares the CPU between sessions first): 10 keeps a K = 8 render from "
-                    "taking the API's CPU, but on a host busy with other sessions it slows "
-                    "Ray's start to minutes")
+                    "shares the CPU between sessions first): 10 holds renders back against "
+                    "every other session too, but on a host busy with other sessions it "
+                    "slows Ray's start to minutes")
     ray_start_attempts: int = Field(3, ge=1, le=20,
                                     description="tries at starting or joining Ray per job")
 

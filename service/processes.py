@@ -18,7 +18,8 @@
   every render (the single-process reference included). One per data directory (a lock
   file), restartable at any time: unfinished jobs resume from their checkpoints. A Ray it
   starts belongs to one thread (raystart), and stopping the scheduler stops that Ray, its
-  agents included, and joins every thread it started.
+  agents included, and joins every thread it started. It and all it starts run below the
+  API on the CPU: SCHED_IDLE in the API's session by default (priority).
 - **The store** (`<data_dir>/jobs.sqlite3`, WAL): the shared truth. Jobs, their states
   (compare-and-set), idempotency keys (a unique index: exactly-once admission across
   workers), and the events (state snapshots and tiles) that carry notifications.
@@ -36,6 +37,7 @@ import threading
 import time
 
 from nprt.service.config import ServiceSettings
+from nprt.service.priority import yield_cpu
 
 log = logging.getLogger(__name__)
 
@@ -47,9 +49,9 @@ def run_scheduler(settings: ServiceSettings) -> int:
     at their next pass boundary and resume on the next start)."""
     from nprt.service.scheduler import Scheduler, SchedulerRunning
 
+    yield_cpu(settings.scheduler_cpu, settings.scheduler_nice,
+              settings.scheduler_own_session, settings.scheduler_session_nice)
     done = threading.Event()
-    if settings.scheduler_nice:
-        yield_cpu(settings.scheduler_nice, settings.scheduler_session_nice)
     scheduler = Scheduler(settings)
 
     def on_signal(*_) -> None:
@@ -70,30 +72,6 @@ def run_scheduler(settings: ServiceSettings) -> int:
         scheduler.stop()
         log.info("scheduler stopped; unfinished jobs resume on the next start")
     return 0
-
-
-def yield_cpu(nice: int, session_nice: int = 0) -> None:
-    """Put this process, and the Ray processes and renders it starts (they inherit it all),
-    below the API workers: `nice` levels lower, scheduled as batch work (it never preempts
-    a waking API worker), and on Linux in a session of its own whose autogroup runs at
-    session_nice. With autogroups (the kernel default) the CPU is shared between sessions
-    first and a process's nice orders it only within its session, so only session_nice
-    keeps renders from taking the API's share when other sessions are busy
-    (NPRT_SCHEDULER_SESSION_NICE; bench/README.md, "render effect"). A step the platform
-    refuses is skipped."""
-    os.nice(nice)
-    if hasattr(os, "SCHED_BATCH"):
-        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
-    try:
-        os.setsid()
-    except OSError:  # already a group leader (started from a shell): its session it is
-        return
-    if session_nice:
-        try:
-            with open("/proc/self/autogroup", "w") as f:
-                f.write(str(session_nice))
-        except OSError:
-            pass
 
 
 def _die_with_parent() -> None:

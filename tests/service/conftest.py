@@ -2,8 +2,17 @@
 
 from __future__ import annotations
 
+import os
+
 import httpx
 import pytest
+
+# Scheduler processes the tests start keep an autogroup of their own, as before SCHED_IDLE
+# became the default: under pytest-xdist the other worker's in-process renders run in this
+# session, and an idle-policy scheduler beside them would get almost no CPU.
+# test_priority.py starts its services with the defaults and checks them.
+os.environ.setdefault("NPRT_SCHEDULER_CPU", "batch")
+os.environ.setdefault("NPRT_SCHEDULER_OWN_SESSION", "true")
 
 from tests.service.helpers import LiveServer, settings_for, two_box_glb
 

@@ -122,6 +122,19 @@ def wait_for(predicate, timeout_s: float, interval_s: float = 0.05, what: str = 
     raise AssertionError(f"timed out after {timeout_s} s waiting for {what}")
 
 
+def wait_serving(proc, url: str, log_path: Path, timeout_s: float = 60.0) -> None:
+    """Wait until the service process `proc` answers GET url/healthz; fails with its log
+    if it exits first."""
+    def ready() -> bool:
+        assert proc.poll() is None, log_path.read_text()
+        try:
+            return httpx.get(f"{url}/healthz", timeout=1).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    wait_for(ready, timeout_s, what=f"{url}/healthz")
+
+
 BLOCKER = {**TINY, "width": 64, "height": 64, "spp": 1024, "spp_per_pass": 1}
 
 

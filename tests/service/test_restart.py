@@ -19,7 +19,7 @@ from nprt.scene.io import load_any
 from nprt.workers.film import tonemap_srgb
 from nprt.workers.render import render
 from nprt.workers.settings import RenderSettings
-from tests.service.helpers import png_pixels, wait_for
+from tests.service.helpers import png_pixels, wait_for, wait_serving
 
 REPO = Path(__file__).resolve().parents[2]
 # 128 passes of one 32x32 tile-sample each: a few seconds, with many pass boundaries.
@@ -52,15 +52,7 @@ def _start(data_dir: Path, log_path: Path, *flags: str) -> tuple[subprocess.Pope
     proc = _popen(["serve", "--port", str(port), "--grpc-port", "-1", *flags], data_dir,
                   log_path)
     url = f"http://127.0.0.1:{port}"
-
-    def ready():
-        assert proc.poll() is None, log_path.read_text()
-        try:
-            return httpx.get(f"{url}/healthz", timeout=1).status_code == 200
-        except httpx.TransportError:
-            return False
-
-    wait_for(ready, 60, what="service start")
+    wait_serving(proc, url, log_path)
     return proc, url
 
 
@@ -80,8 +72,8 @@ def test_killed_scheduler_leaves_the_api_answering_and_the_job_resumes(tmp_path)
         assert job["passes_total"] == PASSES
         wait_for(lambda: httpx.get(f"{url}/v1/jobs/{job_id}").json()["passes_done"] >= 3,
                  120, interval_s=0.01, what="three finished passes")
-        # Renders yield the CPU to the API (NPRT_SCHEDULER_NICE; Ray inherits it): nice,
-        # batch scheduling, and a session (an autogroup) of their own.
+        # Renders yield the CPU to the API (conftest: batch, a session of its own;
+        # test_priority checks the default, idle).
         assert os.getpriority(os.PRIO_PROCESS, scheduler.pid) == min(19, 10 + os.getpriority(
             os.PRIO_PROCESS, api.pid))
         assert os.sched_getscheduler(scheduler.pid) == os.SCHED_BATCH

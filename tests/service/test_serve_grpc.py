@@ -16,7 +16,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from nprt.protos import nprt_pb2 as pb
 from nprt.protos import nprt_pb2_grpc
-from tests.service.helpers import TINY, wait_for
+from tests.service.helpers import TINY, wait_serving
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -50,14 +50,7 @@ def test_serve_runs_grpc_in_a_child_on_the_same_store_and_stops_it(tmp_path):
         cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
     url = f"http://127.0.0.1:{port}"
     try:
-        def ready():
-            assert proc.poll() is None, (tmp_path / "serve.log").read_text()
-            try:
-                return httpx.get(f"{url}/healthz", timeout=1).status_code == 200
-            except httpx.TransportError:
-                return False
-
-        wait_for(ready, 90, what="serve to answer /healthz")
+        wait_serving(proc, url, tmp_path / "serve.log", 90)
         with grpc.insecure_channel(f"127.0.0.1:{grpc_port}") as channel:
             # No wait_for_ready: REST answering means gRPC listens already.
             health = health_pb2_grpc.HealthStub(channel).Check(
