@@ -3,7 +3,8 @@ gRPC WatchJob streams follow running jobs (one of them a K = 2 render) and clien
 Checks every job is accepted once and completed, and reports p50 / p99 per route and for
 gRPC health during the burst, plus the CPU of the API processes and of this load
 generator. The REST client is bench.service.rawhttp: client and service share the
-machine, and aiohttp spent more CPU per request than the service did.
+machine, and aiohttp spent more CPU per request than the service did. The watchers, and the
+pollers with the health prober, run in processes of their own (bench.service.clientroles).
 
     python -m bench.service.bench_service [--label after] [--jobs 500] [--smoke]
     python -m bench.service.bench_service --label before --service-root /tmp/before
@@ -30,31 +31,27 @@ import uuid
 from collections import defaultdict
 from pathlib import Path
 
-import grpc
-from grpc_health.v1 import health_pb2_grpc
-
 from bench.common import RESULTS
+from bench.service.clientroles import Readers, Watchers
 from bench.service.harness import (
     REPO,
     Latency,
     Rest,
     api_cpu_s,
-    check_health,
+    http_workers,
     niceness,
     percentiles,
-    poll,
     running_service,
     start_profilers,
     stop_profilers,
 )
 from bench.service.rawhttp import request_bytes
 from nprt.protos import nprt_pb2 as pb
-from nprt.protos import nprt_pb2_grpc
 
 TERMINAL = {"succeeded", "failed", "canceled"}
 HEALTH_INTERVAL_S = 0.02
 POLL_PAUSE_S = 0.005
-LABELS = ("before", "after_grpc_thread", "after", "after_2_workers")
+LABELS = ("before", "after", "after_2_workers")
 _EVENT = re.compile(rb"event: (\w+)\r\n")
 
 
@@ -105,82 +102,75 @@ async def list_all(rest: Rest, conn) -> list[dict]:
 async def run(host: str, port: int, target: str, pid: int, args: argparse.Namespace,
               job: dict, watched: list[dict]) -> dict:
     lat = Latency()
-    stop = asyncio.Event()
-    sse_counts: dict = defaultdict(int)
-    grpc_counts: dict = defaultdict(int)
     refused: dict = defaultdict(int)
     rest = Rest(host, port)
     control = rest.connection()
-    async with grpc.aio.insecure_channel(target) as channel:
-        stub = nprt_pb2_grpc.RenderServiceStub(channel)
-        health = health_pb2_grpc.HealthStub(channel)
+    # Long jobs already rendering (one of them sharded), watched by every stream, so the
+    # burst lands on a busy service that fans tiles out; canceled after the burst. The
+    # watchers, and the pollers with the health prober, are clients of their own
+    # (clientroles): processes beside this one, which only submits.
+    warm = [(await rest.call(control, "POST", "/v1/jobs", w))[1]["id"] for w in watched]
+    watchers = Watchers(host, port, target, warm, args.sse_watchers, args.grpc_streams)
+    # Steady state: every stream open and every long job streaming tiles (the sharded
+    # one once Ray and its shards are up).
+    while True:
+        running = [(await rest.call(control, "GET", f"/v1/jobs/{j}"))[1] for j in warm]
+        sse_counts, grpc_counts = watchers.counts()
+        if (sse_counts.get("opened", 0) + grpc_counts.get("opened", 0)
+                == args.sse_watchers + args.grpc_streams
+                and all(r["passes_done"] > 0 for r in running)):
+            break
+        await asyncio.sleep(0.2)
+    ids: list[str] = list(warm)
 
-        # Long jobs already rendering (one of them sharded), watched by every stream, so the
-        # burst lands on a busy service that fans tiles out; canceled after the burst.
-        warm = [(await rest.call(control, "POST", "/v1/jobs", w))[1]["id"] for w in watched]
-        watchers = [asyncio.create_task(sse_watch(rest, warm[i % len(warm)], sse_counts))
-                    for i in range(args.sse_watchers)]
-        watchers += [asyncio.create_task(grpc_watch(stub, warm[i % len(warm)], grpc_counts))
-                     for i in range(args.grpc_streams)]
-        # Steady state: every stream open and every long job streaming tiles (the sharded
-        # one once Ray and its shards are up).
-        while True:
-            running = [(await rest.call(control, "GET", f"/v1/jobs/{j}"))[1] for j in warm]
-            if (sse_counts["opened"] + grpc_counts["opened"] == len(watchers)
-                    and all(r["passes_done"] > 0 for r in running)):
-                break
-            await asyncio.sleep(0.2)
-        ids: list[str] = list(warm)
-
-        async def submit() -> tuple[int, dict]:
-            """One submission on a connection of its own, honouring Retry-After; its
-            latency is the first answer's."""
-            conn = rest.connection()
-            key = {"Idempotency-Key": uuid.uuid4().hex}
-            t0 = time.perf_counter()
+    async def submit() -> tuple[int, dict]:
+        """One submission on a connection of its own, honouring Retry-After; its
+        latency is the first answer's."""
+        conn = rest.connection()
+        key = {"Idempotency-Key": uuid.uuid4().hex}
+        t0 = time.perf_counter()
+        status, body, after = await rest.call(conn, "POST", "/v1/jobs", job, key)
+        lat.samples_s["POST /v1/jobs"].append(time.perf_counter() - t0)
+        while status in (429, 503) and after is not None:
+            refused[status] += 1
+            await asyncio.sleep(after)
             status, body, after = await rest.call(conn, "POST", "/v1/jobs", job, key)
-            lat.samples_s["POST /v1/jobs"].append(time.perf_counter() - t0)
-            while status in (429, 503) and after is not None:
-                refused[status] += 1
-                await asyncio.sleep(after)
-                status, body, after = await rest.call(conn, "POST", "/v1/jobs", job, key)
-            conn.close()
-            return status, body
+        conn.close()
+        return status, body
 
-        background = [asyncio.create_task(poll(rest, lat, ids, stop, POLL_PAUSE_S))
-                      for _ in range(args.pollers)]
-        background.append(asyncio.create_task(
-            check_health(rest, health, lat, stop, HEALTH_INTERVAL_S)))
-        profilers = [] if args.profile is None else start_profilers(pid, args.profile)
-        await asyncio.sleep(0.5)  # pollers and health running before the burst
-        cpu0, client0 = api_cpu_s(pid), time.process_time()
-        t_burst = time.perf_counter()
-        burst = await asyncio.gather(*(submit() for _ in range(args.jobs)))
-        burst_s = time.perf_counter() - t_burst
-        cpu1, client1 = api_cpu_s(pid), time.process_time()
-        stop_profilers(profilers)
-        open_after_burst = {"sse": sse_counts["opened"] - sse_counts["closed"],
-                            "grpc": grpc_counts["opened"] - grpc_counts["closed"]}
-        nice = niceness(pid)
-        stop.set()
-        await asyncio.gather(*background)
-        for job_id in warm:
-            await rest.call(control, "POST", f"/v1/jobs/{job_id}/cancel")
-        statuses = [status for status, _ in burst]
-        accepted = [body for status, body in burst if status == 202]
-        ids += [j["id"] for j in accepted]
+    readers = Readers(host, port, target, ids, args.pollers, POLL_PAUSE_S, HEALTH_INTERVAL_S)
+    await readers.start()
+    profilers = [] if args.profile is None else start_profilers(pid, args.profile)
+    await asyncio.sleep(0.5)  # pollers and health running before the burst
+    cpu0, client0 = api_cpu_s(pid), time.process_time()
+    t_burst = time.perf_counter()
+    burst = await asyncio.gather(*(submit() for _ in range(args.jobs)))
+    burst_s = time.perf_counter() - t_burst
+    cpu1, client1 = api_cpu_s(pid), time.process_time()
+    stop_profilers(profilers)
+    sse_counts, grpc_counts = watchers.counts()
+    open_after_burst = {"sse": sse_counts["opened"] - sse_counts["closed"],
+                        "grpc": grpc_counts["opened"] - grpc_counts["closed"]}
+    nice = niceness(pid)
+    for kind, samples in (await readers.stop()).items():
+        lat.samples_s[kind] += samples
+    for job_id in warm:
+        await rest.call(control, "POST", f"/v1/jobs/{job_id}/cancel")
+    statuses = [status for status, _ in burst]
+    accepted = [body for status, body in burst if status == 202]
+    ids += [j["id"] for j in accepted]
 
-        t_drain = time.perf_counter()
-        while True:
-            jobs = await list_all(rest, control)
-            states = {j["id"]: j["state"] for j in jobs}
-            if all(states.get(i) in TERMINAL for i in ids):
-                break
-            await asyncio.sleep(0.5)
-        drain_s = time.perf_counter() - t_drain
-        await asyncio.gather(*watchers)
-        post_cpu_ms = await sequential_post_cpu_ms(rest, control, pid, job, args.cpu_posts)
-        control.close()
+    t_drain = time.perf_counter()
+    while True:
+        jobs = await list_all(rest, control)
+        states = {j["id"]: j["state"] for j in jobs}
+        if all(states.get(i) in TERMINAL for i in ids):
+            break
+        await asyncio.sleep(0.5)
+    drain_s = time.perf_counter() - t_drain
+    sse_counts, grpc_counts = await watchers.wait()
+    post_cpu_ms = await sequential_post_cpu_ms(rest, control, pid, job, args.cpu_posts)
+    control.close()
 
     burst_ids = [j["id"] for j in accepted]
     return {
@@ -196,7 +186,7 @@ async def run(host: str, port: int, target: str, pid: int, args: argparse.Namesp
         "api_cpu_ms_per_sequential_post": post_cpu_ms,
         "streams_open_after_burst": open_after_burst,
         "client_retries_after_idle_disconnect": rest.retries,
-        "nice_by_process": nice,
+        "nice_by_process": nice, "api_workers": http_workers(pid),
         "sse_events": dict(sse_counts), "grpc_events": dict(grpc_counts),
         "latency_ms": lat.summary(), "_samples_s": dict(lat.samples_s),
     }
@@ -223,6 +213,7 @@ def pool(rounds: list[dict]) -> dict:
     out = {k: sum(r[k] for r in rounds) for k in ("submitted", "accepted_202", "lost",
                                                   "duplicated", "succeeded")}
     out["other_statuses"] = sorted({s for r in rounds for s in r["other_statuses"]})
+    out["api_workers"] = max(r.get("api_workers", 1) for r in rounds)
     refused: dict = defaultdict(int)
     for r in rounds:
         for status, n in r["refused_then_retried"].items():
@@ -261,9 +252,10 @@ def markdown(r: dict, label: str, args: dict) -> str:
         return "met" if ok else "**NOT met**"
 
     per_round = r["submitted"] // max(1, len(rounds))
+    workers = r.get("api_workers", args["api_workers"])
     lines = [f"### {label}: {per_round} concurrent submissions, {args['sse_watchers']} SSE"
              f" watchers, {args['grpc_streams']} gRPC WatchJob streams, a K = "
-             f"{args['long_shards']} render running ({args['scene']}, {args['api_workers']} "
+             f"{args['long_shards']} render running ({args['scene']}, {workers} "
              f"API worker(s)){f', {len(rounds)} rounds pooled' if len(rounds) > 1 else ''}",
              "",
              "| check | value | target |", "| --- | --- | --- |",
@@ -281,7 +273,7 @@ def markdown(r: dict, label: str, args: dict) -> str:
              f"{r['streams_open_after_burst']['grpc']} | all |",
              f"| burst wall time | {r['burst_s']} s | |",
              f"| API process CPU during the burst | {r['api_cpu_s_during_burst']} s | |",
-             f"| load generator CPU during the burst | "
+             f"| submitting client CPU during the burst | "
              f"{r.get('client_cpu_s_during_burst', '-')} s | |",
              f"| API CPU per POST, one at a time | {r['api_cpu_ms_per_sequential_post']} ms "
              "| < 1 ms |",
@@ -315,7 +307,7 @@ def summary_table(runs: dict[str, dict]) -> str:
             ("API processes' CPU during the burst, s", lambda r: r["api_cpu_s_during_burst"]),
             ("... over the burst's wall time, cores",
              lambda r: round(r["api_cpu_s_during_burst"] / r["burst_s"], 2)),
-            ("load generator's CPU during the burst, s",
+            ("submitting client's CPU during the burst, s",
              lambda r: r.get("client_cpu_s_during_burst", "-")),
             ("lost / duplicated", lambda r: f"{r['lost']} / {r['duplicated']}")]
     labels = list(runs)
@@ -327,6 +319,9 @@ def summary_table(runs: dict[str, dict]) -> str:
     lines.append("| load average before, after | " + " | ".join(
         f"{runs[k]['host']['load_average_before'][0]:.1f}, "
         f"{runs[k]['host']['load_average_after'][0]:.1f}" for k in labels) + " |")
+    lines.append("| NPRT_* settings | " + " | ".join(", ".join(
+        f"{n}={v}" for n, v in runs[k].get("env", {}).items()) or "defaults" for k in labels)
+        + " |")
     lines.append("| commit of the service | " + " | ".join(runs[k]["commit"] for k in labels)
                  + " |")
     return "\n".join(lines)
@@ -336,40 +331,33 @@ def findings(runs: dict[str, dict]) -> str:
     """What the saved runs show, in words (figures read from them)."""
     if not {"before", "after"} <= runs.keys():
         return ""
-    b, a = (runs[k]["result"] for k in ("before", "after"))
 
     def post(r, q="p99"):
         return f"{r['latency_ms']['POST /v1/jobs'][q]:.0f}"
 
-    best = min(x["latency_ms"]["POST /v1/jobs"]["p99"] for x in a.get("rounds", [a]))
-    loads = [v for x in a.get("rounds", []) + b.get("rounds", [])
-             for v in x["load_average"]] or [runs["after"]["host"]["load_average_before"][0]]
-    lat = a["latency_ms"]
-    met = [name for name, ok in (
-        ("POST p99 < 200 ms", lat["POST /v1/jobs"]["p99"] < 200),
-        ("GET p99 < 100 ms", _worst_p99(lat, _GETS) < 100),
-        ("health p99 < 50 ms", _worst_p99(lat, _HEALTH) < 50)) if ok]
-    text = (f"Before -> after, the same client: POST p99 {post(b)} -> {post(a)} ms (p50 "
-            f"{post(b, 'p50')} -> {post(a, 'p50')} ms), the API processes' CPU over the "
-            f"burst {b['api_cpu_s_during_burst']} -> {a['api_cpu_s_during_burst']} s. "
-            f"Latency targets met in the pooled figures: {', '.join(met) or 'none'}; the "
-            f"best single round put POST p99 at {best:.0f} ms. During the burst the API "
-            f"processes got {a['api_cpu_s_during_burst'] / a['burst_s']:.2f} of a core "
-            "(their CPU over the burst's wall time) at a load average of "
-            f"{min(loads):.0f} to {max(loads):.0f}, and the load generator needed "
-            f"{a['client_cpu_s_during_burst']} s of CPU of its own. One event loop admits "
-            "the burst's requests in turn, so the last one waits for the CPU of all of "
-            f"them ({a['api_cpu_s_during_burst']} s): POST p99 < 200 ms needs that below "
-            "about 0.15 s and a core free for it (see `bench_admission` for the CPU of one "
-            "admission in process).")
-    if "after_2_workers" in runs:
-        a2, c2 = runs["after_2_workers"]["result"], runs["after_2_workers"]["commit"]
-        text += (f" Two API workers (commit {c2}, load "
-                 f"{runs['after_2_workers']['host']['load_average_before'][0]:.0f}): POST p99 "
-                 f"{post(a2)} ms, {a2['api_cpu_s_during_burst']} s of CPU; on 2 cores shared "
-                 "with the client and other work a second worker adds a process to "
-                 "schedule, not a core.")
-    return text
+    def met(r) -> str:
+        lat = r["latency_ms"]
+        return ", ".join(name for name, ok in (
+            ("POST p99 < 200 ms", lat["POST /v1/jobs"]["p99"] < 200),
+            ("GET p99 < 100 ms", _worst_p99(lat, _GETS) < 100),
+            ("health p99 < 50 ms", _worst_p99(lat, _HEALTH) < 50)) if ok) or "none"
+
+    loads = [v for saved in runs.values() for x in saved["result"].get("rounds", [])
+             for v in x["load_average"]]
+    text = []
+    for label, saved in runs.items():
+        r = saved["result"]
+        best = min(x["latency_ms"]["POST /v1/jobs"]["p99"] for x in r.get("rounds", [r]))
+        text.append(f"{label} ({r.get('api_workers', 1)} API worker(s)): POST p99 {post(r)} ms "
+                    f"(p50 {post(r, 'p50')}, best round {best:.0f}), worst GET p99 "
+                    f"{_worst_p99(r['latency_ms'], _GETS):.0f} ms, worst health p99 "
+                    f"{_worst_p99(r['latency_ms'], _HEALTH):.0f} ms, API CPU over the burst "
+                    f"{r['api_cpu_s_during_burst']} s; targets met pooled: {met(r)}")
+    return ("; ".join(text) + f". Load average {min(loads):.0f} to {max(loads):.0f} over the "
+            "rounds (other work on the 2 cores). One event loop admits a burst's requests in "
+            "turn, so the last waits for the CPU of all of them, and a health check or a "
+            "read waits behind them; two HTTP workers (what `nprt serve` runs by default on "
+            "a host with 2 or more cores) split the burst between two loops.")
 
 
 def write_readme() -> None:
@@ -397,14 +385,21 @@ def write_readme() -> None:
                     "K = 2) and opens the SSE and gRPC watchers on them, then fires the "
                     "submissions at once, each on a new connection with its own "
                     "Idempotency-Key, honouring Retry-After, while pollers list and read jobs "
-                    "and a client checks `/healthz` and gRPC health; cancels the long jobs, "
+                    "and a prober checks `/healthz` and gRPC health; cancels the long jobs, "
                     "waits for every job and audits the job list. Each round starts a fresh "
                     "service; the latencies of all rounds are pooled. API CPU counts the "
                     "serving processes, not the scheduler or its renders. The REST client is "
                     "`bench/service/rawhttp.py` (prebuilt HTTP/1.1 requests on asyncio "
                     "protocols): with aiohttp the load generator's event loop was busy 88 % "
                     "of the burst (py-spy, `--profile`), most of it opening connections, and "
-                    "it delayed the requests more than the service did.\n\n"
+                    "it delayed the requests more than the service did. The watchers, and "
+                    "the pollers with the prober, are processes of their own beside the "
+                    "submitting one (`bench/service/clientroles.py`), as a dashboard and a "
+                    "health probe are in deployment: while they shared its event loop (up "
+                    "to commit 4567def), a health check's answer waited behind hundreds of "
+                    "POST answers and watcher tiles in the load generator, and that wait "
+                    "counted as the service's latency; figures from before are not "
+                    "comparable with these.\n\n"
                     + summary_table(runs) + "\n\n" + findings(runs) + "\n\n"
                     + "\n\n".join(parts))
 
@@ -421,11 +416,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--versus", action="append", default=[], metavar="LABEL=ROOT[@COMMIT]",
                     help="also measure the service of checkout ROOT under LABEL, its rounds "
                          "alternating with this one's (before/after under the same load)")
+    ap.add_argument("--set", action="append", default=[], metavar="LABEL:NAME=VALUE",
+                    help="start LABEL's service with the environment variable NAME=VALUE "
+                         "(an NPRT_* setting, e.g. NPRT_API_WORKERS=2)")
     ap.add_argument("--jobs", type=int, default=500, help="concurrent submissions")
     ap.add_argument("--sse-watchers", type=int, default=100)
     ap.add_argument("--grpc-streams", type=int, default=40)
     ap.add_argument("--max-jobs", type=int, default=2, help="job slots of the scheduler")
-    ap.add_argument("--api-workers", type=int, default=1, help="nprt serve --workers")
+    ap.add_argument("--api-workers", type=int,
+                    help="nprt serve --workers (default: the service's)")
     ap.add_argument("--pollers", type=int, default=4, help="concurrent GET loops")
     ap.add_argument("--cpu-posts", type=int, default=100,
                     help="sequential POSTs for the CPU-per-POST figure")
@@ -456,13 +455,20 @@ def main(argv: list[str] | None = None) -> int:
         if label not in LABELS or not root:
             ap.error(f"--versus {spec}: want LABEL=ROOT[@COMMIT], LABEL one of {LABELS}")
         services.append((label, Path(root), commit or None))
+    envs: dict[str, dict[str, str]] = {label: {} for label, _, _ in services}
+    for spec in args.set:
+        label, _, setting = spec.partition(":")
+        name, eq, value = setting.partition("=")
+        if label not in envs or not eq or not name:
+            ap.error(f"--set {spec}: want LABEL:NAME=VALUE, LABEL one of {list(envs)}")
+        envs[label][name] = value
     load_before = os.getloadavg()
     rounds: dict[str, list] = {label: [] for label, _, _ in services}
     for _ in range(args.repeat):
         for label, root, _ in services:
-            rounds[label].append(_round(root, args, job, watched))
+            rounds[label].append(_round(root, envs[label], args, job, watched))
     shown = {k: v for k, v in vars(args).items()
-             if k not in ("service_root", "profile", "versus")}
+             if k not in ("service_root", "profile", "versus", "set")}
     ok = True
     for label, root, commit in services:
         result = pool(rounds[label])
@@ -471,23 +477,26 @@ def main(argv: list[str] | None = None) -> int:
         ok &= (result["succeeded"] == result["accepted_202"] == args.jobs * args.repeat
                and result["lost"] == 0 and result["duplicated"] == 0)
         if not args.smoke:
-            _save(label, root, commit, result, table, job, watched, shown, load_before, argv)
+            _save(label, root, commit, result, table, job, watched, shown, load_before, argv,
+                  envs[label])
     if not args.smoke:
         write_readme()
     return 0 if ok else 1
 
 
-def _round(root: Path, args: argparse.Namespace, job: dict, watched: list[dict]) -> dict:
-    """One round on a fresh service of the checkout at root."""
+def _round(root: Path, env: dict, args: argparse.Namespace, job: dict, watched: list[dict]
+           ) -> dict:
+    """One round on a fresh service of the checkout at root, with NPRT_* settings env."""
     load0 = os.getloadavg()[0]
-    with running_service(root, args.max_jobs, args.api_workers) as (proc, host, port, target):
+    with running_service(root, args.max_jobs, args.api_workers, env) as (proc, host, port,
+                                                                         target):
         one = asyncio.run(run(host, port, target, proc.pid, args, job, watched))
     one["load_average"] = [load0, os.getloadavg()[0]]
     return one
 
 
 def _save(label: str, root: Path, commit: str | None, result: dict, table: str, job: dict,
-          watched: list[dict], shown: dict, load_before: tuple, argv) -> None:
+          watched: list[dict], shown: dict, load_before: tuple, argv, env: dict) -> None:
     commit = commit or subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root,
                                       capture_output=True, text=True).stdout.strip()
     out = RESULTS / f"bench_service_{label}.json"
@@ -496,7 +505,7 @@ def _save(label: str, root: Path, commit: str | None, result: dict, table: str, 
         a if "/" not in a else re.sub(r"/\S*", "<checkout>", a) for a in (argv or sys.argv[1:]))
     out.write_text(json.dumps({"result": result, "job": job, "watched_jobs": watched,
                                "args": {k: str(v) for k, v in shown.items()},
-                               "commit": commit, "command": command.strip(),
+                               "commit": commit, "env": env, "command": command.strip(),
                                "host": {"cpus": os.cpu_count(),
                                         "python": platform.python_version(),
                                         "platform": platform.platform(),

@@ -43,19 +43,24 @@ def _pythonpath(root: Path) -> str:
     return f"{shim.parent}{os.pathsep}{root}"
 
 
-def start_service(root: Path, data_dir: Path, max_jobs: int, api_workers: int = 1
-                  ) -> tuple[subprocess.Popen, str, int, str]:
-    """`nprt serve` of the checkout at root in its own process group, as deployed. Returns
-    (process, host, REST port, gRPC target)."""
+def start_service(root: Path, data_dir: Path, max_jobs: int, api_workers: int | None = None,
+                  env: dict[str, str] | None = None) -> tuple[subprocess.Popen, str, int, str]:
+    """`nprt serve` of the checkout at root in a process group of its own, with
+    `env` (NPRT_* settings) added to this environment. Returns (process, host, REST port,
+    gRPC target)."""
     port, grpc_port = _free_port(), _free_port()
     env = {**os.environ, "PYTHONPATH": _pythonpath(root),
-           "NPRT_MAX_CONCURRENT_JOBS": str(max_jobs)}
+           "NPRT_MAX_CONCURRENT_JOBS": str(max_jobs), **(env or {})}
     env.pop("NPRT_API_TOKEN", None)
     cmd = [sys.executable, "-m", "service", "serve", "--data-dir", str(data_dir), "--port",
            str(port), "--grpc-port", str(grpc_port), "--log-level", "warning"]
-    if api_workers > 1:
+    if api_workers is not None:
         cmd += ["--workers", str(api_workers)]
-    proc = subprocess.Popen(cmd, cwd=root, env=env, start_new_session=True)
+    # A process group of its own (stopped as one), in this client's session: with
+    # autogroups the kernel shares the CPU between sessions first, and a service in a
+    # session of its own would compete with its client as a remote client does not, its
+    # renders included.
+    proc = subprocess.Popen(cmd, cwd=root, env=env, process_group=0)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:
@@ -70,12 +75,13 @@ def start_service(root: Path, data_dir: Path, max_jobs: int, api_workers: int = 
 
 
 @contextlib.contextmanager
-def running_service(root: Path, max_jobs: int, api_workers: int = 1):
+def running_service(root: Path, max_jobs: int, api_workers: int | None = None,
+                    env: dict[str, str] | None = None):
     """start_service on a fresh data folder; yields (process, host, REST port, gRPC target)
     and stops the service's whole process group on the way out."""
     with tempfile.TemporaryDirectory(prefix="nprt-bench-") as tmp:
         proc, host, port, target = start_service(root, Path(tmp) / "data", max_jobs,
-                                                 api_workers)
+                                                 api_workers, env)
         try:
             yield proc, host, port, target
         finally:
@@ -120,6 +126,17 @@ def api_pids(pid: int) -> list[int]:
     return out
 
 
+def http_workers(pid: int) -> int:
+    """How many HTTP API workers serve under pid: uvicorn's worker processes (spawned by
+    multiprocessing), or pid itself when it has none."""
+    def spawned(p: int) -> bool:
+        try:
+            return b"spawn_main" in Path(f"/proc/{p}/cmdline").read_bytes()
+        except OSError:
+            return False
+    return sum(spawned(p) for p in api_pids(pid)) or 1
+
+
 def api_cpu_s(pid: int) -> float:
     """CPU seconds of the serving processes so far."""
     return sum(_cpu_s(p) for p in api_pids(pid))
@@ -138,20 +155,35 @@ def render_cpu_s(pid: int) -> float:
     return sum(_cpu_s(p) for p in inside)
 
 
-def niceness(pid: int) -> dict[str, list[int]]:
-    """Nice values of pid's process tree by command name, e.g. {"raylet": [10]}."""
-    out: dict[str, list[int]] = defaultdict(list)
+def _tree_stat(pid: int, field: int, show) -> dict[str, list]:
+    """show(field `field` of /proc/<p>/stat after the command name) for every process of
+    pid's tree, by command name; sorted distinct values."""
+    out: dict[str, set] = defaultdict(set)
     todo = [pid]
     while todo:
         p = todo.pop()
         try:
             fields = Path(f"/proc/{p}/stat").read_text().rsplit(")", 1)
             name = fields[0].split("(", 1)[1]
-            out[name].append(int(fields[1].split()[16]))
+            out[name].add(show(int(fields[1].split()[field])))
         except (OSError, IndexError):
             continue
         todo += _children(p)
-    return {k: sorted(set(v)) for k, v in sorted(out.items())}
+    return {k: sorted(v) for k, v in sorted(out.items())}
+
+
+def niceness(pid: int) -> dict[str, list[int]]:
+    """Nice values of pid's process tree by command name, e.g. {"raylet": [10]}."""
+    return _tree_stat(pid, 16, int)
+
+
+POLICY_NAMES = {0: "normal", 1: "fifo", 2: "rr", 3: "batch", 5: "idle", 6: "deadline"}
+
+
+def cpu_policies(pid: int) -> dict[str, list[str]]:
+    """Scheduling policies of pid's process tree by command name, e.g. {"raylet": ["idle"]}
+    (each process's main thread)."""
+    return _tree_stat(pid, 38, lambda v: POLICY_NAMES.get(v, str(v)))
 
 
 def start_profilers(pid: int, out_dir: Path) -> list[subprocess.Popen]:
