@@ -17,9 +17,11 @@ from numba import njit
 from nprt.scene.model import Camera, Material, Mesh
 from nprt.workers.kernels.pairs import to_local_ray
 from nprt.workers.kernels.shade import GAMMA64_3, LOCAL_REL, MIN_COS, offset_origin
+from nprt.workers.routing.exact import DONE, first_of_runs
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.lights import FAR_T, LightSet
 from nprt.workers.wavefront.surface import Surface
+from nprt.workers.wavefront.world import ShardWorld
 
 
 def surface_at(meshes: Mapping[int, Mesh], materials: Sequence[Material],
@@ -331,3 +333,23 @@ def _to_local(inst, world_to_local, origin, direction):
         lo[x, 0], lo[x, 1], lo[x, 2], ld[x, 0], ld[x, 1], ld[x, 2] = to_local_ray(
             world_to_local, inst[x], origin, direction, x)
     return lo, ld
+
+
+def nearest_by_crossings(world: ShardWorld, remote: np.ndarray, origin, direction, box_tmax,
+                         visited: np.ndarray) -> np.ndarray:
+    """The definition `nprt.workers.routing.exact.nearest_unvisited` and the walks' routing
+    search (`nprt.workers.kernels.nearest`) must match: list every crossing of an
+    unvisited shard's box before box_tmax (n,) float64 (tmax already stretched), sort by
+    (ray, t_enter, owner), take each ray's first. Returns (n,) int32 shard or DONE."""
+    target = np.full(len(origin), DONE, np.int32)
+    ray, inst, t_enter, _ = world.table.box_entries(origin, direction, box_tmax, remote)
+    if len(ray) == 0:
+        return target
+    owner = world.owner[inst]
+    fresh = (visited[ray] >> owner.astype(np.uint64)) & np.uint64(1) == 0
+    ray, owner, t_enter = ray[fresh], owner[fresh], t_enter[fresh]
+    order = np.lexsort((owner, t_enter, ray))
+    ray, owner = ray[order], owner[order]
+    first = first_of_runs(ray)
+    target[ray[first]] = owner[first]
+    return target

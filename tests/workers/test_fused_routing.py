@@ -1,8 +1,9 @@
-"""One walk of the top level a ray: the local walks' routing answer (`closest_routed`,
-`occluded_routed`, cut at the final tmax by `next_stop`) picks the same next shard as the
-second walk it replaced (`nearest_unvisited`), and the local answers do not change, on
+"""Exact routing inside the local walks: their answer (`closest_routed`, `occluded_routed`,
+cut at the final tmax by `next_stop`) picks the same next shard as the separate walk it
+replaced (`nearest_unvisited`) and as listing and sorting every crossing (the oracle),
+and the local answers do not change, on
 random rays and rays aimed at box corners, box faces and shared triangle edges, for
-several shard splits and visited masks, through the flat loop and the BVH."""
+several shard splits and visited masks, through the flat loops and the BVH."""
 
 from __future__ import annotations
 
@@ -20,6 +21,7 @@ from nprt.workers.traversal import toplevel
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL, LocalGeometry
 from nprt.workers.wavefront.world import ShardWorld
+from tests.workers.oracles import nearest_by_crossings
 
 
 def _aimed(world, scene, rng, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -69,6 +71,15 @@ def _cuts(world, remote, origin, direction, walk_tmax, rng) -> np.ndarray:
     return np.minimum(cut, walk_tmax)
 
 
+def _second_walk(world, remote, origin, direction, tmax, visited) -> np.ndarray:
+    """The next stop by the separate walk, checked against sorting every crossing."""
+    box_tmax = tmax.astype(np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
+    want = nearest_by_crossings(world, remote, origin, direction, box_tmax, visited)
+    np.testing.assert_array_equal(
+        nearest_unvisited(world, remote, origin, direction, tmax, visited), want)
+    return want
+
+
 def _doubled(scene):
     """Every instance twice, coincident: boxes entered at equal t on different shards."""
     inst = scene.instances
@@ -76,12 +87,18 @@ def _doubled(scene):
         np.concatenate([inst.mesh, inst.mesh]), np.concatenate([inst.transform] * 2)))
 
 
-@pytest.mark.parametrize("flat", [True, False], ids=["flat", "bvh"])
+# (FLAT_WALK_MAX, ROUTE_FLAT_MAX): the local walk and the routing search, each through its
+# flat loop or the BVH; mixed is a shard's usual case (few local boxes, many candidates).
+WALKS = {"flat": (10**6, 10**6), "bvh": (0, 0), "mixed": (10**6, 0)}
+
+
+@pytest.mark.parametrize("walk", list(WALKS))
 @pytest.mark.parametrize("name,size,k", [("forest", "small", 3), ("city", "small", 5),
                                          ("forest", "default", 8), ("sculpture", "tiny", 2),
                                          ("forest", "doubled", 4)])
-def test_fused_walk_routes_like_a_second_walk(name, size, k, flat, monkeypatch):
-    monkeypatch.setattr(toplevel, "FLAT_WALK_MAX", 10**6 if flat else 0)
+def test_fused_walk_routes_like_a_second_walk(name, size, k, walk, monkeypatch):
+    monkeypatch.setattr(toplevel, "FLAT_WALK_MAX", WALKS[walk][0])
+    monkeypatch.setattr(toplevel, "ROUTE_FLAT_MAX", WALKS[walk][1])
     rng = np.random.default_rng(zlib.crc32(f"{name}{size}{k}".encode()))
     scene = _doubled(make_demo(name, "tiny")) if size == "doubled" else make_demo(name, size)
     m = len(scene.instance_mesh)
@@ -117,8 +134,10 @@ def test_fused_walk_routes_like_a_second_walk(name, size, k, flat, monkeypatch):
                                             visited)
             for a, b in zip(got, want, strict=True):
                 np.testing.assert_array_equal(a, b)
-            for final in (got[0], _cuts(world, remote, origin, direction, tmax, rng)):
-                expect = nearest_unvisited(world, remote, origin, direction, final, visited)
+            # The final tmax is at most the walk's cut (hits only shorten a ray).
+            assert (got[0] <= near.walk_tmax).all()
+            for final in (got[0], _cuts(world, remote, origin, direction, near.walk_tmax, rng)):
+                expect = _second_walk(world, remote, origin, direction, final, visited)
                 np.testing.assert_array_equal(next_stop(near, final), expect)
                 routed += int((expect != DONE).sum())
 
@@ -128,8 +147,8 @@ def test_fused_walk_routes_like_a_second_walk(name, size, k, flat, monkeypatch):
                 np.testing.assert_array_equal(
                     occluded, geo.intersect_occluded(origin, direction, t_sh))
                 free = ~occluded
-                expect = nearest_unvisited(world, remote, origin[free], direction[free],
-                                           t_sh[free], visited[free])
+                expect = _second_walk(world, remote, origin[free], direction[free],
+                                      t_sh[free], visited[free])
                 np.testing.assert_array_equal(next_stop(near.take(free), t_sh[free]), expect)
                 routed += int((expect != DONE).sum())
     assert routed > 1000, f"only {routed} rays had a next stop: the test checks too little"

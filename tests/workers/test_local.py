@@ -86,7 +86,7 @@ def test_closest_hit_equals_tracing_every_crossing_with_embreex(walk):
     from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL
 
     geo, o, d, tmax = _rays_through_overlapping_trees(20000, 3)
-    assert geo._walk()[5] == (walk == "bvh")  # use_bvh
+    assert geo._walk()[3] == (walk == "bvh")
     t, inst, prim, u, v = geo.intersect_closest(o, d, tmax)
     ray, cross, _, _ = geo.table.box_entries(o, d, tmax.astype(np.float64)
                                              * (1.0 + BOX_TMAX_SLACK_REL), geo.instances)
@@ -116,7 +116,7 @@ def test_closest_hit_equals_tracing_every_crossing_with_embreex(walk):
 
 def test_occlusion_equals_tracing_every_crossing_with_embreex(walk):
     geo, o, d, tmax = _rays_through_overlapping_trees(20000, 4)
-    assert geo._walk()[5] == (walk == "bvh")  # use_bvh
+    assert geo._walk()[3] == (walk == "bvh")
     ray, cross, _, _ = geo.table.box_entries(o, d, tmax, geo.instances)
     lo, ld = oracles.to_local(geo.table, cross, o[ray], d[ray])
     blocked = np.zeros(len(ray), bool)

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from nprt.scene.demos import make_demo
-from nprt.workers.routing.exact import DONE, nearest_by_crossings, nearest_unvisited
+from nprt.workers.routing.exact import DONE, nearest_unvisited
 from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL
 from nprt.workers.wavefront.world import ShardWorld
+from tests.workers.oracles import nearest_by_crossings
 
 K = 5
 

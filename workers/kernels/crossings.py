@@ -13,6 +13,7 @@ from numba import njit, types
 from numba.extending import intrinsic
 
 from nprt.workers.kernels.bvh import _next_leaf, _push_near, _push_pair, _slab, _slab_planes
+from nprt.workers.kernels.nearest import near_search
 from nprt.workers.kernels.pairs import to_local_ray
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
@@ -75,32 +76,36 @@ def occluded1_ray(fn, scene, ptr, rh, ri, o0, o1, o2, d0, d1, d2, tfar):
 
 
 @njit(**JIT)
-def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, n_local, col_of,
-                 cand_owner, use_bvh, flat, node_box, node_child, node_start, node_count, prim,
-                 mesh_of, scene_of_mesh, world_to_local, best_t, best_inst, best_prim, best_u,
-                 best_v, route, visited, near_t, near_owner):
-    """Each ray's closest hit among the instance boxes `members[:n_local]` (int64 indices
-    into boxes (m, 2, 3) float64; col_of (m,) int32 >= 0 for them), in one loop a ray:
-    the boxes it crosses before tmax stretched by box_slack (through the top-level BVH
-    when use_bvh, else the slabs of every box of `members` in one flat loop; flat (6, k)
-    float64 their boxes as rows lo x, y, z, hi x, y, z) are gathered nearest entry first,
-    then traced through Embree until the next is entered beyond the closest hit so far
-    (stretched alike): no hit there can win or tie. Embree's tfar is far, or the closest
-    hit so far stretched by TFAR_MARGIN_REL (the same hits: see `_closest_box`). Hits
-    fold into best_* (n,) (best_inst -1: none yet): a hit at t <= tmax wins on a smaller
-    t, on equal t the lower instance, so the answer depends neither on the order boxes
-    are traced in nor on how instances are split over shards. origin, direction (n, 3)
+def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, col_of, use_bvh,
+                 flat, node_box, node_child, node_start, node_count, prim, mesh_of,
+                 scene_of_mesh, world_to_local, best_t, best_inst, best_prim, best_u, best_v,
+                 route, cand_owner, cands, cand_flat, cand_bvh, visited, near_t, near_owner,
+                 near_tmax):
+    """Each ray's closest hit among the instance boxes `members` (k,) int64 (indices into
+    boxes (m, 2, 3) float64; col_of (m,) int32 >= 0 for members), in one loop a ray: the
+    boxes it crosses before tmax stretched by box_slack (through the top-level BVH when
+    use_bvh, else all members' slabs in one flat loop; flat (6, k) float64 their boxes
+    as rows lo x, y, z, hi x, y, z) are gathered nearest entry first, then traced
+    through Embree until the next is entered beyond the closest hit so far (stretched
+    alike): no hit there can win or tie. Embree's tfar is far, or the closest hit so far
+    stretched by TFAR_MARGIN_REL (the same hits: see `_closest_box`). Hits fold into
+    best_* (n,) (best_inst -1: none yet): a hit at t <= tmax wins on a smaller t, on
+    equal t the lower instance, so the answer depends neither on the order boxes are
+    traced in nor on how instances are split over shards. origin, direction (n, 3)
     float64, tmax (n,) float32.
 
-    With route, the same walk also keeps the exact policy's next stop (`_near_fold`):
-    near_t (n,) float64, near_owner (n,) int32 = the nearest entry, and its owner, of a
-    box b with cand_owner[b] (m,) int32 >= 0 on a shard not in visited (n,) uint64,
-    crossed before the stretched tmax the ray came with (members[n_local:] are those
-    boxes for the flat loop; the BVH walk tests them in the leaves it reaches anyway).
-    The caller cuts it at the final hit (`nprt.workers.traversal.local.NearestRemote`):
-    the gather is bounded by the incoming tmax only, so it reaches every leaf a box
-    entered before the final hit lies in, and the nearest of a superset, when it lies
-    before the cut, is the nearest of the boxes before the cut (None otherwise)."""
+    With route, each ray then also gets the exact policy's next stop (`near_search`):
+    near_t (n,) float64 and near_owner (n,) int32, the nearest entry and its owner of a
+    candidate box (cands, cand_owner, cand_flat, cand_bvh: see `near_search`) on a
+    shard not in visited (n,) uint64, crossed before near_tmax (n,) float32 (the final
+    cut, the closest hit here or tmax) stretched by box_slack. The caller cuts it again
+    at the final tmax, no larger than near_tmax (`nprt.workers.routing.exact.next_stop`).
+    The search runs after the tracing (a second loop of this kernel over the rays),
+    culled at that cut and at its best so far: taking
+    the candidates in the gather instead (one pass, bounded by the incoming tmax only, so
+    every slab before it, often the whole scene's depth) cost the local walk as much as
+    the separate search saved (in process, forest and city K = 4 and 8).
+    """
     rh, ri, ptr = _scratch()
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     q_t, q_id = np.empty(boxes.shape[0] + 1), np.empty(boxes.shape[0] + 1, np.int64)
@@ -111,8 +116,6 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, n_
         d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
         i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
         box_tmax = np.float64(tmax[r]) * (1.0 + box_slack)
-        seen = visited[r] if route else np.uint64(0)
-        nt, no = np.inf, np.int32(-1)
         h = 0
         if use_bvh and _finite(o0, o1, o2, d0, d1, d2):
             s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
@@ -125,17 +128,10 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, n_
                         ok, te, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, box_tmax)
                         if ok:
                             h = _enqueue(q_t, q_id, h, te, b)
-                    elif route and _unvisited(cand_owner[b], seen):
-                        ok, te, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, box_tmax)
-                        nt, no = _near_fold(ok, te, cand_owner[b], nt, no)
                 top, lo, hi = _next_leaf(bvh, stack, top, line, box_tmax)
         else:  # few boxes, or a ray the node test does not cover: every member's slab
-            h = _flat_queue(flat, members, n_local, o0, o1, o2, i0, i1, i2, box_tmax, f_te,
-                            f_ok, q_t, q_id)
-            if route:
-                nt, no = _flat_near(f_te, f_ok, members, n_local, cand_owner, seen, box_tmax)
-        if route:
-            near_t[r], near_owner[r] = nt, no
+            h = _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, box_tmax, f_te, f_ok, q_t,
+                            q_id)
         cut = np.float64(tmax[r])
         while h > 0:
             h -= 1
@@ -144,6 +140,12 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, n_
             cut = _closest_box(fn, q_id[h], r, cut, far, tmax, mesh_of, scene_of_mesh,
                                world_to_local, origin, direction, ptr, rh, ri, best_t,
                                best_inst, best_prim, best_u, best_v)
+        if route:
+            near_tmax[r] = np.float32(cut)  # a float32 t or tmax: exact
+    if route:
+        near_search(origin, direction, near_tmax.astype(np.float64) * (1.0 + box_slack),
+                    np.ones(origin.shape[0], np.bool_), boxes, bvh, cand_owner, cands,
+                    cand_flat, cand_bvh, visited, near_t, near_owner)
 
 
 @njit(inline="always", **JIT)
@@ -159,45 +161,18 @@ def _enqueue(q_t, q_id, h, t, x):
 
 
 @njit(inline="always", **JIT)
-def _flat_queue(flat, members, n_local, o0, o1, o2, i0, i1, i2, tmax, te, ok, q_t, q_id):
-    """Queue (`_enqueue`) every box of members[:n_local] the ray crosses before tmax: the
-    slabs of all k boxes of `members` in one branch-free loop (it vectorises), into the
-    scratch te, ok (k,). Returns the queue's length."""
+def _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, tmax, te, ok, q_t, q_id):
+    """Queue (`_enqueue`) every member box the ray crosses before tmax: the slabs of all
+    of them in one branch-free loop (it vectorises), into the scratch te, ok (k,).
+    Returns the queue's length."""
     for j in range(flat.shape[1]):
         ok[j], te[j], _ = _slab_planes(flat[0, j], flat[1, j], flat[2, j], flat[3, j],
                                        flat[4, j], flat[5, j], o0, o1, o2, i0, i1, i2, tmax)
     h = 0
-    for j in range(n_local):
+    for j in range(flat.shape[1]):
         if ok[j]:
             h = _enqueue(q_t, q_id, h, te[j], members[j])
     return h
-
-
-@njit(inline="always", **JIT)
-def _unvisited(owner, seen):
-    """Whether a box of this owner (-1: not a candidate) is on a shard not in seen."""
-    return owner >= 0 and not (seen >> np.uint64(owner)) & np.uint64(1)
-
-
-@njit(inline="always", **JIT)
-def _near_fold(ok, te, owner, nt, no):
-    """The nearer of the candidate (nt, no) and a box of `owner` entered at te (if ok):
-    smaller entry, on equal entry the lower owner, as `nprt.workers.kernels.nearest`."""
-    if ok and (te < nt or (te == nt and owner < no)):
-        return te, np.int32(owner)
-    return nt, no
-
-
-@njit(inline="always", **JIT)
-def _flat_near(te, ok, members, n_local, cand_owner, seen, tmax):
-    """`_near_fold` over the candidate boxes members[n_local:] whose slabs the flat loop
-    left in te, ok (k,) (tested before tmax). Returns (t_enter, owner) (inf, -1: none)."""
-    nt, no = np.inf, np.int32(-1)
-    for j in range(n_local, members.shape[0]):
-        owner = cand_owner[members[j]]
-        if _unvisited(owner, seen):
-            nt, no = _near_fold(ok[j] and te[j] < tmax, te[j], owner, nt, no)
-    return nt, no
 
 
 @njit(inline="always", **JIT)
@@ -230,77 +205,57 @@ def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, world_to_loca
 
 
 @njit(**JIT)
-def occluded_walk(fn, origin, direction, tmax, box_slack, boxes, members, n_local, col_of,
-                  cand_owner, use_bvh, flat, node_box, node_child, node_start, node_count, prim,
-                  mesh_of, scene_of_mesh, world_to_local, occluded, route, visited, near_t,
-                  near_owner):
-    """occluded[r] = some box of members[:n_local] crossed before tmax[r] holds a triangle
-    on (0, tmax[r]); a ray stops at its first occluder, the boxes tried nearest first.
-    Arrays as `closest_walk`.
-
-    With route, a ray found unoccluded here also gets the exact policy's next stop in
-    near_t, near_owner (as `closest_walk`, before tmax stretched by box_slack, which a
-    shadow ray keeps): nodes are culled at that stretched tmax instead of tmax, which
-    only adds nodes whose local boxes all fail the slab test before tmax, so the same
-    local boxes are traced. An unoccluded ray walks every node to the end, so the
-    nearest candidate it keeps is the nearest of them all; an occluded ray stops early
-    and its near_* mean nothing (it ends here)."""
+def occluded_walk(fn, origin, direction, tmax, box_slack, boxes, members, col_of, use_bvh, flat,
+                  node_box, node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
+                  world_to_local, occluded, route, cand_owner, cands, cand_flat, cand_bvh,
+                  visited, near_t, near_owner):
+    """occluded[r] = some box of `members` crossed before tmax[r] holds a triangle on
+    (0, tmax[r]); a ray stops at its first occluder, the boxes tried nearest first.
+    Arrays as `closest_walk`; with route, a ray not occluded here also gets the exact
+    policy's next stop before tmax stretched by box_slack (a shadow ray keeps its tmax),
+    as `closest_walk`'s (near_* of an occluded ray mean nothing: it ends here)."""
     rh, ri, ptr = _scratch()
     stack, stack_t = np.empty(node_child.shape[0] + 1, np.int32), np.empty(node_child.shape[0] + 1)
     q_t, q_id = np.empty(boxes.shape[0] + 1), np.empty(boxes.shape[0] + 1, np.int64)
     f_te, f_ok = np.empty(flat.shape[1]), np.empty(flat.shape[1], np.bool_)
+    bvh = (node_box, node_child, node_start, node_count, prim)
     for r in range(origin.shape[0]):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
         d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
         i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
         tm = np.float64(tmax[r])
-        box_tmax = tm * (1.0 + box_slack)
-        # Culling limit: tm, or the larger of tm and the stretched tmax when routing (a
-        # negative tmax shrinks when stretched). Local slabs are still tested before tm.
-        lim = max(tm, box_tmax) if route else tm
-        seen = visited[r] if route else np.uint64(0)
-        nt, no = np.inf, np.int32(-1)
         if use_bvh and _finite(o0, o1, o2, d0, d1, d2):
             s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
             top = _push_near(node_box, 0, stack, stack_t, 0, o0, o1, o2, i0, i1, i2, s0, s1,
-                             s2, lim)
+                             s2, tm)
             while top > 0 and not occluded[r]:
                 top -= 1
                 node = stack[top]
                 c = node_child[node]
                 if c >= 0:
                     top = _push_pair(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2,
-                                     s0, s1, s2, lim)
+                                     s0, s1, s2, tm)
                     continue
                 for x in range(node_start[node], node_start[node] + node_count[node]):
                     b = prim[x]
-                    if col_of[b] >= 0:
-                        if _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1, i2, tmax,
-                                         mesh_of, scene_of_mesh, world_to_local, origin,
-                                         direction, ptr, rh, ri):
-                            occluded[r] = True
-                            break
-                    elif route and _unvisited(cand_owner[b], seen):
-                        ok, te, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, box_tmax)
-                        nt, no = _near_fold(ok, te, cand_owner[b], nt, no)
-            if route:
-                near_t[r], near_owner[r] = nt, no
-            continue
-        # Flat: slabs before lim, local boxes then kept only before tm (the `ok` of a
-        # smaller tmax is the `ok` of a larger one and t_enter below it).
-        h = _flat_queue(flat, members, n_local, o0, o1, o2, i0, i1, i2, lim, f_te, f_ok, q_t,
-                        q_id)
-        if route:
-            near_t[r], near_owner[r] = _flat_near(f_te, f_ok, members, n_local, cand_owner,
-                                                  seen, box_tmax)
-        while h > 0:
-            h -= 1
-            if route and not q_t[h] < tm:
-                break  # the rest are entered at or beyond tmax (nearest pops first)
-            if _occluded_in(fn, q_id[h], r, tmax, mesh_of, scene_of_mesh, world_to_local,
-                            origin, direction, ptr, rh, ri):
-                occluded[r] = True
-                break
+                    if col_of[b] >= 0 and _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1,
+                                                        i2, tmax, mesh_of, scene_of_mesh,
+                                                        world_to_local, origin, direction,
+                                                        ptr, rh, ri):
+                        occluded[r] = True
+                        break
+        else:
+            h = _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, tm, f_te, f_ok, q_t, q_id)
+            while h > 0:
+                h -= 1
+                if _occluded_in(fn, q_id[h], r, tmax, mesh_of, scene_of_mesh, world_to_local,
+                                origin, direction, ptr, rh, ri):
+                    occluded[r] = True
+                    break
+    if route:
+        near_search(origin, direction, tmax.astype(np.float64) * (1.0 + box_slack), ~occluded,
+                    boxes, bvh, cand_owner, cands, cand_flat, cand_bvh, visited, near_t,
+                    near_owner)
 
 
 @njit(inline="always", **JIT)

@@ -3,78 +3,99 @@ entered before tmax among shards it has not visited, ties to the lowest owner. I
 exactly what enumerating every crossing (`InstanceTable.box_entries`) and taking the first
 of each ray after a (ray, t_enter, owner) sort gives, with the same slab arithmetic, but
 keeps one candidate per ray and culls BVH nodes entered beyond it: a camera ray through a
-forest crosses dozens of boxes, and listing and sorting them all cost more than tracing."""
+forest crosses dozens of boxes, and listing and sorting them all cost more than tracing.
+The walking kernels (`nprt.workers.kernels.crossings`) run the same search per ray after
+their local boxes, culled at the closest hit."""
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-from nprt.workers.kernels.bvh import JIT, _push_near, _push_pair, _slab
+from nprt.workers.kernels.bvh import JIT, _next_leaf, _slab, _slab_planes
 
 NONE = -1  # no unvisited box before tmax
 
 
 @njit(**JIT)
-def bvh_nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node_start,
-                      node_count, prim, in_set, box_owner, visited, stack):
+def nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node_start, node_count,
+                  prim, cand_owner, cands, cand_flat, cand_bvh, visited):
     """origin (n, 3) float64, direction (n, 3) float64, tmax (n,) float64; boxes and the
-    BVH arrays from `bvh_build`; in_set (m,) bool: boxes to consider; box_owner (m,) int32
-    shard of each box; visited (n,) uint64 shard bitmask; stack (nodes + 1,) int32 scratch.
-    Returns (n,) int32 owner, or NONE.
-
-    Nodes are visited nearer child first, so the first candidate found is usually the
-    nearest and the rest of the tree is culled at it; the answer, a minimum, does not
-    depend on the order."""
+    BVH arrays from `bvh_build` (placeholders when not cand_bvh); the candidates as
+    `InstanceTable.route_inputs` gives them; visited (n,) uint64 shard bitmask.
+    Returns (n,) int32 owner, or NONE."""
     n = origin.shape[0]
-    out = np.full(n, NONE, np.int32)
-    stack_t = np.empty(stack.shape[0])
-    for r in range(n):
-        o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
-        d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
-        i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
-        s0, s1, s2 = int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0)
-        tm = tmax[r]
-        seen = visited[r]
-        best_t, best_o = np.inf, NONE
-        if not (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2) and np.isfinite(d0)
-                and np.isfinite(d1) and np.isfinite(d2)):
-            for b in range(boxes.shape[0]):  # the node test does not mirror NaN cases
-                best_t, best_o = _consider(boxes, b, in_set, box_owner, seen, o0, o1, o2,
-                                           i0, i1, i2, tm, best_t, best_o)
-            out[r] = best_o
-            continue
-        # A node entered after the best so far cannot hold a better box; one entered
-        # exactly at it may hold a tie with a lower owner (hence <=, in `_push_*`). A node
-        # is entered no later than any box below it, and a box passing the slab test
-        # before tm is entered before tm.
-        top = _push_near(node_box, 0, stack, stack_t, 0, o0, o1, o2, i0, i1, i2, s0, s1, s2,
-                         tm)
-        while top > 0:
-            top -= 1
-            if not stack_t[top] <= min(tm, best_t):
-                continue  # culled since it was pushed
-            node = stack[top]
-            c = node_child[node]
-            if c >= 0:
-                top = _push_pair(node_box, c, stack, stack_t, top, o0, o1, o2, i0, i1, i2,
-                                 s0, s1, s2, min(tm, best_t))
-                continue
-            for x in range(node_start[node], node_start[node] + node_count[node]):
-                best_t, best_o = _consider(boxes, prim[x], in_set, box_owner, seen, o0, o1,
-                                           o2, i0, i1, i2, tm, best_t, best_o)
-        out[r] = best_o
-    return out
+    near_t, near_owner = np.full(n, np.inf), np.full(n, NONE, np.int32)
+    near_search(origin, direction, tmax, np.ones(n, np.bool_), boxes,
+                (node_box, node_child, node_start, node_count, prim), cand_owner, cands,
+                cand_flat, cand_bvh, visited, near_t, near_owner)
+    return near_owner
 
 
 @njit(inline="always", **JIT)
-def _consider(boxes, b, in_set, box_owner, seen, o0, o1, o2, i0, i1, i2, tm, best_t, best_o):
-    if not in_set[b]:
-        return best_t, best_o
-    owner = box_owner[b]
-    if owner < 0 or (seen >> np.uint64(owner)) & np.uint64(1):
-        return best_t, best_o
-    ok, te, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, tm)
-    if ok and (te < best_t or (te == best_t and owner < best_o)):
-        return te, owner
-    return best_t, best_o
+def near_search(origin, direction, lim, active, boxes, bvh, cand_owner, cands, cand_flat,
+                cand_bvh, visited, near_t, near_owner):
+    """The exact policy's next stop of each active (n,) bool ray: near_t (n,) float64 and
+    near_owner (n,) int32 = the entry and owner of the nearest box b with cand_owner[b]
+    (m,) int32 >= 0 on a shard not in visited (n,) uint64, crossed before lim (n,)
+    float64; on equal entries the lowest owner, as a sort of every crossing on (ray,
+    t_enter, owner) picks; inactive rays and rays with none are left as they are.
+
+    Through bvh (`bvh_build`'s arrays over boxes) when cand_bvh, culled at lim and just
+    beyond the best so far (rays with a non-finite component take the flat loop: the
+    node test does not mirror the slab test's NaN cases); else the slabs of every
+    candidate, cands (c,) int64 with boxes cand_flat (6, c) float64, in one flat loop.
+    One loop over the rays, written out here: a helper inlined per ray cost a third more
+    (numba counts references on its array arguments at every call)."""
+    node_box, node_child, node_start, node_count, prim = bvh
+    stack = np.empty(node_child.shape[0] + 1, np.int32)
+    te, ok = np.empty(cand_flat.shape[1]), np.empty(cand_flat.shape[1], np.bool_)
+    for r in range(origin.shape[0]):
+        if not active[r]:
+            continue
+        o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
+        d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
+        i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
+        tm, seen = lim[r], visited[r]
+        nt, no = np.inf, np.int32(NONE)
+        if cand_bvh and (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2)
+                         and np.isfinite(d0) and np.isfinite(d1) and np.isfinite(d2)):
+            line = (o0, o1, o2, i0, i1, i2, int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0))
+            top, lo, hi = _next_leaf(bvh, stack, -1, line, tm)
+            while lo < hi:
+                for x in range(lo, hi):
+                    b = prim[x]
+                    if _unvisited(cand_owner[b], seen):
+                        ok_b, te_b, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, tm)
+                        nt, no = _near_fold(ok_b, te_b, cand_owner[b], nt, no)
+                # A node entered after the best so far cannot hold a better box; one
+                # entered exactly at it may hold a tie with a lower owner.
+                top, lo, hi = _next_leaf(bvh, stack, top, line,
+                                         min(tm, np.nextafter(nt, np.inf)))
+        else:
+            for j in range(cand_flat.shape[1]):
+                ok[j], te[j], _ = _slab_planes(cand_flat[0, j], cand_flat[1, j],
+                                               cand_flat[2, j], cand_flat[3, j],
+                                               cand_flat[4, j], cand_flat[5, j], o0, o1, o2,
+                                               i0, i1, i2, tm)
+            for j in range(cand_flat.shape[1]):
+                owner = cand_owner[cands[j]]
+                if _unvisited(owner, seen):
+                    nt, no = _near_fold(ok[j], te[j], owner, nt, no)
+        if no != NONE:
+            near_t[r], near_owner[r] = nt, no
+
+
+@njit(inline="always", **JIT)
+def _unvisited(owner, seen):
+    """Whether a box of this owner (-1: not a candidate) is on a shard not in seen."""
+    return owner >= 0 and not (seen >> np.uint64(owner)) & np.uint64(1)
+
+
+@njit(inline="always", **JIT)
+def _near_fold(ok, te, owner, nt, no):
+    """The nearer of the candidate (nt, no) and a box of `owner` entered at te (if ok):
+    smaller entry, on equal entry the lower owner."""
+    if ok and (te < nt or (te == nt and owner < no)):
+        return te, np.int32(owner)
+    return nt, no

@@ -7,10 +7,9 @@ from __future__ import annotations
 import numpy as np
 
 from nprt.workers.kernels.nearest import NONE as NO_OWNER
-from nprt.workers.kernels.nearest import bvh_nearest_owner as nearest_owner
+from nprt.workers.kernels.nearest import nearest_owner
 from nprt.workers.runtime.protocol import EVERYWHERE
 from nprt.workers.traversal.local import BOX_TMAX_SLACK_REL, NearestRemote
-from nprt.workers.traversal.toplevel import BVH_MIN_INSTANCES
 from nprt.workers.wavefront.batch import RayBatch, ShadowRayBatch
 from nprt.workers.wavefront.world import ShardWorld
 
@@ -38,45 +37,24 @@ def hit_owner(world: ShardWorld, inst: np.ndarray) -> np.ndarray:
 def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, tmax,
                       visited: np.ndarray) -> np.ndarray:
     """Wald-style step: the owner of the nearest box entry, among instances on shards
-    this ray has not visited, that lies before tmax.
+    this ray has not visited, that lies before tmax (ties to the lowest owner), by a walk
+    of its own (the exact policy's shards have it from their local walks instead:
+    `next_stop`).
 
     remote : (m,) int32 instances not intersected here; visited : (n,) uint64 bitmask
     returns (n,) int32 target shard or DONE
     """
+    if not len(origin):
+        return np.zeros(0, np.int32)
     # Stretched as local intersection culls (nprt.workers.traversal.local): a hit on another
     # shard tied with tmax must still be visited, or the global tie rule could not see it.
     box_tmax = np.asarray(tmax, np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
-    inputs = world.table.bvh_inputs
-    if inputs is not None and len(remote) > BVH_MIN_INSTANCES and len(origin):
-        # One candidate per ray in a kernel; the same answer as the sort below.
-        in_set = np.zeros(len(world.table), bool)
-        in_set[remote] = True
-        owner = nearest_owner(
-            np.array(origin, np.float64, order="C"), np.array(direction, np.float64, order="C"),
-            np.array(box_tmax, np.float64, order="C"), *inputs, in_set,
-            np.array(world.owner, np.int32, order="C"),
-            np.array(visited, np.uint64, order="C"),
-            np.empty(len(inputs[2]) + 1, np.int32))
-        return np.where(owner == NO_OWNER, DONE, owner).astype(np.int32)
-    return nearest_by_crossings(world, remote, origin, direction, box_tmax, visited)
-
-
-def nearest_by_crossings(world: ShardWorld, remote: np.ndarray, origin, direction, box_tmax,
-                         visited: np.ndarray) -> np.ndarray:
-    """`nearest_unvisited` by listing every crossing and sorting: for tables without a BVH
-    or with few boxes. box_tmax (n,) float64 is tmax already stretched."""
-    target = np.full(len(origin), DONE, np.int32)
-    ray, inst, t_enter, _ = world.table.box_entries(origin, direction, box_tmax, remote)
-    if len(ray) == 0:
-        return target
-    owner = world.owner[inst]
-    fresh = (visited[ray] >> owner.astype(np.uint64)) & np.uint64(1) == 0
-    ray, owner, t_enter = ray[fresh], owner[fresh], t_enter[fresh]
-    order = np.lexsort((owner, t_enter, ray))
-    ray, owner = ray[order], owner[order]
-    first = first_of_runs(ray)
-    target[ray[first]] = owner[first]
-    return target
+    owner = nearest_owner(
+        np.array(origin, np.float64, order="C"), np.array(direction, np.float64, order="C"),
+        np.array(box_tmax, np.float64, order="C"), *world.table.search_arrays(),
+        *world.table.route_inputs(candidate_owner(world, remote)),
+        np.array(visited, np.uint64, order="C"))
+    return np.where(owner == NO_OWNER, DONE, owner).astype(np.int32)
 
 
 def candidate_owner(world: ShardWorld, remote: np.ndarray) -> np.ndarray:
@@ -89,10 +67,15 @@ def candidate_owner(world: ShardWorld, remote: np.ndarray) -> np.ndarray:
 
 def next_stop(near: NearestRemote, tmax: np.ndarray) -> np.ndarray:
     """`nearest_unvisited` from what the routing walk kept, cut at the final tmax (n,)
-    float32 (no larger than the walk's, rows where it is are the caller's: see
-    `stale`): the walk's candidate is the nearest box of a superset of those crossed
-    before the final stretched tmax, so it is their nearest (same owner on ties) when it
-    lies before that cut, and there is none when it does not.
+    float32, which must be at most near.walk_tmax (`_routed` asks again where not).
+
+    Why it is the same answer: after tracing its local boxes, the walk kept the nearest
+    candidate crossed before C' = C * (1 + BOX_TMAX_SLACK_REL), C its cut (the closest
+    hit here, or the tmax the ray came with). The final tmax T <= C (the quad lights may
+    shorten it further), so the boxes crossed before T' = T * (1 + BOX_TMAX_SLACK_REL)
+    are among those (the slab test depends on tmax only through t_enter < tmax): if the
+    walk's candidate is entered before T', it is their nearest, with the same lowest
+    owner on equal entries; if not, none of them is entered before T'.
     returns (n,) int32 target shard or DONE"""
     box_tmax = np.asarray(tmax, np.float64) * (1.0 + BOX_TMAX_SLACK_REL)
     return np.where(near.t_enter < box_tmax, near.owner, DONE).astype(np.int32)

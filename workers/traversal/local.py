@@ -23,10 +23,11 @@ BOX_TMAX_SLACK_REL = 2.0**-16
 @dataclass(frozen=True, eq=False)
 class NearestRemote:
     """What a routing walk (`LocalGeometry.closest_routed`, `occluded_routed`) found for
-    exact forwarding, before the final hit cuts it: per ray, t_enter (n,) float64, the
+    exact forwarding, before the final tmax cuts it: per ray, t_enter (n,) float64, the
     nearest entry of a candidate box on a shard the ray had not visited, crossed before
-    walk_tmax (n,) float32 (the tmax the ray came with) stretched by BOX_TMAX_SLACK_REL
-    (inf: none), and owner (n,) int32 its shard (-1: none; on equal entries the lowest)."""
+    walk_tmax (n,) float32 (the walk's cut: its closest hit here, or the tmax it came
+    with) stretched by BOX_TMAX_SLACK_REL (inf: none), and owner (n,) int32 its shard
+    (-1: none; on equal entries the lowest)."""
 
     t_enter: np.ndarray
     owner: np.ndarray
@@ -49,22 +50,41 @@ class LocalGeometry:
             raise ValueError(f"instances reference meshes {sorted(missing)} not held here")
         self._scene_of_mesh = None
         self._walk_inputs = None
-        self._routed = None  # (cand_owner, its walk inputs)
+        self._routed = None  # (cand_owner, its route inputs)
+        self._no_route = None
 
     def __repr__(self) -> str:
         return f"LocalGeometry({len(self.geometry)} meshes, {len(self.instances)} instances)"
 
-    def _walk(self, cand_owner: np.ndarray | None = None) -> tuple:
-        """The top-level inputs of the walking kernels for these instances (made once),
-        routing among the candidates of cand_owner (m,) int32 when given (made once for
-        the last array passed: a policy keeps one)."""
-        if cand_owner is None:
-            if self._walk_inputs is None:
-                self._walk_inputs = self.table.walk_inputs(self.instances)
-            return self._walk_inputs
+    def _walk(self) -> tuple:
+        """The top-level inputs of the walking kernels for these instances (made once)."""
+        if self._walk_inputs is None:
+            self._walk_inputs = self.table.walk_inputs(self.instances)
+        return self._walk_inputs
+
+    def _route(self, cand_owner: np.ndarray) -> tuple:
+        """The routing search's inputs for cand_owner (m,) int32 (`InstanceTable.
+        route_inputs`), made once for the last array passed (a policy keeps one)."""
         if self._routed is None or self._routed[0] is not cand_owner:
-            self._routed = (cand_owner, self.table.walk_inputs(self.instances, cand_owner))
+            self._routed = (cand_owner, self.table.route_inputs(cand_owner))
         return self._routed[1]
+
+    def _route_args(self, n: int, cand_owner, visited) -> tuple:
+        """The walking kernels' routing arguments: (route, cand_owner, cands, cand_flat,
+        cand_bvh, visited (n,) uint64, near_t (n,) float64, near_owner (n,) int32,
+        near_tmax (n,) float32); placeholders when they do not route."""
+        if cand_owner is None:
+            if self._no_route is None:  # never written: made once
+                cand, cands, cand_flat, _ = self.table.route_inputs(
+                    np.full(len(self.table), -1, np.int32))
+                self._no_route = (False, cand, cands, cand_flat, False, np.zeros(0, np.uint64),
+                                  np.zeros(0), np.zeros(0, np.int32), np.zeros(0, np.float32))
+            return self._no_route
+        seen = np.ascontiguousarray(visited, np.uint64)
+        if seen.shape != (n,):
+            raise ValueError(f"visited must have shape ({n},), got {seen.shape}")
+        return (True, *self._route(cand_owner), seen, np.full(n, np.inf),
+                np.full(n, -1, np.int32), np.empty(n, np.float32))
 
     def _scenes(self) -> np.ndarray:
         """(M,) uint64 Embree scene of each base mesh held here (0 elsewhere)."""
@@ -112,7 +132,7 @@ class LocalGeometry:
         o = np.ascontiguousarray(origin, np.float64)
         d = np.ascontiguousarray(direction, np.float64)
         mesh_of, _, w2l = self.table.kernel_arrays()
-        route, seen, near_t, near_owner = _route_outputs(n, cand_owner, visited)
+        route = self._route_args(n, cand_owner, visited)
         # Each ray walks the top level nearest box first and traces each box it reaches
         # until boxes are entered beyond its closest hit so far (exact: no hit there can
         # win or tie). Embree gets tfar = that hit's t (or tmax) stretched by
@@ -122,16 +142,15 @@ class LocalGeometry:
         # hit). With the margin it reports what it reports with tfar = FAR_T (see
         # crossings._closest_box, tests/workers/test_rtc.py).
         crossings.closest_walk(np.uint64(rtc.INTERSECT1), o, d, tmax, BOX_TMAX_SLACK_REL, FAR_T,
-                               *self._walk(cand_owner), mesh_of, self._scenes(), w2l, run_t,
-                               run_inst, run_prim, run_u, run_v, route, seen, near_t,
-                               near_owner)
+                               *self._walk(), mesh_of, self._scenes(), w2l, run_t, run_inst,
+                               run_prim, run_u, run_v, *route)
         use_record = hit_inst is not None
         if not use_record:
             hit_inst = hit_prim = np.zeros(n, np.int32)
         out = records.local_winners(run_t, run_inst, run_prim, run_u, run_v, tmax,
                                     np.ascontiguousarray(hit_inst, np.int32),
                                     np.ascontiguousarray(hit_prim, np.int32), use_record)
-        return (*out, NearestRemote(near_t, near_owner, tmax) if route else None)
+        return (*out, NearestRemote(*route[-3:]) if route[0] else None)
 
     def intersect_occluded(self, origin: np.ndarray, direction: np.ndarray,
                            tmax: np.ndarray) -> np.ndarray:
@@ -152,19 +171,8 @@ class LocalGeometry:
         o = np.ascontiguousarray(origin, np.float64)
         d = np.ascontiguousarray(direction, np.float64)
         mesh_of, _, w2l = self.table.kernel_arrays()
-        route, seen, near_t, near_owner = _route_outputs(n, cand_owner, visited)
+        route = self._route_args(n, cand_owner, visited)
         crossings.occluded_walk(np.uint64(rtc.OCCLUDED1), o, d, tmax, BOX_TMAX_SLACK_REL,
-                                *self._walk(cand_owner), mesh_of, self._scenes(), w2l,
-                                occluded, route, seen, near_t, near_owner)
-        return occluded, NearestRemote(near_t, near_owner, tmax) if route else None
-
-
-def _route_outputs(n: int, cand_owner, visited) -> tuple:
-    """(route, visited (n,) uint64, near_t (n,) float64, near_owner (n,) int32) for the
-    walking kernels; empty arrays when they do not route."""
-    if cand_owner is None:
-        return False, np.zeros(0, np.uint64), np.zeros(0), np.zeros(0, np.int32)
-    seen = np.ascontiguousarray(visited, np.uint64)
-    if seen.shape != (n,):
-        raise ValueError(f"visited must have shape ({n},), got {seen.shape}")
-    return True, seen, np.full(n, np.inf), np.full(n, -1, np.int32)
+                                *self._walk(), mesh_of, self._scenes(), w2l, occluded,
+                                *route[:-1])
+        return occluded, NearestRemote(*route[-3:-1], tmax) if route[0] else None

@@ -22,6 +22,10 @@ BVH_MIN_INSTANCES = 8
 # forest small (39) 0.277 / 0.065 against 0.306 / 0.078, city default (65) 0.418 / 0.107
 # against 0.510 / 0.115, forest default (85) 0.602 / 0.538 against 0.575 / 0.474.
 FLAT_WALK_MAX = 72
+# The routing search (the nearest box on an unvisited shard, culled at the best so far)
+# takes every candidate's slab in one flat loop up to this many candidates, else walks
+# the BVH nearer child first.
+ROUTE_FLAT_MAX = 8
 
 
 class InstanceTable:
@@ -115,56 +119,44 @@ class InstanceTable:
             return None
         return col_of
 
-    def walk_inputs(self, instances: np.ndarray, cand_owner: np.ndarray | None = None
-                    ) -> tuple:
+    def walk_inputs(self, instances: np.ndarray) -> tuple:
         """What the walking kernels (`nprt.workers.kernels.crossings.closest_walk`) take
-        for a set of instances: boxes (m, 2, 3) float64 (world_bounds), members (k',)
-        int64 (the instances, then the routing candidates), n_local = k, col_of (m,) int32
-        (position in `instances`, -1 elsewhere; all -1 for the flat loop), cand_owner (m,)
-        int32, use_bvh, flat (6, k') float64 (the members' boxes as rows lo x, y, z, hi x,
-        y, z, for the flat loop), then the BVH's node_box, node_child, node_start,
-        node_count, prim (placeholders without one); owned and writable.
-
-        cand_owner (m,) int32: with it, the walks also route (the owner, >= 0, of each
-        box that exact forwarding may visit next; -1 for the others and for every box of
-        `instances`). The flat loop then tests members and candidates, so the BVH serves
-        when they are more than FLAT_WALK_MAX together."""
+        for a set of instances: boxes (m, 2, 3) float64 (world_bounds), members (k,) int64,
+        col_of (m,) int32, use_bvh, flat (6, k) float64 (the members' boxes as rows lo x,
+        y, z, hi x, y, z, for the flat loop), then the BVH's node_box, node_child,
+        node_start, node_count, prim (placeholders without one; the routing search may
+        walk it when the members do not); owned and writable."""
         members = np.array(instances, np.int64)
-        n_local = len(members)
-        m = len(self)
-        if cand_owner is None:
-            col_of = self._columns(members)
-            cand = np.full(m, -1, np.int32)
-            bvh_ok = col_of is not None and n_local > FLAT_WALK_MAX
-        else:
-            cand = np.array(cand_owner, np.int32)
-            if cand.shape != (m,):
-                raise ValueError(f"walk_inputs: cand_owner must have shape ({m},), got "
-                                 f"{cand.shape}")
-            if len(members) and (cand[members] >= 0).any():
-                raise ValueError("walk_inputs: a routing candidate is one of the instances "
-                                 "walked here")
-            col_of = self._routed_columns(members)
-            members = np.concatenate([members, np.flatnonzero(cand >= 0)])
-            bvh_ok = col_of is not None and len(members) > FLAT_WALK_MAX
-        bounds = np.asarray(self.world_bounds, np.float64)[members]  # (k', 2, 3)
+        col_of = self._columns(members)
+        bounds = np.asarray(self.world_bounds, np.float64)[members]  # (k, 2, 3)
         flat = np.ascontiguousarray(bounds.reshape(len(members), 6).T)
-        if not bvh_ok:
+        bvh = _no_bvh() if self._bvh is None else self._bvh[1:]
+        if col_of is None or len(members) <= FLAT_WALK_MAX:
             boxes = np.array(self.world_bounds, np.float64, order="C")
-            return (boxes, members, n_local, np.full(m, -1, np.int32), cand, False, flat,
-                    *_no_bvh())
-        return (self._bvh[0], members, n_local, col_of, cand, True, flat, *self._bvh[1:])
+            return (boxes, members, np.full(len(self), -1, np.int32), False, flat, *bvh)
+        return (self._bvh[0], members, col_of, True, flat, *bvh)
 
-    def _routed_columns(self, instances: np.ndarray) -> np.ndarray | None:
-        """`_columns` for a walk that also routes: any number of unique, valid instances
-        (the walk visits the table's BVH for the candidates anyway); None without a
-        BVH."""
-        k, m = len(instances), len(self)
-        if self._bvh is None or (k and (instances.min() < 0 or instances.max() >= m)):
-            return None
-        col_of = np.full(m, -1, np.int32)
-        col_of[instances] = np.arange(k, dtype=np.int32)
-        return col_of if np.count_nonzero(col_of >= 0) == k else None
+    def search_arrays(self) -> tuple:
+        """boxes (m, 2, 3) float64 and the BVH's arrays (placeholders without one), as the
+        routing search (`nprt.workers.kernels.nearest.nearest_owner`) takes them."""
+        if self._bvh is not None:
+            return self._bvh
+        return (np.array(self.world_bounds, np.float64, order="C"), *_no_bvh())
+
+    def route_inputs(self, cand_owner: np.ndarray) -> tuple:
+        """What the walking kernels take to route as well (`crossings._near_search`):
+        cand_owner (m,) int32 (the owner of each box exact forwarding may visit next, -1
+        for the others), cands (c,) int64 those boxes, cand_flat (6, c) float64 their
+        boxes as `walk_inputs`' flat, and cand_bvh: search through the table's BVH
+        (more than ROUTE_FLAT_MAX candidates) rather than the flat loop."""
+        cand = np.array(cand_owner, np.int32)
+        if cand.shape != (len(self),):
+            raise ValueError(f"route_inputs: cand_owner must have shape ({len(self)},), got "
+                             f"{cand.shape}")
+        cands = np.flatnonzero(cand >= 0).astype(np.int64)
+        bounds = np.asarray(self.world_bounds, np.float64)[cands]  # (c, 2, 3)
+        cand_flat = np.ascontiguousarray(bounds.reshape(len(cands), 6).T)
+        return cand, cands, cand_flat, self._bvh is not None and len(cands) > ROUTE_FLAT_MAX
 
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
         """Slab test of rays against a set of instance boxes, in float64.
