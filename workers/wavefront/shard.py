@@ -36,6 +36,7 @@ from nprt.workers.traversal.closest import resolve_closest, resolve_closest_rout
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.local import LocalGeometry
 from nprt.workers.wavefront.batch import FLAG_SHADE, PRIMARY, SHADOW, RayBatch, ShadowRayBatch
+from nprt.workers.wavefront.filmpool import FilmPool
 from nprt.workers.wavefront.integrator import PathIntegrator
 from nprt.workers.wavefront.world import ShardWorld
 
@@ -45,22 +46,22 @@ log = logging.getLogger(__name__)
 @dataclass
 class _PassState:
     """One pass's share of the film here, added up as its contributions arrive (`_Step.splat`)
-    as exact integers (nprt.workers.filmsum): the same for any order of the contributions and
-    any split of them over steps and shards. A finished pass is collected whole, so no step
-    writes it while `collect` reads it."""
+    as exact integers (nprt.workers.filmsum) in its slot of the shard's FilmPool: the same
+    for any order of the contributions and any split of them over steps and shards. A
+    finished pass is collected whole, so no step writes it while `collect` reads it."""
 
     pass_: Pass
+    slot: int  # its film in the shard's FilmPool
     stats: RenderStats = field(default_factory=RenderStats)
-    film: FilmSums | None = None  # None until a step adds to it (`_Step` holds its words)
     # Rare: contributions the words cannot hold (not finite, or beyond 2^MAX_EXP), kept as
     # (index (k,) int64 within the tile, rgb (k, 3) float64) to be summed at `collect`.
     outside: list = field(default_factory=list)
 
-    def sums(self) -> FilmSums:
-        """This shard's share of the pass's film, its float sums of the contributions
-        outside the words in a canonical order."""
+    def sums(self, films: FilmPool) -> FilmSums:
+        """This shard's share of the pass's film (its slot is freed), its float sums of the
+        contributions outside the words in a canonical order."""
         n = self.pass_.n_pixels
-        out = FilmSums.zeros(n) if self.film is None else self.film
+        out = films.release(self.slot, n)
         if self.outside:
             i = np.concatenate([idx for idx, _ in self.outside])
             rgb = np.concatenate([rgb for _, rgb in self.outside])
@@ -89,23 +90,16 @@ class _Step:
     is live (the coordinator's rule), so `tok` finds each ray's pass without a column on
     the wire."""
 
-    def __init__(self, s: RenderSettings, states: list[_PassState], lookup: np.ndarray):
-        self.s, self.states = s, states
+    def __init__(self, s: RenderSettings, states: list[_PassState], lookup: np.ndarray,
+                 films: FilmPool):
+        self.s, self.states, self.films = s, states, films
         self.lookup = lookup  # (tiles,) int64 -> index into states, -1: none in this step
         self._tok_of, self._tok = None, None  # the last pixel column tok was asked for
         self.stats = SplitStats([st.stats for st in states])
-        # The passes' films side by side, (t, n, 3, 2) int64, so one pass over a batch adds
-        # it to all of them; each pass's film is a view of its slot from now on (what an
-        # earlier step added is copied in).
-        n = max((st.pass_.n_pixels for st in states), default=0)
-        self.words = np.zeros((len(states), n, 3, 2), np.int64)
-        for j, st in enumerate(states):
-            view = self.words[j, :st.pass_.n_pixels]
-            if st.film is not None:
-                view[...] = st.film.words
-            st.film = FilmSums(view)
-        self.tiles = np.array([(st.pass_.x0, st.pass_.y0, st.pass_.x1 - st.pass_.x0)
-                               for st in states], np.int64).reshape(-1, 3).T.copy()  # (3, t)
+        # (tiles,) int64 -> the film slot of the tile's pass (-1: none in this step), so one
+        # pass over a batch adds each row to its pass's film, whatever the passes
+        slots = np.array([st.slot for st in states] + [-1], np.int64)
+        self.slot_of_tile = slots[lookup]
 
     def tok(self, pixel: np.ndarray) -> np.ndarray:
         """pixel (n,) uint32 -> (n,) int64 index of its pass in this step. The last answer
@@ -127,9 +121,9 @@ class _Step:
         pixel = np.ascontiguousarray(pixel, np.uint32)
         rgb = np.ascontiguousarray(rgb)
         outside = np.zeros(len(pixel), bool)
-        x0, y0, width = self.tiles
-        if splat(pixel, rgb, self.s.width, self.s.tile_size, self.lookup, x0, y0, width,
-                 self.words, outside):  # rare: kept for `_PassState.sums`
+        f = self.films
+        if splat(pixel, rgb, self.s.width, self.s.tile_size, self.slot_of_tile, f.x0, f.y0,
+                 f.tile_w, f.words, outside):  # rare: kept for `_PassState.sums`
             rows = np.flatnonzero(outside)
             tok = tiles.pass_slots(pixel[rows], self.s.width, self.s.tile_size, self.lookup)
             local = tiles.tile_index(pixel[rows], self.s.width, self.s.tile_size)
@@ -164,6 +158,7 @@ class Shard:
         self.s: RenderSettings | None = None
         self.configure(config.settings)
         self.passes: dict[int, _PassState] = {}  # pass index -> its state, until collected
+        self.films: FilmPool | None = None  # the live passes' films (made for the tile size)
         log.info("%r started in pid %d", self, os.getpid())
 
     def _place(self) -> None:
@@ -255,6 +250,8 @@ class Shard:
 
     def reset(self) -> None:
         self.passes.clear()
+        if self.films is not None:
+            self.films.clear()
 
     def collect(self, indices: list[int]) -> list[tuple]:
         """[(pass index, FilmSums of n_pixels or None, stats dict)] of finished
@@ -262,7 +259,8 @@ class Shard:
         out = []
         for i in indices:
             st = self.passes.pop(i, None)
-            out.append((i, None, None) if st is None else (i, st.sums(), st.stats.to_dict()))
+            out.append((i, None, None) if st is None
+                       else (i, st.sums(self.films), st.stats.to_dict()))
         return out
 
     # -- the wavefront ---------------------------------------------------------------
@@ -308,17 +306,23 @@ class Shard:
     def _open(self, indices: list[int], times: RenderStats) -> _Step:
         """The step over these passes: their state (made on first sight) and the tile
         lookup that finds a ray's pass."""
+        n = self.s.tile_size ** 2
+        if self.films is None or self.films.n != n:
+            if self.passes:
+                raise RuntimeError(f"{self!r}: tile size changed with passes in flight")
+            self.films = FilmPool(n)
         states = []
         for i in indices:
             st = self.passes.get(i)
             if st is None:
-                st = self.passes[i] = _PassState(pass_at(self.s, i))
+                p = pass_at(self.s, i)
+                st = self.passes[i] = _PassState(p, self.films.take(p))
             states.append(st)
         tiles = count_tiles(self.s)
         lookup = np.full(tiles, -1, np.int64)
         for j, i in enumerate(indices):
             lookup[i % tiles] = j
-        step = _Step(self.s, states, lookup)
+        step = _Step(self.s, states, lookup, self.films)
         step.stats.times = times  # the step's phases are timed in `times`
         return step
 
