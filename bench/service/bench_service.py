@@ -360,6 +360,16 @@ def findings(runs: dict[str, dict]) -> str:
             "a host with 2 or more cores) split the burst between two loops.")
 
 
+WORKERS = (
+    "One API worker against two, same code, the same client, one locked run with `before` "
+    "(15:45-15:50, load 7-21; `--repeat 2 --set after:NPRT_API_WORKERS=1 --versus "
+    "after_2_workers=<checkout> --set after_2_workers:NPRT_API_WORKERS=2`; JSON replaced by "
+    "the run above): POST / worst GET / /healthz / gRPC health p99 with one worker 861 / "
+    "105 / 347 / 74 ms (rounds' POST 366 and 861, the second at a load spike), with two "
+    "240 / 30 / 35 / 33 ms (rounds 163 and 240), `before` 430 / 100 / 92 / 45 ms: why "
+    "`nprt serve` runs two HTTP workers by default on 2 or more cores.")
+
+
 def write_readme() -> None:
     """The README section from the saved results of every label."""
     from bench.common import BENCH_README, replace_section
@@ -400,7 +410,8 @@ def write_readme() -> None:
                     "POST answers and watcher tiles in the load generator, and that wait "
                     "counted as the service's latency; figures from before are not "
                     "comparable with these.\n\n"
-                    + summary_table(runs) + "\n\n" + findings(runs) + "\n\n"
+                    + summary_table(runs) + "\n\n" + findings(runs) + "\n\n" + WORKERS
+                    + "\n\n"
                     + "\n\n".join(parts))
 
 
