@@ -114,3 +114,18 @@ def test_a_released_slot_comes_back_zeroed_to_the_next_pass():
 def test_a_pass_larger_than_the_slots_is_refused():
     with pytest.raises(ValueError, match="pixels in a pool"):
         FilmPool(16).take(pass_at(SETTINGS, 0))
+
+
+def test_a_slot_from_before_a_clear_is_refused_and_the_new_holder_keeps_its_film():
+    """A collect that raced a reset (a new run) must not free a slot a new pass holds."""
+    films = FilmPool(SETTINGS.tile_size ** 2)
+    a, b = pass_at(SETTINGS, 0), pass_at(SETTINGS, 3)
+    old = _PassState(a, films.take(a))
+    films.clear()
+    new = _PassState(b, films.take(b))
+    assert new.slot[0] == old.slot[0]
+    _step([new], films).splat(b.pixels(SETTINGS.width).astype(np.uint32),
+                              np.ones((b.n_pixels, 3)))
+    with pytest.raises(ValueError, match="film slot"):
+        old.sums(films)
+    assert new.sums(films).words.any()

@@ -9,7 +9,9 @@ are what a shard on many cores runs.)
 
 Threads: a step (the wavefront thread) takes slots and writes the slots of its passes;
 `release` (a Ray thread running `collect`) reads and frees the slot of a finished pass,
-which no step writes. Growing replaces the array, so take and release hold a lock.
+which no step writes. Growing replaces the array, so take and release hold a lock. A
+`clear` (a new run) frees every slot at once; a release of a slot taken before it is
+refused, or a collect that raced the reset would free a slot a new pass holds.
 """
 
 from __future__ import annotations
@@ -34,9 +36,10 @@ class FilmPool:
         self.tile_w = np.zeros(0, np.int64)
         self._free: list[int] = []
         self._lock = threading.Lock()
+        self.generation = 0  # clears so far: a slot is (index, generation)
 
-    def take(self, p: Pass) -> int:
-        """A zeroed slot for pass p (its tile of at most n pixels)."""
+    def take(self, p: Pass) -> tuple[int, int]:
+        """A zeroed slot for pass p (its tile of at most n pixels): (index, generation)."""
         if p.n_pixels > self.n:
             raise ValueError(f"pass of {p.n_pixels} pixels in a pool of {self.n}-pixel slots")
         with self._lock:
@@ -44,14 +47,18 @@ class FilmPool:
                 self._grow()
             s = self._free.pop()
             self.x0[s], self.y0[s], self.tile_w[s] = p.x0, p.y0, p.x1 - p.x0
-            return s
+            return s, self.generation
 
-    def release(self, slot: int, n_pixels: int) -> FilmSums:
-        """The film in `slot` (its first n_pixels), copied out; the slot is zeroed and free."""
+    def release(self, slot: tuple[int, int], n_pixels: int) -> FilmSums:
+        """The film in `slot` (its first n_pixels), copied out; the slot is zeroed and free.
+        A slot from before the last `clear` is refused (ValueError)."""
+        s, generation = slot
         with self._lock:
-            film = FilmSums(self.words[slot, :n_pixels].copy())
-            self.words[slot] = 0
-            self._free.append(slot)
+            if generation != self.generation:
+                raise ValueError(f"film slot {s} of clear {generation}, now {self.generation}")
+            film = FilmSums(self.words[s, :n_pixels].copy())
+            self.words[s] = 0
+            self._free.append(s)
             return film
 
     def clear(self) -> None:
@@ -59,6 +66,7 @@ class FilmPool:
         with self._lock:
             self.words[...] = 0
             self._free = list(range(len(self.words)))[::-1]
+            self.generation += 1
 
     def _grow(self) -> None:
         old = len(self.words)

@@ -51,7 +51,7 @@ class _PassState:
     finished pass is collected whole, so no step writes it while `collect` reads it."""
 
     pass_: Pass
-    slot: int  # its film in the shard's FilmPool
+    slot: tuple[int, int]  # its film in the shard's FilmPool (index, generation)
     stats: RenderStats = field(default_factory=RenderStats)
     # Rare: contributions the words cannot hold (not finite, or beyond 2^MAX_EXP), kept as
     # (index (k,) int64 within the tile, rgb (k, 3) float64) to be summed at `collect`.
@@ -98,7 +98,7 @@ class _Step:
         self.stats = SplitStats([st.stats for st in states])
         # (tiles,) int64 -> the film slot of the tile's pass (-1: none in this step), so one
         # pass over a batch adds each row to its pass's film, whatever the passes
-        slots = np.array([st.slot for st in states] + [-1], np.int64)
+        slots = np.array([st.slot[0] for st in states] + [-1], np.int64)
         self.slot_of_tile = slots[lookup]
 
     def tok(self, pixel: np.ndarray) -> np.ndarray:
@@ -259,8 +259,11 @@ class Shard:
         out = []
         for i in indices:
             st = self.passes.pop(i, None)
-            out.append((i, None, None) if st is None
-                       else (i, st.sums(self.films), st.stats.to_dict()))
+            try:
+                out.append((i, None, None) if st is None
+                           else (i, st.sums(self.films), st.stats.to_dict()))
+            except ValueError:  # its run was reset while this collect ran: nothing here
+                out.append((i, None, None))
         return out
 
     # -- the wavefront ---------------------------------------------------------------
