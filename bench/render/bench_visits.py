@@ -49,9 +49,8 @@ from nprt.workers.wavefront.shard import Shard
 from nprt.workers.wavefront.world import ShardWorld
 
 
-def make_shards(scene, s: RenderSettings, warm: bool = True) -> list[Shard]:
-    """The K shards of `s`'s placement, begun for `s`; warm: kernels compiled or loaded
-    first."""
+def make_shards(scene, s: RenderSettings) -> list[Shard]:
+    """The K shards of `s`'s placement, warmed (kernels compiled or loaded)."""
     placed = plan_placement(scene, s)
     world = ShardWorld.build(scene, placed.owner)
     shards = []
@@ -60,8 +59,7 @@ def make_shards(scene, s: RenderSettings, warm: bool = True) -> list[Shard]:
         proxies = {m: p for m, p in placed.proxies.items() if m not in held}
         sh = Shard(ShardConfig(sid, s.shards, s), world, {m: scene.meshes[m] for m in held},
                    proxies)
-        if warm:
-            sh.warm()
+        sh.warm()
         sh.begin(s)
         shards.append(sh)
     return shards
