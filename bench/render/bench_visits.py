@@ -41,28 +41,10 @@ from nprt.scene.store import open_scene
 from nprt.workers.filmsum import FilmSums
 from nprt.workers.passes import count_tiles, iter_passes, pass_at
 from nprt.workers.runtime.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
-from nprt.workers.runtime.placement import plan_placement
-from nprt.workers.runtime.protocol import ShardConfig
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats
+from nprt.workers.wavefront.inprocess import shards_in_process
 from nprt.workers.wavefront.shard import Shard
-from nprt.workers.wavefront.world import ShardWorld
-
-
-def make_shards(scene, s: RenderSettings) -> list[Shard]:
-    """The K shards of `s`'s placement, warmed (kernels compiled or loaded)."""
-    placed = plan_placement(scene, s)
-    world = ShardWorld.build(scene, placed.owner)
-    shards = []
-    for sid in range(s.shards):
-        held = placed.shard_meshes[sid]
-        proxies = {m: p for m, p in placed.proxies.items() if m not in held}
-        sh = Shard(ShardConfig(sid, s.shards, s), world, {m: scene.meshes[m] for m in held},
-                   proxies)
-        sh.warm()
-        sh.begin(s)
-        shards.append(sh)
-    return shards
 
 
 def run(shards: list[Shard], s: RenderSettings) -> dict:
@@ -160,7 +142,7 @@ def bench(args) -> dict:
         for mode in args.modes:
             for k in args.ks:
                 s = RenderSettings(**base, shards=k, mode=mode)
-                r = run(make_shards(scene, s), s)
+                r = run(shards_in_process(scene, s), s)
                 if k == 1 and one is None:
                     one = r
                 elif k == 1:

@@ -13,8 +13,8 @@ from nprt.workers.routing.exact import first_of_runs
 from nprt.workers.routing.proxy_query import (
     Prediction,
     QueryKnobs,
-    _asked_boxes,
-    _known_hits,
+    asked_pairs,
+    nothing_asked,
 )
 from nprt.workers.wavefront.world import ShardWorld
 
@@ -24,12 +24,10 @@ def predict_numpy(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: 
                   visited: np.ndarray | None = None) -> Prediction:
     """proxy_query.predict in numpy, all pairs asked (the arguments are predict's)."""
     n = len(origin)
-    best_t, best_i = _known_hits(known, origin, direction, tmax)
-    ray, inst = _asked_boxes(world, remote, origin, direction, tmax, visited)
-    none = np.zeros(0, np.int64)
+    best_t, best_i, ray, inst = asked_pairs(world, remote, origin, direction, tmax, known,
+                                            visited)
     if len(ray) == 0:
-        return Prediction(best_t, best_i, np.zeros(n, bool), np.zeros(n, bool),
-                          np.zeros(n, bool), np.full(n, -1, np.int32), none, none)
+        return nothing_asked(best_t, best_i)
     # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
     q = box_queries(world.table, inst, origin[ray], direction[ray], tmax[ray])
     mesh = world.table.mesh[inst].astype(np.int64)

@@ -13,12 +13,9 @@ from nprt.scene.model import Camera, Instance, Scene
 from nprt.scene.store import open_scene
 from nprt.workers.routing import proxy_pairs
 from nprt.workers.routing.proxy_query import QueryKnobs, predict
-from nprt.workers.runtime.placement import plan_placement
-from nprt.workers.runtime.protocol import ShardConfig
 from nprt.workers.settings import RenderSettings
 from nprt.workers.traversal.toplevel import InstanceTable
-from nprt.workers.wavefront.shard import Shard
-from nprt.workers.wavefront.world import ShardWorld
+from nprt.workers.wavefront.inprocess import shards_in_process
 from tests.workers import proxy_oracles as oracle
 from tests.workers.helpers import mesh_from_trimesh, trs
 
@@ -138,17 +135,7 @@ def policies(request):
     replicate every mesh)."""
     scene = open_scene(request.param).load()
     s = RenderSettings(width=8, height=8, spp=1, shards=3, mode="proxy")
-    placed = plan_placement(scene, s)
-    world = ShardWorld.build(scene, placed.owner)
-    out = []
-    for sid in range(s.shards):
-        held = placed.shard_meshes[sid]
-        proxies = {m: p for m, p in placed.proxies.items() if m not in held}
-        sh = Shard(ShardConfig(sid, s.shards, s), world, {m: scene.meshes[m] for m in held},
-                   proxies)
-        sh.begin(s)
-        out.append((world, sh.policy))
-    return out
+    return [(sh.world, sh.policy) for sh in shards_in_process(scene, s, warm=False)]
 
 
 def test_predict_gives_the_numpy_oracles_answers_on_a_scene(policies):

@@ -59,13 +59,10 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     remote instances, intersected exactly; visited: (n,) uint64 shard bitmask of each ray,
     whose shards' boxes are not asked about (their geometry was intersected exactly, and the
     ray carries what it found)."""
-    n = len(origin)
-    best_t, best_i = _known_hits(known, origin, direction, tmax)
-    ray, inst = _asked_boxes(world, remote, origin, direction, tmax, visited)
-    none = np.zeros(0, np.int64)
+    best_t, best_i, ray, inst = asked_pairs(world, remote, origin, direction, tmax, known,
+                                            visited)
     if len(ray) == 0:
-        return Prediction(best_t, best_i, np.zeros(n, bool), np.zeros(n, bool),
-                          np.zeros(n, bool), np.full(n, -1, np.int32), none, none)
+        return nothing_asked(best_t, best_i)
     table = world.table
     tmax = np.ascontiguousarray(tmax, np.float32)
     # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
@@ -144,6 +141,22 @@ def _ask_nets(proxies: dict, mesh: np.ndarray, ask: np.ndarray, point, qdir, thr
                                        np.array([c[5] for c in consts]), which, rows, on_box,
                                        qdir, y, shift, deep)
     return vis, tp
+
+
+def asked_pairs(world, remote, origin, direction, tmax, known, visited):
+    """What `predict` starts from (its arguments): (n,) float32 t and (n,) int32 instance of
+    each ray's closest exact hit among `known`, and the (p,) ray rows and (p,) instances of
+    the (ray, box) pairs the proxies are asked about."""
+    best_t, best_i = _known_hits(known, origin, direction, tmax)
+    ray, inst = _asked_boxes(world, remote, origin, direction, tmax, visited)
+    return best_t, best_i, ray, inst
+
+
+def nothing_asked(best_t: np.ndarray, best_i: np.ndarray) -> Prediction:
+    """The Prediction of rays no proxy was asked about: only their known hits."""
+    n, none = len(best_t), np.zeros(0, np.int64)
+    return Prediction(best_t, best_i, np.zeros(n, bool), np.zeros(n, bool),
+                      np.zeros(n, bool), np.full(n, -1, np.int32), none, none)
 
 
 def _known_hits(known, origin, direction, tmax):
