@@ -32,8 +32,10 @@ from pathlib import Path
 
 if __package__ in (None, ""):  # run as a script: make the repository importable
     sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
-# netcluster.sh turns on Ray's token authentication; Ray reads this once, at import.
-os.environ.setdefault("RAY_AUTH_MODE", "token")
+# netcluster.sh turns on Ray's token authentication; Ray reads this once, at import. Only
+# when run as a program: an importer (a test, another bench) keeps its process's Ray auth.
+if __name__ == "__main__":
+    os.environ.setdefault("RAY_AUTH_MODE", "token")
 
 import numpy as np  # noqa: E402
 import ray  # noqa: E402
@@ -47,8 +49,8 @@ from bench.common import (  # noqa: E402
     smoke,
     start_ray,
 )
+from bench.network.netmodel import film_bytes  # noqa: E402
 from nprt.scene.demos import make_demo  # noqa: E402
-from nprt.workers.passes import iter_passes  # noqa: E402
 from nprt.workers.render import render  # noqa: E402
 from nprt.workers.runtime.coordinator import Coordinator  # noqa: E402
 from nprt.workers.runtime.pool import PoolRegistry  # noqa: E402
@@ -80,12 +82,6 @@ def cpu_seconds(pid: int) -> float:
     """User + system CPU seconds of a process on this host (Linux /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def film_bytes(s) -> dict[int, int]:
-    """Token -> bytes of one shard's partial film of that pass (tokens follow pass order
-    when nothing is retried)."""
-    return {p.index: p.n_pixels * 3 * 2 * 8 for p in iter_passes(s)}  # FilmSums: 2 int64 words
 
 
 def traced_render(scene, s, pools: PoolRegistry) -> dict:

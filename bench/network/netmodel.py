@@ -28,7 +28,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nprt.workers.passes import iter_passes
+
 HEAD = -1  # the coordinator's node: its own link is not a bottleneck (unshaped)
+
+
+def film_bytes(s) -> dict[int, int]:
+    """Token -> bytes of one shard's partial film of that pass, for RenderSettings s (tokens
+    follow pass order when nothing is retried)."""
+    return {p.index: p.n_pixels * 3 * 2 * 8 for p in iter_passes(s)}  # FilmSums: 2 int64 words
 
 
 @dataclass

@@ -30,8 +30,7 @@ import platform
 import numpy as np
 
 from bench.common import add_output_flags, finish, machine, quality, smoke, timed_render
-from bench.network.bench_network import film_bytes
-from bench.network.netmodel import fit_rpc_s, replay, step_cpu
+from bench.network.netmodel import film_bytes, fit_rpc_s, replay, step_cpu
 from nprt.scene.store import open_scene
 from nprt.workers.settings import RenderSettings
 

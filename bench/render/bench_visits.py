@@ -33,8 +33,7 @@ from fractions import Fraction
 import numpy as np
 
 from bench.common import add_output_flags, finish, machine, smoke
-from bench.network.bench_network import film_bytes
-from bench.network.netmodel import replay
+from bench.network.netmodel import film_bytes, replay
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost, with_ray_cost
 from nprt.scene.store import open_scene
@@ -119,7 +118,7 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
     return {"cpu_s": cpu, "shard_cpu_s": per_shard, "steps": steps, "camera_rays": camera,
             "rays_in": rays_in,
             "phase_cpu_s": {n: round(v, 4) for n, v in sorted(times.phase_cpu_s.items())},
-            "film": film, "trace": trace, "window": window}
+            "counters": dict(times.counters), "film": film, "trace": trace, "window": window}
 
 
 def model_wall(r: dict, s: RenderSettings, cost: dict) -> float:
