@@ -55,6 +55,7 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
     live: dict[int, Fraction] = {}  # pass index -> weight back so far
     film = np.zeros((s.height * s.width, 3))
     times, steps, rays_in, camera = RenderStats(), 0, 0, 0
+    counters: dict[str, int] = {}  # the passes' statistics counters, summed
     trace = {"k": k, "steps": [], "admitted": []}  # calltrace.StepTrace's format
     step_of = [0] * k
     c0 = time.process_time()
@@ -107,9 +108,11 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
             p = pass_at(s, i)
             total = FilmSums.zeros(p.n_pixels)
             for sh in shards:
-                for _, sums, _ in sh.collect([i]):
+                for _, sums, st in sh.collect([i]):
                     if sums is not None:
                         total += sums
+                    for name, v in (st or {}).get("counters", {}).items():
+                        counters[name] = counters.get(name, 0) + v
             film[p.pixels(s.width)] += total.to_float()
     cpu = time.process_time() - c0
     per_shard = np.zeros(k)
@@ -118,7 +121,7 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
     return {"cpu_s": cpu, "shard_cpu_s": per_shard, "steps": steps, "camera_rays": camera,
             "rays_in": rays_in,
             "phase_cpu_s": {n: round(v, 4) for n, v in sorted(times.phase_cpu_s.items())},
-            "counters": dict(times.counters), "film": film, "trace": trace, "window": window}
+            "counters": counters, "film": film, "trace": trace, "window": window}
 
 
 def model_wall(r: dict, s: RenderSettings, cost: dict) -> float:

@@ -13,7 +13,7 @@ from nprt.workers.routing.exact import first_of_runs
 from nprt.workers.routing.proxy_query import (
     Prediction,
     QueryKnobs,
-    asked_pairs,
+    known_hits,
     nothing_asked,
 )
 from nprt.workers.wavefront.world import ShardWorld
@@ -24,8 +24,8 @@ def predict_numpy(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: 
                   visited: np.ndarray | None = None) -> Prediction:
     """proxy_query.predict in numpy, all pairs asked (the arguments are predict's)."""
     n = len(origin)
-    best_t, best_i, ray, inst = asked_pairs(world, remote, origin, direction, tmax, known,
-                                            visited)
+    best_t, best_i = known_hits(known, origin, direction, tmax)
+    ray, inst = asked_boxes(world, remote, origin, direction, tmax, visited)
     if len(ray) == 0:
         return nothing_asked(best_t, best_i)
     # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
@@ -39,9 +39,21 @@ def predict_numpy(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: 
     ambiguous = inner_hits - internal > 0
     if knobs.exact_if_ambiguous:
         uncertain |= ambiguous
-    asked = a.has_proxy
+    asked = np.flatnonzero(a.has_proxy)
+    asked = asked[np.argsort(mesh[asked], kind="stable")]  # grouped by mesh, pair order within
     return Prediction(best_t, best_i, uncertain, internal, ambiguous, first_open,
                       ray[asked].astype(np.int64), mesh[asked])
+
+
+def asked_boxes(world, remote, origin, direction, tmax, visited):
+    """(p,) ray rows and (p,) instances: the remote boxes each ray crosses before tmax, less
+    those on shards it visited (what proxy_pairs.walk_queries walks for)."""
+    ray, inst, _, _ = world.table.box_entries(origin, direction, tmax, remote)
+    if visited is not None and len(ray):
+        owner = world.owner[inst].astype(np.uint64)  # remote instances have one owner
+        keep = (visited[ray] >> owner) & np.uint64(1) == 0
+        ray, inst = ray[keep], inst[keep]
+    return ray, inst
 
 
 @dataclass(frozen=True)

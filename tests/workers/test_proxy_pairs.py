@@ -80,6 +80,57 @@ def test_box_queries_give_the_numpy_bits(seed):
         assert not len(differ), f"{name} differs at pairs {differ[:5]}"
 
 
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("asked", ["bvh", "flat", "repeated"])
+def test_walk_queries_keep_the_crossed_pairs_of_box_entries(seed, asked):
+    """walk_queries = box_entries, less visited shards' boxes, then box_queries, kept where
+    the local box is crossed: the same pairs in the same order with the same bits, through
+    the BVH (more than BVH_MIN_INSTANCES boxes asked) or the plain loop (few, or repeated),
+    with and without visited masks, rays with NaN and inf components included."""
+    rng = np.random.default_rng(seed)
+    table = _table(rng)
+    origin, direction, tmax = _rays(rng, table, 3000)
+    origin[::97, 2] = np.nan
+    origin[1::97, 0] = np.inf
+    remote = {"bvh": np.sort(rng.choice(len(table), 30, replace=False)),
+              "flat": np.array([0, 3, 4], np.int64),
+              "repeated": np.array([5, 1, 5, 2] + list(range(6, 16)), np.int64)}[asked]
+    owner = rng.integers(0, 5, len(table)).astype(np.int32)
+    world = _World(table, owner)
+    has_m = np.array([True, False])
+    boxes, bvh, col_of, members, w2l, bounds, mesh_of = table.pair_inputs(remote)
+    assert (len(col_of) > 0) == (asked == "bvh")
+    for visited in (None, rng.integers(0, 32, len(origin)).astype(np.uint64)):
+        ray, inst = oracle.asked_boxes(world, remote, origin, direction, tmax, visited)
+        q = oracle.box_queries(table, inst, origin[ray], direction[ray], tmax[ray])
+        keep = q.crosses
+        got = proxy_pairs.walk_queries(
+            origin, direction.astype(np.float64), tmax, boxes, bvh, col_of, members, owner,
+            np.zeros(0, np.uint64) if visited is None else visited, visited is not None, w2l,
+            bounds, mesh_of, has_m)
+        mesh = table.mesh[inst[keep]].astype(np.int64)
+        want = (ray[keep], inst[keep], mesh, has_m[mesh], q.internal[keep], q.t_box[keep],
+                q.length[keep], q.point[keep], q.qdir[keep])
+        assert keep.sum() > 20 and (~keep).any()
+        names = ("ray", "inst", "mesh", "has", "internal", "t_box", "length", "point", "qdir")
+        for name, a, b in zip(names, want, got[:9], strict=True):
+            assert a.dtype == b.dtype, name
+            differ = np.flatnonzero(~_same(a, b))
+            assert not len(differ), f"{name} differs at pairs {differ[:5]}"
+        grouped, start = got[9:]
+        order = np.flatnonzero(want[3])
+        order = order[np.argsort(mesh[order], kind="stable")]
+        assert grouped.tobytes() == order.astype(np.int64).tobytes()
+        assert start.tolist() == [0, *np.cumsum(np.bincount(mesh[want[3]], minlength=2))]
+
+
+class _World:
+    """What asked_boxes reads of a ShardWorld: the table and each instance's owner."""
+
+    def __init__(self, table, owner):
+        self.table, self.owner = table, owner
+
+
 def _pairs(rng, n: int, p: int, meshes: int):
     """Synthetic pairs with ties: t_box on a coarse grid (equal entries and equal predicted
     t), visibilities on the threshold and the band's edges, internal pairs, boxes without a

@@ -53,14 +53,12 @@ def near_search(origin, direction, lim, active, boxes, bvh, cand_owner, cands, c
     for r in range(origin.shape[0]):
         if not active[r]:
             continue
-        o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
-        d0, d1, d2 = direction[r, 0], direction[r, 1], direction[r, 2]
-        i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
+        finite, line = ray_line(origin[r, 0], origin[r, 1], origin[r, 2], direction[r, 0],
+                                direction[r, 1], direction[r, 2])
+        o0, o1, o2, i0, i1, i2 = line[:6]
         tm, seen = lim[r], visited[r]
         nt, no = np.inf, np.int32(NONE)
-        if cand_bvh and (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2)
-                         and np.isfinite(d0) and np.isfinite(d1) and np.isfinite(d2)):
-            line = (o0, o1, o2, i0, i1, i2, int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0))
+        if cand_bvh and finite:
             top, lo, hi = _next_leaf(bvh, stack, -1, line, tm)
             while lo < hi:
                 for x in range(lo, hi):
@@ -84,6 +82,18 @@ def near_search(origin, direction, lim, active, boxes, bvh, cand_owner, cands, c
                     nt, no = _near_fold(ok[j], te[j], owner, nt, no)
         if no != NONE:
             near_t[r], near_owner[r] = nt, no
+
+
+@njit(inline="always", **JIT)
+def ray_line(o0, o1, o2, d0, d1, d2):
+    """A ray as the BVH walk (`bvh._next_leaf`) takes it: (finite, line), line = (o0, o1,
+    o2, i0, i1, i2, s0, s1, s2) with i_a = 1 / d_a and s_a = i_a < 0; finite: no component
+    of the ray is NaN or inf (the others take the plain loop: the node test does not mirror
+    the slab test's NaN cases)."""
+    i0, i1, i2 = 1.0 / d0, 1.0 / d1, 1.0 / d2
+    finite = (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2) and np.isfinite(d0)
+              and np.isfinite(d1) and np.isfinite(d2))
+    return finite, (o0, o1, o2, i0, i1, i2, int(i0 < 0.0), int(i1 < 0.0), int(i2 < 0.0))
 
 
 @njit(inline="always", **JIT)

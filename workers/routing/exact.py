@@ -35,13 +35,15 @@ def hit_owner(world: ShardWorld, inst: np.ndarray) -> np.ndarray:
 
 
 def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, tmax,
-                      visited: np.ndarray) -> np.ndarray:
+                      visited: np.ndarray, route_in: tuple | None = None) -> np.ndarray:
     """Wald-style step: the owner of the nearest box entry, among instances on shards
     this ray has not visited, that lies before tmax (ties to the lowest owner), by a walk
     of its own (the exact policy's shards have it from their local walks instead:
     `next_stop`).
 
-    remote : (m,) int32 instances not intersected here; visited : (n,) uint64 bitmask
+    remote : (m,) int32 instances not intersected here; visited : (n,) uint64 bitmask;
+    route_in: `world.table.route_inputs(candidate_owner(world, remote))`, when the caller
+    keeps it
     returns (n,) int32 target shard or DONE
     """
     if not len(origin):
@@ -52,7 +54,7 @@ def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, 
     owner = nearest_owner(
         np.array(origin, np.float64, order="C"), np.array(direction, np.float64, order="C"),
         np.array(box_tmax, np.float64, order="C"), *world.table.search_arrays(),
-        *world.table.route_inputs(candidate_owner(world, remote)),
+        *(route_in or world.table.route_inputs(candidate_owner(world, remote))),
         np.array(visited, np.uint64, order="C"))
     return np.where(owner == NO_OWNER, DONE, owner).astype(np.int32)
 
@@ -81,10 +83,11 @@ def next_stop(near: NearestRemote, tmax: np.ndarray) -> np.ndarray:
     return np.where(near.t_enter < box_tmax, near.owner, DONE).astype(np.int32)
 
 
-def _routed(world, remote, origin, direction, tmax, visited, near) -> np.ndarray:
+def _routed(world, remote, origin, direction, tmax, visited, near, route_in=None
+            ) -> np.ndarray:
     """nearest_unvisited, from the walk's answer where there is one."""
     if near is None:
-        return nearest_unvisited(world, remote, origin, direction, tmax, visited)
+        return nearest_unvisited(world, remote, origin, direction, tmax, visited, route_in)
     target = next_stop(near, tmax)
     # A tmax that grew after the walk (never, as hits only shorten it) is asked again.
     stale = np.flatnonzero(~(np.asarray(tmax, np.float32) <= near.walk_tmax)
@@ -96,22 +99,39 @@ def _routed(world, remote, origin, direction, tmax, visited, near) -> np.ndarray
 
 
 def route_exact(world: ShardWorld, shard: int, remote: np.ndarray, rays: RayBatch,
-                near: NearestRemote | None = None) -> np.ndarray:
+                near: NearestRemote | None = None, route_in: tuple | None = None
+                ) -> np.ndarray:
     """Closest-hit rays: forward until no unvisited box lies before the hit, then go to
     the shard that owns the hit to be shaded. near: the routing walk's answer for these
     rays (`LocalGeometry.closest_routed` with `candidate_owner(world, remote)`); without
-    it the top level is walked again."""
-    target = _routed(world, remote, rays.origin, rays.direction, rays.tmax, rays.visited, near)
+    it the top level is walked again (route_in: as in `nearest_unvisited`)."""
+    target = _routed(world, remote, rays.origin, rays.direction, rays.tmax, rays.visited, near,
+                     route_in)
+    return _to_owner(world, shard, target, rays.hit_inst)
+
+
+def route_exact_rows(world: ShardWorld, shard: int, remote: np.ndarray, rays: RayBatch,
+                     rows: np.ndarray, route_in: tuple | None = None) -> np.ndarray:
+    """`route_exact(rays.take(rows))` without the copy of the whole batch: rows (r,) int64;
+    the top level is walked again. Returns (r,) int32."""
+    target = nearest_unvisited(world, remote, rays.origin[rows], rays.direction[rows],
+                               rays.tmax[rows], rays.visited[rows], route_in)
+    return _to_owner(world, shard, target, rays.hit_inst[rows])
+
+
+def _to_owner(world, shard, target, hit_inst):
+    """target (n,) int32 of the routing step, with rays that end (DONE) sent on to the
+    shard owning their hit hit_inst (n,) int32 where that is another one."""
     done = target == DONE
-    owner = hit_owner(world, rays.hit_inst)
+    owner = hit_owner(world, hit_inst)
     elsewhere = done & (owner != EVERYWHERE) & (owner != shard)
     target[elsewhere] = owner[elsewhere]
     return target
 
 
 def route_shadow_exact(world: ShardWorld, remote: np.ndarray, shadow: ShadowRayBatch,
-                       near: NearestRemote | None = None):
-    """Unoccluded-so-far shadow rays: forward to the next unvisited box's shard. near: as
-    in `route_exact` (`LocalGeometry.occluded_routed`)."""
+                       near: NearestRemote | None = None, route_in: tuple | None = None):
+    """Unoccluded-so-far shadow rays: forward to the next unvisited box's shard. near,
+    route_in: as in `route_exact` (`LocalGeometry.occluded_routed`)."""
     return _routed(world, remote, shadow.origin, shadow.direction, shadow.tmax,
-                   shadow.visited, near)
+                   shadow.visited, near, route_in)

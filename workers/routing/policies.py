@@ -16,7 +16,9 @@ from nprt.workers.routing.exact import (
     DONE,
     candidate_owner,
     hit_owner,
+    nearest_unvisited,
     route_exact,
+    route_exact_rows,
     route_shadow_exact,
 )
 from nprt.workers.routing.proxy_query import QueryKnobs, predict
@@ -42,6 +44,14 @@ class ExactPolicy:
     def __init__(self, world: ShardWorld, shard: int, remote: np.ndarray):
         self.world, self.shard, self.remote = world, shard, remote
         self.cand_owner = candidate_owner(world, remote)
+        self._route_in = None
+
+    @property
+    def route_in(self) -> tuple:
+        """The routing search's inputs (`nearest_unvisited`), made on first use."""
+        if self._route_in is None:
+            self._route_in = self.world.table.route_inputs(self.cand_owner)
+        return self._route_in
 
     def route_rays(self, rays: RayBatch, stats: SplitStats, near: NearestRemote | None = None
                    ) -> tuple[RayBatch, np.ndarray]:
@@ -133,7 +143,8 @@ class ProxyPolicy(ExactPolicy):
         rays = rays.replace(flags=flags)
         exact = ~secondary | ((flags & FLAG_EXACT) != 0)  # primary rays are always exact
         if exact.any():
-            target[exact] = route_exact(self.world, self.shard, self.remote, rays.take(exact))
+            target[exact] = route_exact_rows(self.world, self.shard, self.remote, rays,
+                                             np.flatnonzero(exact), self.route_in)
         return rays, target
 
     def route_shadow(self, shadow, stats):
@@ -157,16 +168,25 @@ class ProxyPolicy(ExactPolicy):
         shadow = shadow.take(~occluded)
         target = np.full(len(shadow), DONE, np.int32)
         unknown = pred.uncertain[~occluded]
-        if unknown.any():
-            target[unknown] = route_shadow_exact(self.world, self.remote, shadow.take(unknown))
+        if unknown.any():  # route_shadow_exact of these rows, without a copy of the batch
+            u = np.flatnonzero(unknown)
+            target[u] = nearest_unvisited(self.world, self.remote, shadow.origin[u],
+                                          shadow.direction[u], shadow.tmax[u],
+                                          shadow.visited[u], self.route_in)
         return shadow, target
 
 
 def _count_asked(stats: SplitStats, kind: str, pred, rows: np.ndarray) -> None:
     """Box queries per mesh (what the accuracy prediction weighs each proxy's error by);
-    rows (n,) maps the prediction's rays to the bound batch."""
-    for m in np.unique(pred.asked_mesh):
-        stats.count(counter_name(kind, m), rows[pred.asked_ray[pred.asked_mesh == m]])
+    rows (n,) maps the prediction's rays to the bound batch. The pairs come grouped by mesh:
+    a slice a mesh, not a mask."""
+    mesh = pred.asked_mesh
+    if not len(mesh):
+        return
+    asked = rows[pred.asked_ray]
+    cut = [0, *(np.flatnonzero(mesh[1:] != mesh[:-1]) + 1).tolist(), len(mesh)]
+    for s, e in zip(cut[:-1], cut[1:], strict=True):
+        stats.count(counter_name(kind, mesh[s]), asked[s:e])
 
 
 class OraclePolicy(ExactPolicy):
@@ -188,7 +208,8 @@ class OraclePolicy(ExactPolicy):
             target[f] = self._owner_of(inst)
             rays = rays.replace(flags=rays.flags | (fresh * FLAG_TARGETED).astype(np.uint8))
         if exact.any():
-            target[exact] = route_exact(self.world, self.shard, self.remote, rays.take(exact))
+            target[exact] = route_exact_rows(self.world, self.shard, self.remote, rays,
+                                             np.flatnonzero(exact), self.route_in)
         done_here = target == DONE
         target[done_here] = self._owner_of(rays.hit_inst[done_here])
         return rays, target

@@ -13,8 +13,106 @@ import numpy as np
 from numba import njit
 
 from nprt.proxies.lineenc import _fmax, _fmin
+from nprt.workers.kernels.bvh import _next_leaf, _slab
+from nprt.workers.kernels.nearest import ray_line
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
+
+
+@njit(**JIT)
+def walk_queries(origin, direction, tmax, world_boxes, bvh, col_of, members, owner, visited,
+                 use_visited, w2l, bounds, mesh_of, has_m):
+    """`InstanceTable.box_entries` of the rays against the boxes `members` (k,) int64 (the
+    same world slab test, crossings ray-major and then in the order of `members`), less
+    the boxes on shards in visited (n,) uint64 (when use_visited; owner (m,) int32), then
+    `box_queries` of each crossing, in one pass: the pairs whose local box the ray crosses
+    (the only ones `decide` and the nets look at), and nothing else.
+
+    origin, direction (n, 3) float64; tmax (n,) float32; world_boxes (m, 2, 3) float64 and
+    bvh (`bvh_build`'s arrays over them), walked when col_of (m,) int32 (each box's position
+    in members, -1: not asked) has any entry >= 0, else a plain loop over members; w2l,
+    bounds as in `box_queries`; mesh_of (m,) int32 base mesh of each instance, has_m
+    (meshes,) bool (a proxy answers for it). Returns, per kept pair: ray (p,) int64, inst
+    (p,) int32, mesh (p,) int64, has (p,) bool, and box_queries' internal, t_box, length,
+    point, qdir; then the pairs with has grouped by mesh, in pair order within a mesh:
+    grouped (a,) int64 pair rows, mesh m's at grouped[start[m]:start[m + 1]], start
+    (meshes + 1,) int64."""
+    n, k = origin.shape[0], members.shape[0]
+    node_box, node_child, node_start, node_count, prim = bvh
+    walk = col_of.shape[0] > 0 and node_child.shape[0] > 0
+    stack = np.empty(node_child.shape[0] + 1, np.int32)
+    hit_col = np.empty(k, np.int64)  # one ray's crossings, by position in members
+    cap = 4 * n + k + 16
+    ray, inst = np.empty(cap, np.int64), np.empty(cap, np.int32)
+    p = 0
+    for r in range(n):
+        if p + k > cap:
+            cap = 2 * cap + k
+            ray, inst = _grow(ray, p, cap), _grow(inst, p, cap)
+        finite, line = ray_line(origin[r, 0], origin[r, 1], origin[r, 2], direction[r, 0],
+                                direction[r, 1], direction[r, 2])
+        o0, o1, o2, i0, i1, i2 = line[:6]
+        tm = np.float64(tmax[r])
+        seen = visited[r] if use_visited else np.uint64(0)
+        h = 0
+        if walk and finite:
+            top, lo, hi = _next_leaf(bvh, stack, -1, line, tm)
+            while lo < hi:
+                for x in range(lo, hi):
+                    b = prim[x]
+                    j = col_of[b]
+                    if j < 0 or (seen >> np.uint64(owner[b])) & np.uint64(1):
+                        continue
+                    if _slab(world_boxes, b, o0, o1, o2, i0, i1, i2, tm)[0]:
+                        y = h  # insert by position: a ray crosses few boxes
+                        while y > 0 and hit_col[y - 1] > j:
+                            hit_col[y] = hit_col[y - 1]
+                            y -= 1
+                        hit_col[y] = j
+                        h += 1
+                top, lo, hi = _next_leaf(bvh, stack, top, line, tm)
+        else:
+            for j in range(k):
+                b = members[j]
+                if (seen >> np.uint64(owner[b])) & np.uint64(1):
+                    continue
+                if _slab(world_boxes, b, o0, o1, o2, i0, i1, i2, tm)[0]:
+                    hit_col[h] = j
+                    h += 1
+        for y in range(h):
+            ray[p], inst[p] = r, members[hit_col[y]]
+            p += 1
+    ray, inst = ray[:p], inst[:p]
+    crosses, internal, t_box, length, point, qdir = box_queries(ray, inst, origin, direction,
+                                                                tmax, w2l, bounds)
+    keep = np.flatnonzero(crosses)
+    inst = inst[keep]
+    mesh = np.empty(len(keep), np.int64)
+    has = np.empty(len(keep), np.bool_)
+    start = np.zeros(has_m.shape[0] + 1, np.int64)  # asked pairs per mesh, then offsets
+    for q in range(len(keep)):
+        mesh[q] = mesh_of[inst[q]]
+        has[q] = has_m[mesh[q]]
+        if has[q]:
+            start[mesh[q] + 1] += 1
+    for m in range(has_m.shape[0]):
+        start[m + 1] += start[m]
+    grouped = np.empty(start[-1], np.int64)
+    fill = start[:-1].copy()
+    for q in range(len(keep)):
+        if has[q]:
+            grouped[fill[mesh[q]]] = q
+            fill[mesh[q]] += 1
+    return (ray[keep], inst, mesh, has, internal[keep], t_box[keep], length[keep],
+            point[keep], qdir[keep], grouped, start)
+
+
+@njit(**JIT)
+def _grow(a, p, cap):
+    """a's first p entries in a new array of cap entries."""
+    b = np.empty(cap, a.dtype)
+    b[:p] = a[:p]
+    return b
 
 
 @njit(**JIT)

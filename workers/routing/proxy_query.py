@@ -24,8 +24,10 @@ class Prediction:
     int32 (of the boxes that make a ray uncertain, the one it enters first; -1: none, or
     uncertain only for ambiguity; visiting its owner settles it exactly). A prediction
     inside the band, or an internal one within the internal margin of the origin, is never
-    a hit. Per (ray, box) pair a proxy was asked about: asked_ray (p,) int64 row,
-    asked_mesh (p,) int64 base mesh (what the accuracy prediction counts)."""
+    a hit. Per (ray, box) pair a proxy was asked about, grouped by base mesh in increasing
+    order (pair order within a mesh: ray-major, then the order of the instances asked
+    about): asked_ray (p,) int64 row, asked_mesh (p,) int64 base mesh (what the accuracy
+    prediction counts)."""
 
     t: np.ndarray
     inst: np.ndarray
@@ -59,97 +61,126 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     remote instances, intersected exactly; visited: (n,) uint64 shard bitmask of each ray,
     whose shards' boxes are not asked about (their geometry was intersected exactly, and the
     ray carries what it found)."""
-    best_t, best_i, ray, inst = asked_pairs(world, remote, origin, direction, tmax, known,
-                                            visited)
+    best_t, best_i = known_hits(known, origin, direction, tmax)
+    n, table = len(origin), world.table
+    tmax = np.ascontiguousarray(tmax, np.float32)
+    bank = _bank(proxies, knobs, table.n_mesh)
+    if n == 0 or len(remote) == 0:
+        return nothing_asked(best_t, best_i)
+    boxes, bvh, col_of, members, w2l, bounds, mesh_of = table.pair_inputs(remote)
+    use_visited = visited is not None
+    # The crossed boxes and their local-space geometry in one walk; only the nets run per
+    # mesh. Pairs whose local box the ray misses are dropped there: no rule looks at them.
+    (ray, inst, mesh, has, internal, t_box, length, point, qdir, grouped,
+     start) = proxy_pairs.walk_queries(
+        np.ascontiguousarray(origin, np.float64), np.ascontiguousarray(direction, np.float64),
+        tmax, boxes, bvh, col_of, members, world.owner,
+        np.ascontiguousarray(visited, np.uint64) if use_visited else np.zeros(0, np.uint64),
+        use_visited, w2l, bounds, mesh_of, bank.has)
     if len(ray) == 0:
         return nothing_asked(best_t, best_i)
-    table = world.table
-    tmax = np.ascontiguousarray(tmax, np.float32)
-    # Box geometry for every (ray, instance) pair at once; only the nets run per mesh.
-    crosses, internal, t_box, length, point, qdir = proxy_pairs.box_queries(
-        ray, inst.astype(np.int32, copy=False), np.ascontiguousarray(origin, np.float64),
-        np.ascontiguousarray(direction, np.float64), tmax, table.kernel_arrays()[2],
-        np.ascontiguousarray(table.local_bounds, np.float64))
-    mesh = table.mesh[inst].astype(np.int64)
-    thr_m, margin_m, has_m = _mesh_constants(proxies, knobs, table.n_mesh)
-    has = crosses & has_m[mesh]  # crossed, and its mesh has a proxy
-    vis, tp = _ask_nets(proxies, mesh, has, point, qdir, thr_m)
+    vis, tp = _ask_nets(bank, len(ray), grouped, start, point, qdir)
     internal_win, uncertain, ambiguous, first_open = proxy_pairs.decide(
-        ray, inst, mesh, crosses, internal, t_box, length, tmax[ray], has, has, vis, tp,
-        thr_m, np.asarray(knobs.band, np.float64), margin_m, best_t, best_i)
+        ray, inst, mesh, np.ones(len(ray), bool), internal, t_box, length, tmax[ray], has, has,
+        vis, tp, bank.thr, bank.band, bank.margin, best_t, best_i)
     # An internal t is the surface nearest the box exit; the ray's first surface in that box
     # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
     if knobs.exact_if_ambiguous:
         uncertain |= ambiguous
     return Prediction(best_t, best_i, uncertain, internal_win, ambiguous, first_open,
-                      ray[has].astype(np.int64), mesh[has])
+                      ray[grouped], mesh[grouped])
 
 
-def _mesh_constants(proxies: dict, knobs: QueryKnobs, n_mesh: int):
-    """Per base mesh: thr (meshes,) float32 visibility threshold, margin (meshes,) float64
-    internal margin in local units before dividing by the pair's length (world to local
-    scale), has (meshes,) bool (a proxy answers for it)."""
+@dataclass(frozen=True)
+class _Bank:
+    """What `predict` reads per base mesh, for one proxies dict and one QueryKnobs (built
+    once: a shard asks with the same two at every step). proxy (meshes,) the Proxy or None;
+    has (meshes,) bool (a proxy answers for it); thr (meshes,) float32 visibility threshold;
+    band (meshes,) float64; margin (meshes,) float64 internal margin in local units before
+    dividing by the pair's length (world to local scale); line: every proxy uses the "line"
+    encoding, whose float32 box constants (`Proxy.line_constants`) are stacked by mesh in
+    consts: lo, hi, centre (meshes, 3), half, scale (meshes,), depth centre (meshes, 3)."""
+
+    proxy: list
+    has: np.ndarray
+    thr: np.ndarray
+    band: np.ndarray
+    margin: np.ndarray
+    line: bool
+    consts: tuple
+
+
+_BANKS: dict = {}  # (knobs id, meshes, proxies' ids) -> (knobs, _Bank); knobs kept alive
+
+
+def _bank(proxies: dict, knobs: QueryKnobs, n_mesh: int) -> _Bank:
+    key = (id(knobs), n_mesh, tuple((m, id(p)) for m, p in proxies.items()))
+    got = _BANKS.get(key)
+    if got is not None and got[0] is knobs:
+        return got[1]
+    proxy = [None] * n_mesh
     thr = np.zeros(n_mesh, np.float32)
     margin = np.zeros(n_mesh)
     has = np.zeros(n_mesh, bool)
-    for m, proxy in proxies.items():
+    consts = [np.zeros((n_mesh, 3), np.float32), np.zeros((n_mesh, 3), np.float32),
+              np.zeros((n_mesh, 3), np.float32), np.zeros(n_mesh, np.float32),
+              np.zeros(n_mesh, np.float32), np.zeros((n_mesh, 3), np.float32)]
+    line = True
+    for m, p in proxies.items():
         if m >= n_mesh:
             continue
-        has[m] = True
-        thr[m] = proxy.meta["threshold"] if knobs.threshold is None else knobs.threshold
-        p90 = proxy.meta.get("report", {}).get("depth_err_rel_p90", 0.0)
-        margin[m] = knobs.internal_margin * p90 * float(proxy.diag)
-    return thr, margin, has
+        proxy[m], has[m] = p, True
+        thr[m] = p.meta["threshold"] if knobs.threshold is None else knobs.threshold
+        p90 = p.meta.get("report", {}).get("depth_err_rel_p90", 0.0)
+        margin[m] = knobs.internal_margin * p90 * float(p.diag)
+        line = line and p.meta["encoding"] == "line"
+        if line:
+            for c, v in zip(consts, p.line_constants(), strict=True):
+                c[m] = v
+    bank = _Bank(proxy, has, thr, np.ascontiguousarray(knobs.band, np.float64), margin, line,
+                 tuple(consts))
+    if len(_BANKS) >= 64:
+        _BANKS.clear()
+    _BANKS[key] = (knobs, bank)
+    return bank
 
 
-def _ask_nets(proxies: dict, mesh: np.ndarray, ask: np.ndarray, point, qdir, thr_m):
-    """Each mesh's nets on its pairs where `ask` (p,) bool, in pair order: vis (p,) float32
-    (0 where not asked) and tp (p,) float32 the proxy's t in local units (inf where not asked
-    or below the threshold). The "line" encoding of every mesh's pairs is one compiled pass
-    before the nets and one after (the bits of Proxy.query, mesh by mesh)."""
-    p = len(mesh)
+def _ask_nets(bank: _Bank, p: int, grouped: np.ndarray, start: np.ndarray, point, qdir):
+    """Each mesh's nets on its pairs, mesh m's pair rows at grouped[start[m]:start[m + 1]]
+    (pair order within a mesh): vis (p,) float32 (0 where not asked) and tp (p,) float32 the
+    proxy's t in local units (inf where not asked or below the threshold). The "line"
+    encoding of every mesh's pairs is one compiled pass before the nets and one after (the
+    bits of Proxy.query, mesh by mesh)."""
     vis = np.zeros(p, np.float32)
     tp = np.full(p, np.inf, np.float32)
-    rows = np.flatnonzero(ask)
+    rows = grouped
     if not len(rows):
         return vis, tp
-    rows = rows[np.argsort(mesh[rows], kind="stable")]  # grouped by mesh, pair order within
-    cut = np.r_[0, np.flatnonzero(np.diff(mesh[rows])) + 1, len(rows)]
-    group = [proxies[int(m)] for m in mesh[rows[cut[:-1]]]]
-    if any(g.meta["encoding"] != "line" for g in group):
-        for proxy, s, e in zip(group, cut[:-1], cut[1:], strict=True):
+    groups = [(m, int(start[m]), int(start[m + 1])) for m in np.flatnonzero(np.diff(start))]
+    if not bank.line:
+        for m, s, e in groups:
             sel = rows[s:e]
-            vis[sel], tp[sel] = proxy.query(point[sel], qdir[sel],
-                                            min_visibility=float(thr_m[mesh[sel[0]]]))
+            vis[sel], tp[sel] = bank.proxy[m].query(point[sel], qdir[sel],
+                                                    min_visibility=float(bank.thr[m]))
         return vis, tp
     from nprt.proxies import lineenc
 
-    consts = [g.line_constants() for g in group]
-    which = np.repeat(np.arange(len(group)), np.diff(cut))
-    x, on_box, shift = lineenc.line_inputs_rows(
-        *(np.array([c[k] for c in consts]) for k in range(4)), which, rows, point, qdir)
+    lo, hi, centre, half, scale, dcentre = bank.consts
+    which = np.repeat(np.arange(len(start) - 1), np.diff(start))  # the mesh of each row
+    x, on_box, shift = lineenc.line_inputs_rows(lo, hi, centre, half, which, rows, point, qdir)
     v = np.empty(len(rows), np.float32)
     y = np.zeros(len(rows), np.float32)
     deep = np.zeros(len(rows), bool)  # the depth net ran
-    for proxy, s, e in zip(group, cut[:-1], cut[1:], strict=True):
+    for m, s, e in groups:
+        proxy = bank.proxy[m]
         v[s:e] = proxy.run("visibility", x[s:e])
-        sel = s + np.flatnonzero(v[s:e] >= thr_m[mesh[rows[s]]])
+        sel = s + np.flatnonzero(v[s:e] >= bank.thr[m])
         y[sel] = proxy.run("depth", x[sel])
         deep[sel] = True
     vis[rows] = v
-    tp[rows] = lineenc.line_depth_rows(np.array([c[4] for c in consts]),
-                                       np.array([c[5] for c in consts]), which, rows, on_box,
-                                       qdir, y, shift, deep)
+    tp[rows] = lineenc.line_depth_rows(scale, dcentre, which, rows, on_box, qdir, y, shift,
+                                       deep)
     return vis, tp
-
-
-def asked_pairs(world, remote, origin, direction, tmax, known, visited):
-    """What `predict` starts from (its arguments): (n,) float32 t and (n,) int32 instance of
-    each ray's closest exact hit among `known`, and the (p,) ray rows and (p,) instances of
-    the (ray, box) pairs the proxies are asked about."""
-    best_t, best_i = _known_hits(known, origin, direction, tmax)
-    ray, inst = _asked_boxes(world, remote, origin, direction, tmax, visited)
-    return best_t, best_i, ray, inst
 
 
 def nothing_asked(best_t: np.ndarray, best_i: np.ndarray) -> Prediction:
@@ -159,7 +190,7 @@ def nothing_asked(best_t: np.ndarray, best_i: np.ndarray) -> Prediction:
                       np.zeros(n, bool), np.full(n, -1, np.int32), none, none)
 
 
-def _known_hits(known, origin, direction, tmax):
+def known_hits(known, origin, direction, tmax):
     """(n,) float32 t and (n,) int32 instance of the closest exact hit among `known`."""
     n = len(origin)
     best_t = np.full(n, np.inf, np.float32)
@@ -169,14 +200,3 @@ def _known_hits(known, origin, direction, tmax):
         hit = inst >= 0
         best_t[hit], best_i[hit] = t[hit], inst[hit]
     return best_t, best_i
-
-
-def _asked_boxes(world, remote, origin, direction, tmax, visited):
-    """(p,) ray rows and (p,) instances: the remote boxes each ray crosses before tmax, less
-    those on shards it visited."""
-    ray, inst, _, _ = world.table.box_entries(origin, direction, tmax, remote)
-    if visited is not None and len(ray):
-        owner = world.owner[inst].astype(np.uint64)  # remote instances have one owner
-        keep = (visited[ray] >> owner) & np.uint64(1) == 0
-        ray, inst = ray[keep], inst[keep]
-    return ray, inst

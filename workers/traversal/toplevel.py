@@ -66,12 +66,15 @@ class InstanceTable:
             self._bvh = (np.array(self.world_bounds, np.float64, order="C"),
                          *(np.array(a, order="C") for a in bvh))
         self._mesh = np.array(self.mesh, np.int32)
+        self._n_mesh = int(self._mesh.max()) + 1 if len(self._mesh) else 0
         self._world_to_local = np.array(self.world_to_local, np.float64, order="C")
+        self._local_bounds = np.array(self.local_bounds, np.float64, order="C")
+        self._member_sets: dict[bytes, tuple] = {}
 
     @property
     def n_mesh(self) -> int:
         """One more than the largest base mesh index of any instance (0 for none)."""
-        return int(self._mesh.max()) + 1 if len(self._mesh) else 0
+        return self._n_mesh
 
     def kernel_arrays(self) -> tuple[np.ndarray, int, np.ndarray]:
         """What the pair kernels (`nprt.workers.kernels.pairs`) read: mesh of each instance
@@ -90,7 +93,8 @@ class InstanceTable:
 
     def __getstate__(self):
         state = self.__dict__.copy()
-        for name in ("_bvh", "_mesh", "_world_to_local", "normal_to_world"):
+        for name in ("_bvh", "_mesh", "_n_mesh", "_world_to_local", "_local_bounds",
+                     "_member_sets", "normal_to_world"):
             state.pop(name, None)  # derived from other fields, restored on unpickling
         state["bvh"] = self.bvh
         return state
@@ -118,6 +122,30 @@ class InstanceTable:
         if np.count_nonzero(col_of >= 0) != k:  # repeated instances: plain loop
             return None
         return col_of
+
+    def pair_inputs(self, instances: np.ndarray) -> tuple:
+        """What `nprt.workers.routing.proxy_pairs.walk_queries` takes for a set of
+        instances (k,): world boxes (m, 2, 3) float64, the BVH's arrays (placeholders
+        without one), col_of (m,) int32 (empty: loop over the members instead of walking),
+        members (k,) int64, world_to_local (m, 3, 4) and local_bounds (m, 2, 3) float64,
+        mesh (m,) int32; owned and writable. Kept per set: a shard asks about the same
+        instances at every step."""
+        instances = np.asarray(instances)
+        key = instances.astype(np.int64).tobytes()
+        got = self._member_sets.get(key)
+        if got is None:
+            members = np.array(instances, np.int64)
+            col_of = self._columns(members) if len(members) else None
+            if col_of is None:
+                boxes, bvh, col_of = self.search_arrays()[0], _no_bvh(), np.zeros(0, np.int32)
+            else:
+                boxes, bvh = self._bvh[0], self._bvh[1:]
+            got = (boxes, bvh, col_of, members, self._world_to_local, self._local_bounds,
+                   self._mesh)
+            if len(self._member_sets) >= 8:  # a shard asks about one or two sets
+                self._member_sets.clear()
+            self._member_sets[key] = got
+        return got
 
     def walk_inputs(self, instances: np.ndarray) -> tuple:
         """What the walking kernels (`nprt.workers.kernels.crossings.closest_walk`) take
