@@ -189,11 +189,14 @@ def cmd_serve(args: argparse.Namespace) -> int:
             grpc = _start_grpc(args, settings, grpc_port)
         workers = args.workers or settings.api_workers or default_api_workers()
         if workers > 1:  # each worker builds its app from NPRT_* (app_from_env)
+            from nprt.service.httpworkers import HttpWorkers
+
             for name, value in settings.model_dump(exclude_none=True).items():
                 os.environ[f"NPRT_{name.upper()}"] = str(value)
             os.environ.pop("NPRT_GRPC_PORT", None)  # gRPC is the child's
-            uvicorn.run("nprt.service.app:app_from_env", factory=True, workers=workers,
-                        **options)
+            http = HttpWorkers(workers, options.pop("host"), options.pop("port"), options)
+            log.info("REST on http://%s:%d (%d HTTP workers)", args.host, http.port, workers)
+            http.run()
         else:
             app = create_app(settings)
             uvicorn.Server(uvicorn.Config(app, **options)).run()
