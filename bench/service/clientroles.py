@@ -15,7 +15,7 @@ from collections import defaultdict
 import grpc
 from grpc_health.v1 import health_pb2_grpc
 
-from bench.service.harness import Latency, Rest, check_health, poll
+from bench.service.harness import Latency, Rest, check_health, poll, run_client
 
 _CTX = mp.get_context("spawn")  # the parent runs grpc: forking it is unsafe
 
@@ -41,7 +41,7 @@ def _readers(host: str, port: int, target: str, ids: list[str], pollers: int,
             await asyncio.gather(*tasks)
         out.put(dict(lat.samples_s))
 
-    asyncio.run(main())
+    run_client(main())
 
 
 class Readers:
@@ -89,7 +89,7 @@ def _watchers(host: str, port: int, target: str, jobs: list[str], sse: int, stre
             every.result()
         out.put((dict(sse_counts), dict(grpc_counts), True))
 
-    asyncio.run(main())
+    run_client(main())
 
 
 class Watchers:

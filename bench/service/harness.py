@@ -241,6 +241,16 @@ class Rest:
         return answer.status, answer.json(), None if after is None else float(after)
 
 
+def run_client(coro):
+    """Run a load generator's coroutine on uvloop (libuv's loop in C, as the service's
+    HTTP workers run): with asyncio's own loop the submitting client spent 0.10 s of CPU on
+    a burst of 500 connections, with uvloop about 0.055 s, CPU the service would otherwise
+    lose on cores it shares with its client. The service's own costs are not touched."""
+    import uvloop
+
+    return uvloop.run(coro)
+
+
 def percentiles(samples_s: list[float]) -> dict:
     ms = np.asarray(samples_s) * 1e3
     return {"n": int(len(ms)), "p50": round(float(np.percentile(ms, 50)), 2),
