@@ -40,15 +40,40 @@ def _slab(boxes, j, o0, o1, o2, i0, i1, i2, tmax):
 @njit(inline="always", **JIT)
 def _slab_planes(lo0, lo1, lo2, hi0, hi1, hi2, o0, o1, o2, i0, i1, i2, tmax):
     """`_slab` of the box lo, hi; branch-free, so a loop over boxes vectorises."""
+    return _slab_by(_fmin, _fmax, lo0, lo1, lo2, hi0, hi1, hi2, o0, o1, o2, i0, i1, i2, tmax)
+
+
+@njit(inline="always", **JIT)
+def _slab_planes_finite(lo0, lo1, lo2, hi0, hi1, hi2, o0, o1, o2, i0, i1, i2, tmax):
+    """`_slab_planes` where no product can be NaN (finite origin and 1 / direction, box
+    planes not NaN): then fmin / fmax are plain min / max and give the same values (only
+    the sign of a zero tie may differ, and every use of t compares it), and the loop over
+    boxes vectorises without the NaN masks."""
+    return _slab_by(_min, _max, lo0, lo1, lo2, hi0, hi1, hi2, o0, o1, o2, i0, i1, i2, tmax)
+
+
+@njit(inline="always", **JIT)
+def _min(a, b):
+    return a if a < b else b
+
+
+@njit(inline="always", **JIT)
+def _max(a, b):
+    return a if a > b else b
+
+
+@njit(inline="always", **JIT)
+def _slab_by(mn, mx, lo0, lo1, lo2, hi0, hi1, hi2, o0, o1, o2, i0, i1, i2, tmax):
+    """The slab arithmetic with mn / mx as the per-axis min and max."""
     t0 = (lo0 - o0) * i0
     t1 = (hi0 - o0) * i0
-    t_enter, t_exit = _fmin(t0, t1), _fmax(t0, t1)
+    t_enter, t_exit = mn(t0, t1), mx(t0, t1)
     t0 = (lo1 - o1) * i1
     t1 = (hi1 - o1) * i1
-    t_enter, t_exit = _fmax(t_enter, _fmin(t0, t1)), _fmin(t_exit, _fmax(t0, t1))
+    t_enter, t_exit = mx(t_enter, mn(t0, t1)), mn(t_exit, mx(t0, t1))
     t0 = (lo2 - o2) * i2
     t1 = (hi2 - o2) * i2
-    t_enter, t_exit = _fmax(t_enter, _fmin(t0, t1)), _fmin(t_exit, _fmax(t0, t1))
+    t_enter, t_exit = mx(t_enter, mn(t0, t1)), mn(t_exit, mx(t0, t1))
     # np.maximum(t_enter, 0) is NaN for a NaN t_enter, and then the ray is rejected.
     ok = (t_enter == t_enter) & (t_exit >= max(t_enter, 0.0)) & (t_enter < tmax)
     return ok, t_enter, t_exit

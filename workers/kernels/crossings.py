@@ -12,7 +12,14 @@ from llvmlite import ir
 from numba import njit, types
 from numba.extending import intrinsic
 
-from nprt.workers.kernels.bvh import _next_leaf, _push_near, _push_pair, _slab, _slab_planes
+from nprt.workers.kernels.bvh import (
+    _next_leaf,
+    _push_near,
+    _push_pair,
+    _slab,
+    _slab_planes,
+    _slab_planes_finite,
+)
 from nprt.workers.kernels.nearest import near_search
 from nprt.workers.kernels.pairs import to_local_ray
 
@@ -115,7 +122,8 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
     _closest_rays(fn, origin, direction, tmax, box_slack, far, boxes, members, col_of, use_bvh,
                   flat, node_box, node_child, node_start, node_count, prim, mesh_of,
                   scene_of_mesh, world_to_local, best_t, best_inst, best_prim, best_u, best_v,
-                  route, near_tmax, rh, ri, ptr, stack, q_t, q_id, f_te, f_ok)
+                  route, near_tmax, rh, ri, ptr, stack, q_t, q_id, f_te, f_ok,
+                  not np.isnan(flat).any())
     if route:
         bvh = (node_box, node_child, node_start, node_count, prim)
         near_search(origin, direction, near_tmax.astype(np.float64) * (1.0 + box_slack),
@@ -127,13 +135,13 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
 def _closest_rays(fn, origin, direction, tmax, box_slack, far, boxes, members, col_of, use_bvh,
                   flat, node_box, node_child, node_start, node_count, prim, mesh_of,
                   scene_of_mesh, world_to_local, best_t, best_inst, best_prim, best_u, best_v,
-                  route, near_tmax, rh, ri, ptr, stack, q_t, q_id, f_te, f_ok):
+                  route, near_tmax, rh, ri, ptr, stack, q_t, q_id, f_te, f_ok, plain):
     """`closest_walk`'s loop over the rays, on scratch the caller made (rh, ri, ptr from
     `_scratch`; stack, q_t, q_id, f_te, f_ok sized as there). Compiled without numba's
     reference counting, which it does not need (it allocates nothing): with it, every
     inlined helper took and dropped a reference to each array it was handed, a locked
     increment and decrement each, at every box (a quarter of the walk's samples under
-    perf, sculpture closest hits)."""
+    perf, sculpture closest hits). plain: flat holds no NaN (`_flat_queue`)."""
     bvh = (node_box, node_child, node_start, node_count, prim)
     for r in range(origin.shape[0]):
         o0, o1, o2 = origin[r, 0], origin[r, 1], origin[r, 2]
@@ -154,7 +162,7 @@ def _closest_rays(fn, origin, direction, tmax, box_slack, far, boxes, members, c
                             h = _enqueue(q_t, q_id, h, te, b)
                 top, lo, hi = _next_leaf(bvh, stack, top, line, box_tmax)
         else:  # few boxes, or a ray the node test does not cover: every member's slab
-            h = _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, box_tmax, f_te, f_ok, q_t,
+            h = _flat_queue(flat, plain, members, o0, o1, o2, i0, i1, i2, box_tmax, f_te, f_ok, q_t,
                             q_id)
         cut = np.float64(tmax[r])
         while h > 0:
@@ -181,13 +189,23 @@ def _enqueue(q_t, q_id, h, t, x):
 
 
 @njit(inline="always", **JIT)
-def _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, tmax, te, ok, q_t, q_id):
+def _flat_queue(flat, plain, members, o0, o1, o2, i0, i1, i2, tmax, te, ok, q_t, q_id):
     """Queue (`_enqueue`) every member box the ray crosses before tmax: the slabs of all
     of them in one branch-free loop (it vectorises), into the scratch te, ok (k,).
-    Returns the queue's length."""
-    for j in range(flat.shape[1]):
-        ok[j], te[j], _ = _slab_planes(flat[0, j], flat[1, j], flat[2, j], flat[3, j],
-                                       flat[4, j], flat[5, j], o0, o1, o2, i0, i1, i2, tmax)
+    Returns the queue's length. With no NaN plane in flat (plain, a bool) and a ray of
+    finite origin and finite, nonzero 1 / direction, no product of the slab can be NaN,
+    so it runs without NaN handling (`_slab_planes_finite`: the same values, and a
+    cheaper loop: the NaN-aware one's masks were most of the walk's own time)."""
+    if plain and _finite(o0, o1, o2, i0, i1, i2) and i0 != 0.0 and i1 != 0.0 and i2 != 0.0:
+        for j in range(flat.shape[1]):
+            ok[j], te[j], _ = _slab_planes_finite(flat[0, j], flat[1, j], flat[2, j],
+                                                  flat[3, j], flat[4, j], flat[5, j], o0, o1,
+                                                  o2, i0, i1, i2, tmax)
+    else:
+        for j in range(flat.shape[1]):
+            ok[j], te[j], _ = _slab_planes(flat[0, j], flat[1, j], flat[2, j], flat[3, j],
+                                           flat[4, j], flat[5, j], o0, o1, o2, i0, i1, i2,
+                                           tmax)
     h = 0
     for j in range(flat.shape[1]):
         if ok[j]:
@@ -240,7 +258,8 @@ def occluded_walk(fn, origin, direction, tmax, box_slack, boxes, members, col_of
     f_te, f_ok = np.empty(flat.shape[1]), np.empty(flat.shape[1], np.bool_)
     _occluded_rays(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, flat, node_box,
                    node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
-                   world_to_local, occluded, rh, ri, ptr, stack, stack_t, q_t, q_id, f_te, f_ok)
+                   world_to_local, occluded, rh, ri, ptr, stack, stack_t, q_t, q_id, f_te, f_ok,
+                   not np.isnan(flat).any())
     if route:
         bvh = (node_box, node_child, node_start, node_count, prim)
         near_search(origin, direction, tmax.astype(np.float64) * (1.0 + box_slack), ~occluded,
@@ -251,7 +270,8 @@ def occluded_walk(fn, origin, direction, tmax, box_slack, boxes, members, col_of
 @njit(**JIT_RAW)
 def _occluded_rays(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, flat, node_box,
                    node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
-                   world_to_local, occluded, rh, ri, ptr, stack, stack_t, q_t, q_id, f_te, f_ok):
+                   world_to_local, occluded, rh, ri, ptr, stack, stack_t, q_t, q_id, f_te, f_ok,
+                   plain):
     """`occluded_walk`'s loop over the rays, on the caller's scratch, without reference
     counting (as `_closest_rays`)."""
     for r in range(origin.shape[0]):
@@ -280,7 +300,7 @@ def _occluded_rays(fn, origin, direction, tmax, boxes, members, col_of, use_bvh,
                         occluded[r] = True
                         break
         else:
-            h = _flat_queue(flat, members, o0, o1, o2, i0, i1, i2, tm, f_te, f_ok, q_t, q_id)
+            h = _flat_queue(flat, plain, members, o0, o1, o2, i0, i1, i2, tm, f_te, f_ok, q_t, q_id)
             while h > 0:
                 h -= 1
                 if _occluded_in(fn, q_id[h], r, tmax, mesh_of, scene_of_mesh, world_to_local,
