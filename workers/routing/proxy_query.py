@@ -169,14 +169,19 @@ def _ask_nets(bank: _Bank, p: int, grouped: np.ndarray, start: np.ndarray, point
     which = np.repeat(np.arange(len(start) - 1), np.diff(start))  # the mesh of each row
     x, on_box, shift = lineenc.line_inputs_rows(lo, hi, centre, half, which, rows, point, qdir)
     v = np.empty(len(rows), np.float32)
-    y = np.zeros(len(rows), np.float32)
-    deep = np.zeros(len(rows), bool)  # the depth net ran
     for m, s, e in groups:
-        proxy = bank.proxy[m]
-        v[s:e] = proxy.run("visibility", x[s:e])
-        sel = s + np.flatnonzero(v[s:e] >= bank.thr[m])
-        y[sel] = proxy.run("depth", x[sel])
-        deep[sel] = True
+        v[s:e] = bank.proxy[m].run("visibility", x[s:e])
+    # The depth net runs where visibility reaches the threshold: those rows gathered once,
+    # each mesh's still contiguous (the same rows, in the same order, as mesh by mesh).
+    deep = v >= bank.thr[which]
+    at = np.r_[0, np.cumsum(deep)][start]  # each mesh's first row among the deep ones
+    x_deep = x[deep]
+    y_deep = np.empty(len(x_deep), np.float32)
+    for m, _, _ in groups:
+        if at[m + 1] > at[m]:
+            y_deep[at[m]:at[m + 1]] = bank.proxy[m].run("depth", x_deep[at[m]:at[m + 1]])
+    y = np.zeros(len(rows), np.float32)
+    y[deep] = y_deep
     vis[rows] = v
     tp[rows] = lineenc.line_depth_rows(scale, dcentre, which, rows, on_box, qdir, y, shift,
                                        deep)
