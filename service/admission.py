@@ -8,33 +8,25 @@ from __future__ import annotations
 
 from pydantic import ValidationError
 from starlette.responses import Response
-from starlette.types import ASGIApp, Scope
+from starlette.types import Scope
 
 from nprt.service.bodyguard import BodyMiddleware
 from nprt.service.errors import ServiceError
-from nprt.service.pacing import LoopPacer
 from nprt.service.schemas import JobCreate, JobPublic
 
 MAX_KEY_CHARS = 200  # the route's Idempotency-Key limit
 
 
 class FastAdmission(BodyMiddleware):
-    def __init__(self, app: ASGIApp):
-        super().__init__(app)
-        # A worker's loop; its steps share turns with the reads and health checks.
-        self.pacer = LoopPacer()
-
     async def answer(self, scope: Scope, body: bytes) -> Response | None:
         headers = dict(scope["headers"])
         if not headers.get(b"content-type", b"").startswith(b"application/json"):
             return None
-        return await _admit(scope["app"].state.api, headers, body, self.pacer)
+        return await _admit(scope["app"].state.api, headers, body)
 
 
-async def _admit(api, headers: dict, body: bytes, pacer: LoopPacer) -> Response | None:
-    """The 202 answer of a clean admission, else None. Its two steps of CPU (checking and
-    answering) each wait for a turn of the event loop with room (nprt.service.pacing)."""
-    await pacer.turn()
+async def _admit(api, headers: dict, body: bytes) -> Response | None:
+    """The 202 answer of a clean admission, else None."""
     key = headers.get(b"idempotency-key")
     if key is not None:
         key = key.decode("latin-1")
@@ -50,7 +42,6 @@ async def _admit(api, headers: dict, body: bytes, pacer: LoopPacer) -> Response 
         rec, created = await api.submit_async(job.scene, settings, key, frames)
     except ServiceError:
         return None
-    await pacer.turn()
     out = {"location": f"/v1/jobs/{rec.id}"}
     if not created:
         out["idempotent-replayed"] = "true"
