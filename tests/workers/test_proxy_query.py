@@ -118,3 +118,21 @@ def test_bands_are_per_mesh_and_every_asked_box_is_counted(world):
     wide = _ask(world, proxies, band=(0.4, 0.1))
     assert wide.uncertain[0] and wide.first_open[0] == 0 and wide.inst[0] == 1
     assert sorted(narrow.asked_mesh.tolist()) == [0, 1] and set(narrow.asked_ray) == {0}
+
+
+def test_a_policys_proxy_constants_go_with_its_knobs(world):
+    """predict keeps each knobs' per-mesh constants (and so its proxies) only while the
+    knobs live, and a changed proxies dict is not answered from the old one's constants."""
+    import gc
+
+    from nprt.workers.routing import proxy_query
+
+    knobs = QueryKnobs(None, np.zeros(2))
+    first = proxy_query._bank({0: _proxy(0.7)}, knobs, 2)
+    assert proxy_query._bank({0: first.proxy[0]}, knobs, 2) is first
+    other = proxy_query._bank({0: first.proxy[0], 1: _proxy(0.2)}, knobs, 2)
+    assert other is not first and other.has.tolist() == [True, True]
+    held = id(knobs)
+    del knobs
+    gc.collect()
+    assert held not in proxy_query._BANKS

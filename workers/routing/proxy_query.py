@@ -4,6 +4,7 @@ the external / internal cases of section 5.2."""
 
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -110,14 +111,16 @@ class _Bank:
     consts: tuple
 
 
-_BANKS: dict = {}  # (knobs id, meshes, proxies' ids) -> (knobs, _Bank); knobs kept alive
+# knobs id -> (weak reference to the knobs, (meshes, proxies' ids), _Bank). An entry goes
+# with its knobs (a policy's), so a pool that outlives jobs does not keep their proxies.
+_BANKS: dict = {}
 
 
 def _bank(proxies: dict, knobs: QueryKnobs, n_mesh: int) -> _Bank:
-    key = (id(knobs), n_mesh, tuple((m, id(p)) for m, p in proxies.items()))
-    got = _BANKS.get(key)
-    if got is not None and got[0] is knobs:
-        return got[1]
+    which = (n_mesh, tuple((m, id(p)) for m, p in proxies.items()))
+    got = _BANKS.get(id(knobs))
+    if got is not None and got[0]() is knobs and got[1] == which:
+        return got[2]
     proxy = [None] * n_mesh
     thr = np.zeros(n_mesh, np.float32)
     margin = np.zeros(n_mesh)
@@ -139,9 +142,8 @@ def _bank(proxies: dict, knobs: QueryKnobs, n_mesh: int) -> _Bank:
                 c[m] = v
     bank = _Bank(proxy, has, thr, np.ascontiguousarray(knobs.band, np.float64), margin, line,
                  tuple(consts))
-    if len(_BANKS) >= 64:
-        _BANKS.clear()
-    _BANKS[key] = (knobs, bank)
+    key = id(knobs)
+    _BANKS[key] = (weakref.ref(knobs, lambda _, key=key: _BANKS.pop(key, None)), which, bank)
     return bank
 
 
