@@ -1,6 +1,7 @@
-"""Whether numba's on-disk cache holds the compiled kernels of `nprt.workers.kernels`, read
-from the file system without importing numba (the driver never does), so that a render can
-say before it starts that it will first compile them."""
+"""Whether numba's on-disk cache holds the compiled kernels of `nprt.workers` (the modules
+of `kernels/`, and any other module with a kernel of its own, such as
+`routing/proxy_pairs.py`), read from the file system without importing numba (the driver
+never does), so that a render can say before it starts that it will first compile them."""
 
 from __future__ import annotations
 
@@ -11,32 +12,37 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-KERNELS = Path(__file__).resolve().parent / "kernels"
+WORKERS = Path(__file__).resolve().parent
+KERNELS = WORKERS / "kernels"
 # CPU seconds to compile every kernel with an empty cache: 15.0 s for a 16x12 reference
 # render of forest:tiny with NUMBA_CACHE_DIR empty, against 0.9 s warm (2 cores, 2026-11-26).
 COLD_COMPILE_CPU_S = 15
 SHARD_ONLY = ("nearest",)  # the Wald step routes between shards: the reference never runs it
+PROXY_ONLY = ("proxy_pairs",)  # only proxy mode asks the proxies
 
 
-def _cache_dirs() -> list[Path]:
-    """Where numba looks for the kernels' index files: NUMBA_CACHE_DIR (one folder per
-    source folder, named after it) or the package's own __pycache__."""
+def _sources() -> list[Path]:
+    """Every module of nprt.workers with a function numba compiles on its own."""
+    return [src for src in sorted(WORKERS.rglob("*.py"))
+            if "__pycache__" not in src.parts and _compiles_alone(src.read_text())]
+
+
+def _cache_dirs(src: Path) -> list[Path]:
+    """Where numba looks for src's index files: under NUMBA_CACHE_DIR, one folder per
+    source folder, named after it and a hash of its path; else the folder's __pycache__."""
     root = os.environ.get("NUMBA_CACHE_DIR")
     if root:
-        return sorted(Path(root).glob(f"{KERNELS.name}_*"))
-    return [KERNELS / "__pycache__"]
+        return sorted(Path(root).glob(f"{src.parent.name}_*"))
+    return [src.parent / "__pycache__"]
 
 
 def cold_kernel_modules() -> list[str]:
-    """Kernel modules (file stems) with no cache index as new as their source: their
+    """Compiled modules (file stems) with no cache index as new as their source: their
     functions compile on first use."""
-    indexes = [f for d in _cache_dirs() if d.is_dir() for f in d.glob("*.nbi")]
     cold = []
-    for src in sorted(KERNELS.glob("*.py")):
-        if not _compiles_alone(src.read_text()):
-            continue
-        newest = max((f.stat().st_mtime for f in indexes if f.name.startswith(src.stem + ".")),
-                     default=None)
+    for src in _sources():
+        newest = max((f.stat().st_mtime for d in _cache_dirs(src) if d.is_dir()
+                      for f in d.glob(src.stem + ".*.nbi")), default=None)
         if newest is None or newest < src.stat().st_mtime:
             cold.append(src.stem)
     return cold
@@ -46,14 +52,16 @@ def _compiles_alone(source: str) -> bool:
     """Whether a kernel module has a function numba compiles (and caches) on its own: one
     whose every @njit is inline="always" is compiled inside its callers and never writes a
     cache index, so it would look cold forever."""
-    decorators = re.findall(r"@njit\(([^)]*)\)|@njit\b", source)
+    decorators = re.findall(r"^[ \t]*@njit(?:\(([^)]*)\))?[ \t]*$", source, re.M)
     return any('inline="always"' not in args for args in decorators)
 
 
-def note_cold_compile(where: str, distributed: bool) -> bool:
+def note_cold_compile(where: str, distributed: bool, proxies: bool = False) -> bool:
     """Log, before a render whose kernels are not cached yet, that it compiles them first
-    and about how long that takes. Returns whether it did."""
-    cold = [m for m in cold_kernel_modules() if distributed or m not in SHARD_ONLY]
+    and about how long that takes (only the kernels this render runs: a module it never
+    compiles would be announced before every render). Returns whether it did."""
+    cold = [m for m in cold_kernel_modules() if (distributed or m not in SHARD_ONLY)
+            and (proxies or m not in PROXY_ONLY)]
     if cold:
         log.warning("compiling the numba kernels before the first %s (%s): about %d s of CPU, "
                     "once; later runs load them from the cache", where, ", ".join(cold),

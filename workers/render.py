@@ -87,7 +87,7 @@ def make_renderer(scene, settings: RenderSettings, ray_address: str | None = Non
     scene: a Scene, or a SceneMeta from nprt.scene.store.open_scene (the driver then holds no
     geometry); on_progress: per-mesh proxy training progress (Coordinator)."""
     note_cold_compile("reference render" if settings.shards == 0 else "shard warm-up",
-                      distributed=settings.shards > 0)
+                      distributed=settings.shards > 0, proxies=settings.mode == "proxy")
     if settings.shards == 0:
         from nprt.workers.wavefront.reference import ReferenceRenderer
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from nprt.workers.kernels.rng import uniform
 from tests.workers import oracles
 from tests.workers.oracles import cosine_hemisphere, frame
+from tests.workers.rng_rows import uniform
 
 N = 200_000
 THETA_BINS, PHI_BINS = 10, 16

@@ -14,7 +14,7 @@ import pytest
 from nprt.scene.demos import make_demo
 from nprt.scene.model import DirectionalLight, Environment, PointLight
 from nprt.workers.kernels import shade as shade_kernels
-from nprt.workers.kernels.rng import DIM_BSDF_V, uniform_rows
+from nprt.workers.kernels.rng import DIM_BSDF_V
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.batch import LIGHT_BASE, NO_HIT, SECONDARY, RayBatch, ShadowRayBatch
 from nprt.workers.wavefront.integrator import (
@@ -26,6 +26,7 @@ from nprt.workers.wavefront.integrator import (
 from nprt.workers.wavefront.lights import FAR_T
 from nprt.workers.wavefront.reference import ReferenceRenderer
 from tests.workers.oracles import environment_radiance, pdf_quad_hit
+from tests.workers.rng_rows import uniform_rows
 
 
 def staged_shade(integ: PathIntegrator, rays: RayBatch):

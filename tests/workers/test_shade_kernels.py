@@ -11,13 +11,7 @@ import pytest
 
 from nprt.scene.demos import make_demo
 from nprt.workers.kernels import shade as shade_kernels
-from nprt.workers.kernels.rng import (
-    DIM_BSDF_U,
-    DIM_BSDF_V,
-    DIM_LIGHT_BASE,
-    DIM_RR,
-    uniform_rows,
-)
+from nprt.workers.kernels.rng import DIM_BSDF_U, DIM_BSDF_V, DIM_LIGHT_BASE, DIM_RR
 from nprt.workers.kernels.sampling import normalize
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.integrator import RR_START_DEPTH, SHADOW_TMAX_SCALE, PathIntegrator
@@ -31,6 +25,7 @@ from tests.workers.oracles import (
     surface_at,
     uniform,
 )
+from tests.workers.rng_rows import uniform_rows
 
 
 def _lights(rng, quads=2, points=2, dirs=1) -> LightSet:

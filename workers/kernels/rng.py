@@ -2,7 +2,10 @@
 (seed, pixel, sample, bounce, dimension), so images depend on neither batch
 size, batch order, nor which shard evaluates a ray. The hash (splitmix64's finaliser) is
 defined once, here, in compiled code; the shading kernels inline `uniform_keyed`, and
-tests/workers/oracles.py keeps a numpy copy to check it against."""
+tests/workers/oracles.py keeps a numpy copy to check it against (through the compiled
+row loops of tests/workers/rng_rows.py: no render calls a loop of its own here, so a kernel
+here would never be compiled by a render and would look uncached to nprt.workers.jitcache
+forever)."""
 
 from __future__ import annotations
 
@@ -44,39 +47,3 @@ def uniform_keyed(key, pixel, sample, bounce):
     x = _mix(x)
     x = _mix(x ^ (np.uint64(bounce) * _GOLDEN))
     return np.float64(x >> np.uint64(11)) * _TO_UNIT
-
-
-@njit(**JIT)
-def uniform_rows(seed, rows, pixel, sample, bounce, dim):
-    """(k,) float64 uniforms of one dimension for `rows` (k,) int64 of pixel, sample (n,)
-    u32 and bounce (n,) u8."""
-    key = dim_key(np.uint64(seed), np.uint64(dim))
-    out = np.empty(len(rows))
-    for j in range(len(rows)):
-        i = rows[j]
-        out[j] = uniform_keyed(key, pixel[i], sample[i], bounce[i])
-    return out
-
-
-@njit(**JIT)
-def _uniform(seed, pixel, sample, bounce, dim):
-    out = np.empty(len(pixel))
-    for i in range(len(pixel)):
-        out[i] = uniform_keyed(dim_key(seed, dim[i]), pixel[i], sample[i], bounce[i])
-    return out
-
-
-def uniform(seed: int, pixel: np.ndarray, sample: np.ndarray, bounce, dim) -> np.ndarray:
-    """Uniform numbers in [0, 1).
-
-    pixel  : (n,) uint32
-    sample : (n,) uint32
-    bounce : int or (n,) uint8
-    dim    : int or (n,) int
-    returns (n,) float64
-    """
-    n = len(pixel)
-    return _uniform(np.uint64(seed & 0xFFFFFFFFFFFFFFFF),
-                    np.ascontiguousarray(pixel, np.uint32), np.ascontiguousarray(sample, np.uint32),
-                    np.ascontiguousarray(np.broadcast_to(bounce, (n,)), np.uint64),
-                    np.ascontiguousarray(np.broadcast_to(dim, (n,)), np.uint64))
