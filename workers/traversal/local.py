@@ -20,6 +20,14 @@ from nprt.workers.wavefront.lights import FAR_T
 BOX_TMAX_SLACK_REL = 2.0**-16
 
 
+def _walk_direction(direction) -> np.ndarray:
+    """direction (n, 3) as the walks take it: float32 (a RayBatch's) as it is, anything
+    else as float64. The kernels widen each component to float64 before any arithmetic,
+    so both give the same bits; the float32 path saves a converted copy a batch."""
+    d = np.asarray(direction)
+    return np.ascontiguousarray(d, np.float32 if d.dtype == np.float32 else np.float64)
+
+
 @dataclass(frozen=True, eq=False)
 class NearestRemote:
     """What a routing walk (`LocalGeometry.closest_routed`, `occluded_routed`) found for
@@ -130,7 +138,7 @@ class LocalGeometry:
         run_prim = np.full(n, -1, np.int32)
         run_u, run_v = np.zeros(n, np.float32), np.zeros(n, np.float32)
         o = np.ascontiguousarray(origin, np.float64)
-        d = np.ascontiguousarray(direction, np.float64)
+        d = _walk_direction(direction)
         mesh_of, _, w2l = self.table.kernel_arrays()
         route = self._route_args(n, cand_owner, visited)
         # Each ray walks the top level nearest box first and traces each box it reaches
@@ -169,7 +177,7 @@ class LocalGeometry:
         tmax = np.ascontiguousarray(tmax, np.float32)
         occluded = np.zeros(n, bool)
         o = np.ascontiguousarray(origin, np.float64)
-        d = np.ascontiguousarray(direction, np.float64)
+        d = _walk_direction(direction)
         mesh_of, _, w2l = self.table.kernel_arrays()
         route = self._route_args(n, cand_owner, visited)
         crossings.occluded_walk(np.uint64(rtc.OCCLUDED1), o, d, tmax, BOX_TMAX_SLACK_REL,
