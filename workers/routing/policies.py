@@ -62,6 +62,10 @@ class ExactPolicy:
         """Returns (shadow rays still live, their targets)."""
         return shadow, route_shadow_exact(self.world, self.remote, shadow, near)
 
+    def warm(self) -> None:
+        """Compile (or load from numba's cache) what routing runs, before a timed pass:
+        the routing walks are warmed by the shard's warm-up pass itself."""
+
     def _owner_of(self, inst: np.ndarray) -> np.ndarray:
         """Shard owning each hit instance, DONE when it is here (or none)."""
         owner = hit_owner(self.world, inst)
@@ -99,6 +103,23 @@ class ProxyPolicy(ExactPolicy):
                                     k.internal_ambiguous == "exact")
         # Shadow rays keep the paper's internal rule (margin 0).
         self.shadow = QueryKnobs(k.threshold, band[1], 0.0, k.internal_ambiguous == "exact")
+
+    def warm(self) -> None:
+        """The proxy query kernels too, which the shard's warm-up pass (a 4x4 corner tile)
+        may never reach: one ray through the centre of each of a few modeled boxes, from
+        outside it, with both knobs (else a job's first proxy query compiles them, 20 s of
+        CPU inside its render on a fresh cache)."""
+        some = self.modeled[:4]
+        if not len(some):
+            return
+        box = self.world.table.world_bounds[some]  # (n, 2, 3): lower, upper corner
+        size = float(np.max(box[:, 1] - box[:, 0]))
+        origin = (box[:, 0] + box[:, 1]) / 2 - [2.0 * size, 0.0, 0.0]
+        direction = np.tile(np.float32([1, 0, 0]), (len(some), 1))
+        tmax = np.full(len(some), 4.0 * size, np.float32)
+        for knobs in (self.secondary, self.shadow):
+            predict(self.world, self.proxies, self.modeled, origin, direction, tmax, knobs,
+                    self.known, np.zeros(len(some), np.uint64))
 
     def route_rays(self, rays, stats):
         target = np.full(len(rays), DONE, np.int32)

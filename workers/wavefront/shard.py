@@ -239,6 +239,7 @@ class Shard:
         p = Pass(0, 0, 0, min(4, s.width), min(4, s.height), 0, 1)
         self.step([p], [], {0: Fraction(1)})
         self.reset()
+        self.policy.warm()
         return time.perf_counter() - t0
 
     # -- a job ----------------------------------------------------------------------
