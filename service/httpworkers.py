@@ -1,8 +1,9 @@
 """`nprt serve`'s HTTP API worker processes, each with a listening socket of its own on the
 one port (SO_REUSEPORT), so the kernel spreads new connections over them evenly. With one
 socket shared by every worker (uvicorn --workers), the worker whose loop looked first
-accepted what had arrived: in a burst of 500 submissions one of two workers took 80-90 % of
-them while the other idled (bench/README.md, "Service under load")."""
+accepted what had arrived: in bursts of 500 submissions one of two workers spent 58-69 % of
+the API's CPU, 80-90 % when its loop came back to its socket sooner (bench/README.md,
+"Service under load")."""
 
 from __future__ import annotations
 

@@ -372,6 +372,28 @@ WORKERS = (
     "`nprt serve` runs two HTTP workers by default on 2 or more cores.")
 
 
+SESSION7 = (
+    "Issue 24, seventh session (commands and logs in the session's notes, every run under "
+    "the bench lock). With every client process on uvloop the previous service (a7cf400) "
+    "met all three latency targets in a run at load 4-13 (18:32-18:36, rounds alternating "
+    "with a service that paced its admissions): POST / worst GET / worst health p99 178 / "
+    "27 / 38 ms, POST rounds 178, 115 and 112 ms: the submitting client's own CPU had been "
+    "part of the latency measured before. The service changed in three ways: each HTTP "
+    "worker listens on a socket of its own (SO_REUSEPORT, `service/httpworkers.py`; with "
+    "uvicorn's one shared socket one worker of two spent 58-69 % of the API's CPU in a "
+    "burst), job ids come from a batch of random bytes (os.urandom let the GIL go on every "
+    "id), and a job body's settings are not validated twice. Pacing the admissions over the "
+    "event loop's turns, so that /healthz would not wait behind a burst's 15-30 ms turn, was "
+    "measured and reverted: POST p99 346 ms against 178 for a7cf400 in that run, API CPU over "
+    "the burst 0.27 s against 0.14 (paced admissions reached the store writer a few at a "
+    "time: smaller commits). On a quiet machine (load 1.3-2.6, one round each, twice; no "
+    "saved JSON) POST p99 was 137 and 122 ms for a7cf400 and 147 and 110 ms for the service "
+    "without pacing, health p99 6-34 ms for both. The run in the tables above (load 3.4 to "
+    "30) shows what other work on the 2 cores does to either: rounds during which the load "
+    "reached 16-30 took "
+    "195-467 ms; the changes' effect on POST latency is smaller than that spread.")
+
+
 def write_readme() -> None:
     """The README section from the saved results of every label."""
     from bench.common import BENCH_README, replace_section
@@ -417,7 +439,8 @@ def write_readme() -> None:
                     "that the service, on the same 2 cores, lost to its client; the "
                     "service's costs are the same either way, and `before` and `after` "
                     "are measured with the same client.\n\n"
-                    + summary_table(runs) + "\n\n" + findings(runs) + "\n\n" + WORKERS
+                    + summary_table(runs) + "\n\n" + findings(runs) + "\n\n" + SESSION7
+                    + "\n\n" + WORKERS
                     + "\n\n"
                     + "\n\n".join(parts))
 
