@@ -35,7 +35,14 @@ from nprt.workers.stats.counters import RenderStats, SplitStats
 from nprt.workers.traversal.closest import resolve_closest, resolve_closest_routed
 from nprt.workers.traversal.geometry import MeshGeometry
 from nprt.workers.traversal.local import LocalGeometry
-from nprt.workers.wavefront.batch import FLAG_SHADE, PRIMARY, SHADOW, RayBatch, ShadowRayBatch
+from nprt.workers.wavefront.batch import (
+    FLAG_SHADE,
+    ORIGIN_DTYPE,
+    PRIMARY,
+    SHADOW,
+    RayBatch,
+    ShadowRayBatch,
+)
 from nprt.workers.wavefront.filmpool import FilmPool
 from nprt.workers.wavefront.integrator import PathIntegrator
 from nprt.workers.wavefront.world import ShardWorld
@@ -239,8 +246,22 @@ class Shard:
         p = Pass(0, 0, 0, min(4, s.width), min(4, s.height), 0, 1)
         self.step([p], [], {0: Fraction(1)})
         self.reset()
+        self._warm_occlusion()
         self.policy.warm()
         return time.perf_counter() - t0
+
+    def _warm_occlusion(self) -> None:
+        """One shadow query through the walk this shard's steps use: the warm-up tile may
+        hit nothing and cast no shadow ray, and the occlusion walk was then compiled (or
+        loaded from the cache) inside the first timed pass."""
+        origin = np.zeros((1, 3), ORIGIN_DTYPE)
+        direction = np.float32([[0.0, 0.0, 1.0]])
+        tmax = np.full(1, np.inf, np.float32)
+        if not len(self.remote) or type(self.policy) is not ExactPolicy:
+            self.local.intersect_occluded(origin, direction, tmax)
+        else:
+            self.local.occluded_routed(origin, direction, tmax, self.policy.cand_owner,
+                                       np.zeros(1, np.uint64))
 
     # -- a job ----------------------------------------------------------------------
 
