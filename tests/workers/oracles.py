@@ -2,9 +2,9 @@
 plain formula a kernel must match bit for bit (`surface_at` for
 `nprt.workers.kernels.shade.surface`, `hit_point_error` and `offset_ray_origin` for its
 `point_error` and `offset_origin`, `sample_lights` for `next_event`'s light sampling,
-`cosine_hemisphere` for `bsdf_continue`, `uniform` for `nprt.workers.kernels.rng.uniform`,
-`intersect_quads` and `generate_primary` for `nprt.workers.kernels.quads`,
-`environment_radiance` and `pdf_quad_hit` for `shade_hits`).
+`cosine_hemisphere` for `bsdf_continue`, `uniform` for rng's compiled hash (through
+`tests.workers.rng_rows.uniform`), `intersect_quads` and `generate_primary` for
+`nprt.workers.kernels.quads`, `environment_radiance` and `pdf_quad_hit` for `shade_hits`).
 No product code imports this module."""
 
 from __future__ import annotations
@@ -298,9 +298,9 @@ def generate_primary(cam: Camera, width: int, height: int, seed: int, pixel: np.
     """`nprt.workers.wavefront.camera.generate_primary` in numpy: origin (n, 3) float64,
     direction (n, 3) float32 of (pixel, sample) (n,) uint32 pairs."""
     from nprt.workers.kernels.rng import CAMERA_BOUNCE
-    from nprt.workers.kernels.rng import uniform as rng_uniform
     from nprt.workers.kernels.sampling import normalize
     from nprt.workers.wavefront.camera import camera_frame
+    from tests.workers.rng_rows import uniform as rng_uniform
 
     eye, fwd, right, up, half_w, half_h = camera_frame(cam, width, height)
     jx = rng_uniform(seed, pixel, sample, CAMERA_BOUNCE, 0)
