@@ -5,6 +5,7 @@ never does), so that a render can say before it starts that it will first compil
 
 from __future__ import annotations
 
+import functools
 import logging
 import os
 import re
@@ -21,10 +22,12 @@ SHARD_ONLY = ("nearest",)  # the Wald step routes between shards: the reference 
 PROXY_ONLY = ("proxy_pairs",)  # only proxy mode asks the proxies
 
 
-def _sources() -> list[Path]:
-    """Every module of nprt.workers with a function numba compiles on its own."""
-    return [src for src in sorted(WORKERS.rglob("*.py"))
-            if "__pycache__" not in src.parts and _compiles_alone(src.read_text())]
+@functools.cache
+def _sources() -> tuple[Path, ...]:
+    """Every module of nprt.workers with a function numba compiles on its own (read once a
+    process: the sources do not change under a running renderer)."""
+    return tuple(src for src in sorted(WORKERS.rglob("*.py"))
+                 if "__pycache__" not in src.parts and _compiles_alone(src.read_text()))
 
 
 def _cache_dirs(src: Path) -> list[Path]:

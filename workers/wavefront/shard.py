@@ -257,11 +257,20 @@ class Shard:
         origin = np.zeros((1, 3), ORIGIN_DTYPE)
         direction = np.float32([[0.0, 0.0, 1.0]])
         tmax = np.full(1, np.inf, np.float32)
-        if not len(self.remote) or type(self.policy) is not ExactPolicy:
+        fused = self._fused_routing()
+        if fused is None:
             self.local.intersect_occluded(origin, direction, tmax)
         else:
-            self.local.occluded_routed(origin, direction, tmax, self.policy.cand_owner,
-                                       np.zeros(1, np.uint64))
+            self.local.occluded_routed(origin, direction, tmax, fused, np.zeros(1, np.uint64))
+
+    def _fused_routing(self) -> np.ndarray | None:
+        """What the local walks route among (the exact policy's `cand_owner`) when they also
+        find each ray's next stop (one walk of the top level a ray;
+        nprt.workers.routing.exact.next_stop); None when they do not: alone, or another
+        policy."""
+        if not len(self.remote) or type(self.policy) is not ExactPolicy:
+            return None
+        return self.policy.cand_owner
 
     # -- a job ----------------------------------------------------------------------
 
@@ -384,9 +393,7 @@ class Shard:
         # Every instance is here and the policy forwards only to other shards' instances
         # (the reference): every ray ends here, so routing and visited bits are skipped.
         alone = not len(self.remote) and type(self.policy) is ExactPolicy
-        # Under the exact policy the local walks also find each ray's next stop (one walk
-        # of the top level a ray; nprt.workers.routing.exact.next_stop).
-        fused = None if alone or type(self.policy) is not ExactPolicy else self.policy.cand_owner
+        fused = self._fused_routing()
         while len(rays) or len(shadow):
             if len(rays):
                 settled = (rays.flags & FLAG_SHADE) != 0
