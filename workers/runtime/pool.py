@@ -167,10 +167,12 @@ class ShardPool:
                 MeshRequest(self.source, tuple(shard_meshes[sid])), all_req)
             self.actors.append(actor)
             self._init_refs.append((world_ref, proxies_ref))
-        self.shard_info = [_wait_ready(a.load.remote(*self._init_refs[sid]), f"shard {sid}")
-                           for sid, a in enumerate(self.actors)]
-        self.warm_s = [_wait_ready(a.warm.remote(), f"shard {sid} (warming its kernels)")
-                       for sid, a in enumerate(self.actors)]
+        # Every shard loads (then warms) at once: submitted together, waited for in turn.
+        loads = [a.load.remote(*self._init_refs[sid]) for sid, a in enumerate(self.actors)]
+        self.shard_info = [_wait_ready(ref, f"shard {sid}") for sid, ref in enumerate(loads)]
+        warms = [a.warm.remote() for a in self.actors]
+        self.warm_s = [_wait_ready(ref, f"shard {sid} (warming its kernels)")
+                       for sid, ref in enumerate(warms)]
 
     def show(self, scene: Scene | SceneMeta) -> None:
         """Make every shard render `scene`: a frame of the pool's scene (its meshes and
