@@ -40,14 +40,26 @@ MODEL_LINK_BPS = 25e9  # the model's links: a cluster's network (one host's obje
 FALLBACK_RPC_S = 0.0057  # coordinator latency when no K = 1 run fits it (bench_network's)
 
 
-def cpu_model() -> str:
+def _cpuinfo(key: str) -> str | None:
+    """The first value of `key` in /proc/cpuinfo, or None."""
     try:
         for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
+            if line.split(":", 1)[0].strip() == key:
                 return line.split(":", 1)[1].strip()
     except OSError:
         pass
-    return platform.processor() or "unknown"
+    return None
+
+
+def cpu_model() -> str:
+    return _cpuinfo("model name") or platform.processor() or "unknown"
+
+
+def threads_per_core() -> float | None:
+    """Hardware threads per physical core (2 where `nproc` counts hyperthreads: K shards on
+    K such "cores" share execution units, and the 1-core reference ran on a whole core)."""
+    siblings, cores = _cpuinfo("siblings"), _cpuinfo("cpu cores")
+    return int(siblings) / int(cores) if siblings and cores else None
 
 
 def run_one(scene, s: RenderSettings) -> tuple[dict, np.ndarray, dict | None]:
@@ -126,7 +138,7 @@ def bench(args) -> dict:
                   f"{row['model_render_s']:7.2f} s = {row['model_ratio']:.2f}x the reference's "
                   "CPU", flush=True)
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count(),
-                        "cpu_model": cpu_model()},
+                        "cpu_model": cpu_model(), "threads_per_core": threads_per_core()},
             "settings": vars(args) | {"out": str(args.out)}, "targets": TARGETS, "rows": rows,
             "model": models}
 
@@ -145,7 +157,10 @@ def _line(r: dict) -> str:
 
 def markdown(res: dict) -> str:
     m = res["machine"]
-    out = [f"Machine: {m['nproc']} cores ({m['cpu_model']}), Ray {m['ray']}.", "",
+    tpc = m.get("threads_per_core")
+    out = [f"Machine: {m['nproc']} cores ({m['cpu_model']}"
+           + (f", {tpc:g} hardware threads per physical core" if tpc else "")
+           + f"), Ray {m['ray']}.", "",
            "| scene | renderer | K | render s | vs reference | CPU s (all) | CPU vs ref | "
            "coordinator CPU s (share) | shard CPU s | busy | named CPU | Ray threads | steps | "
            "parcels | ray MB | PSNR dB | model s, K cores | model vs ref |",
