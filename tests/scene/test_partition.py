@@ -1,4 +1,5 @@
-"""Partitioning: coverage, byte balance, splitting of instances, errors, determinism."""
+"""Partitioning: coverage, the byte bound, splitting of instances, errors, determinism (the
+work balance: test_partition_work.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import pytest
 from nprt.scene.demos import make_demo
 from nprt.scene.errors import SceneError
 from nprt.scene.model import Instance, Mesh, Scene, instance_world_bounds
-from nprt.scene.partition import partition
+from nprt.scene.partition import BYTE_SLACK, partition
 from tests.scene._util import translate
 
 
@@ -75,8 +76,11 @@ def test_partition_balances_bytes_within_the_greedy_bound(seed):
     for k in (2, 3):
         p = partition(scene, k)
         _check_consistent(scene, p)
-        # Largest-first greedy is within 4/3 of the best possible makespan.
-        assert p.max_shard_bytes <= 4 / 3 * _optimum(nbytes, k)
+        # The bytes-only rule (largest first), which sets the cap, is within 4/3 of the best
+        # possible makespan; the work-balanced placement stays under the cap it sets.
+        assert p.bytes_only_max <= 4 / 3 * _optimum(nbytes, k)
+        assert p.max_shard_bytes <= p.byte_cap == max(int(BYTE_SLACK * p.bytes_only_max),
+                                                      max(nbytes))
 
 
 def test_partition_puts_the_largest_meshes_on_different_shards():
@@ -104,7 +108,8 @@ def test_split_instances_are_spatially_coherent():
     inst = tuple(Instance(0, translate(10.0 * grid[i][0], 0.0, 10.0 * grid[i][1]))
                  for i in order)
     scene = Scene((_strip(5, "rock"),), inst)
-    p = partition(scene, 4)
+    # Equal work per rock: the pieces are cut by work, so equal work gives equal counts.
+    p = partition(scene, 4, work=np.ones(len(inst)))
     centres = instance_world_bounds(scene).mean(axis=1)
     boxes = []
     for s in range(4):
