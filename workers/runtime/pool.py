@@ -156,8 +156,12 @@ class ShardPool:
             held = set(shard_meshes[sid])
             # Only the proxies of meshes this shard does not hold.
             proxies_ref = ray.put({m: p for m, p in proxies.items() if m not in held})
+            # No task events: Ray would record every call (a parcel is one) and ship the
+            # records to the GCS for its dashboard and state API, which nprt does not read
+            # (raysession's docstring has the measurement).
             opts = dict(max_restarts=MAX_SHARD_RESTARTS, max_task_retries=0,
-                        num_cpus=per_shard_cpu, max_concurrency=MAX_CONCURRENCY)
+                        num_cpus=per_shard_cpu, max_concurrency=MAX_CONCURRENCY,
+                        enable_task_events=False)
             if self.pg is not None:
                 opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
                     self.pg, placement_group_bundle_index=sid)

@@ -9,7 +9,24 @@ are not for nprt's users). At DEBUG, Ray logs at INFO and forwards worker output
 `include_dashboard=False` turns off the dashboard's UI and HTTP server only: Ray 2.60
 still starts a headless `dashboard.py` (usage stats) and the raylet's dashboard agent
 (runtime environments, metrics), and offers no switch for either (ray-project/ray#17770;
-PR #19420 declined one)."""
+PR #19420 declined one).
+
+Per-call settings, measured with `bench/render/bench_ray_calls.py` (two threaded actors
+exchanging nprt parcels; whole-process CPU from /proc, Ray's threads and the raylet
+counted; bench/README.md "Ray's CPU per parcel"):
+- `max_direct_call_object_size` (`RAY_SYSTEM_CONFIG`): a call argument up to this size
+  travels inline in the call (gRPC) instead of through the object store. Ray's default,
+  100 kB, sends a parcel of more than about 1,100 rays (92 bytes a ray) through plasma:
+  a put, a seal, a pin and a free in the sender's raylet, and the receiver's fetch,
+  together about 1.1 ms of CPU more than inline for a 460 kB parcel (5,000 rays), most
+  of it in the raylet. Ray caps the inlined bytes of one call at
+  `task_rpc_inlined_bytes_limit` (10 MB), so a larger parcel still goes through plasma.
+  A system config is fixed when Ray starts: it applies to a Ray that nprt starts here;
+  a cluster gets it from `ray start --head --system-config` (deploy/cluster.yaml, and
+  every node fetches the head's).
+- Task events (`enable_task_events=False` on the shard actors: `pool.py`) and the
+  metrics Ray records are Ray's observability, which nprt does not read: its job
+  statistics come from the shards' own poll replies."""
 
 from __future__ import annotations
 
@@ -17,6 +34,7 @@ import logging
 import threading
 
 import ray
+from ray._private.services import canonicalize_bootstrap_address
 
 _RAY_LOCK = threading.Lock()
 _RAY_USERS = 0  # live pools on a Ray that this module started
@@ -30,8 +48,22 @@ def ray_console() -> dict:
     return {"logging_level": logging.INFO if debug else logging.ERROR, "log_to_driver": debug}
 
 
+# Ray's system config for a Ray that nprt starts (see the module docstring).
+RAY_SYSTEM_CONFIG = {"max_direct_call_object_size": 1 << 20}
+
+
+def _starts_local(address: str | None) -> bool:
+    """Whether ray.init(address) would start a Ray (and so accept a system config) rather
+    than join one: Ray's own resolution of None, "auto", "local" and RAY_ADDRESS."""
+    try:
+        return canonicalize_bootstrap_address(address) is None
+    except Exception:  # no cluster where one was named: ray.init says so itself
+        return False
+
+
 def _init(address: str | None) -> None:
-    ray.init(address=address, include_dashboard=False, **ray_console())
+    config = RAY_SYSTEM_CONFIG if _starts_local(address) else None
+    ray.init(address=address, include_dashboard=False, _system_config=config, **ray_console())
 
 
 def ensure_ray(address: str | None = None) -> bool:
