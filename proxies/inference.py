@@ -140,17 +140,29 @@ class Proxy:
         return self._sessions[net]
 
     def run(self, net: str, x: np.ndarray) -> np.ndarray:
-        """Raw net output y (n,) float32 for encoded inputs x (n, k) float32 (C-contiguous)."""
+        """Raw net output y (n,) float32 for encoded inputs x (n, k) float32 (C-contiguous).
+        A row's answer does not depend on the other rows of x: onnxruntime's kernels (MLAS)
+        take rows in pairs, and a batch's odd last row went through another kernel that
+        differed in the last bits, so an odd batch gets one zero row more."""
         if len(x) == 0:
             return np.zeros(0, np.float32)
         call = self._calls.get(net)
         if call is None:
             call = self._calls[net] = self._caller(net)
-        chunk = ROWS_PER_THREAD * max(1, self.threads)
+        chunk = self.chunk_rows  # even: only the last call can be odd
         if len(x) <= chunk:
-            return call(x).reshape(-1).astype(np.float32, copy=False)
-        out = [call(x[s:s + chunk]) for s in range(0, len(x), chunk)]
-        return np.concatenate(out).reshape(-1).astype(np.float32, copy=False)
+            return _even_call(call, x)
+        out = [_even_call(call, x[s:s + chunk]) for s in range(0, len(x), chunk)]
+        return np.concatenate(out)
+
+    @property
+    def chunk_rows(self) -> int:
+        """Rows per onnxruntime call (`run` splits larger inputs)."""
+        return ROWS_PER_THREAD * max(1, self.threads)
+
+    def calls(self, n: int) -> int:
+        """onnxruntime calls `run` makes for n rows."""
+        return -(-n // self.chunk_rows)
 
     def _caller(self, net: str):
         """x -> the net's first output. The session's own binding where there is one: the
@@ -217,6 +229,14 @@ class Proxy:
                           np.float32(np.linalg.norm(self.box[1] - self.box[0])),
                           (0.5 * (self.box[0] + self.box[1])).astype(np.float32))
         return self._line
+
+
+def _even_call(call, x: np.ndarray) -> np.ndarray:
+    """call's (n,) float32 answer for x (n, k), run on an even number of rows."""
+    n = len(x)
+    if n % 2:
+        x = np.concatenate([x, np.zeros((1, x.shape[1]), x.dtype)])
+    return call(x).reshape(-1)[:n].astype(np.float32, copy=False)
 
 
 def _from_bytes(blob: bytes, threads: int) -> Proxy:

@@ -12,7 +12,7 @@ import trimesh
 from nprt.scene.model import Camera, Instance, Scene
 from nprt.scene.store import open_scene
 from nprt.workers.routing import proxy_pairs
-from nprt.workers.routing.proxy_query import QueryKnobs, predict
+from nprt.workers.routing.proxy_query import Query, QueryKnobs, predict, predict_together
 from nprt.workers.settings import RenderSettings
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.inprocess import shards_in_process
@@ -207,3 +207,34 @@ def test_predict_gives_the_numpy_oracles_answers_on_a_scene(policies):
                 a, b = getattr(want, f), getattr(got, f)
                 assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
     assert asked > 1000
+
+
+def test_predict_together_gives_each_query_its_own_prediction_in_fewer_net_calls(policies):
+    """A step's secondary and shadow rays asked at once (one call of each mesh's nets) get,
+    field by field, the bits `predict` gives each kind asked alone: other thresholds, bands
+    and margins, odd sizes, and rays with and without visited shards in one call."""
+    rng = np.random.default_rng(5)
+    fields = ("t", "inst", "uncertain", "internal", "ambiguous", "first_open", "asked_ray",
+              "asked_mesh")
+    other = QueryKnobs(0.3, np.full(len(policies[0][1].secondary.band), 0.1), 0.5, False)
+    fewer = 0
+    for world, policy in policies:
+        queries = []
+        for knobs, n, seen in ((policy.secondary, 2001, True), (policy.shadow, 1501, False),
+                               (other, 0, True), (other, 777, True)):
+            origin, direction, tmax = _rays(rng, world.table, n)
+            visited = rng.integers(0, 8, n).astype(np.uint64) if seen else None
+            queries.append(Query(origin, direction, tmax, knobs, visited))
+        args = (world, policy.proxies, policy.modeled)
+        together, calls = predict_together(*args, queries, policy.known)
+        alone_calls = 0
+        for q, got in zip(queries, together, strict=True):
+            (want,), c = predict_together(*args, [q], policy.known)
+            alone_calls += c
+            for f in fields:
+                a, b = getattr(want, f), getattr(got, f)
+                assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), f
+        assert calls <= alone_calls and (calls > 0) == (alone_calls > 0)
+        fewer += alone_calls - calls
+    assert fewer > 0  # some shard holds no proxy: it makes no call
+

@@ -21,7 +21,7 @@ from nprt.workers.routing.exact import (
     route_exact_rows,
     route_shadow_exact,
 )
-from nprt.workers.routing.proxy_query import QueryKnobs, predict
+from nprt.workers.routing.proxy_query import Query, QueryKnobs, predict, predict_together
 from nprt.workers.runtime.protocol import EVERYWHERE
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import SplitStats
@@ -122,6 +122,52 @@ class ProxyPolicy(ExactPolicy):
                     self.known, np.zeros(len(some), np.uint64))
 
     def route_rays(self, rays, stats):
+        return self.route_together(rays, stats.tok, None, None, stats)[0]
+
+    def route_shadow(self, shadow, stats):
+        """Decided here: occluded if any proxy confidently predicts a hit before the light.
+        Rays that cross a box of a mesh without a proxy, or (shadow_band > 0) a prediction
+        inside the band, and have no confident occluder, fall back to exact forwarding."""
+        return self.route_together(None, None, shadow, stats.tok, stats)[1]
+
+    def route_together(self, rays, ray_tok, shadow, shadow_tok, stats: SplitStats):
+        """`route_rays` of rays and `route_shadow` of shadow (either may be None), with one
+        `predict_together` for both: one call of each mesh's nets, not two. ray_tok,
+        shadow_tok: each batch's pass tokens (`SplitStats.bind`). Returns ((rays, target),
+        (shadow, target)), None for a batch not given."""
+        queries = []
+        if rays is not None:
+            stats.bind(ray_tok)
+            flags, target, f = self._rays_before(rays, stats)
+            if len(f):
+                queries.append(Query(rays.origin[f], rays.direction[f], rays.tmax[f],
+                                     self.secondary, rays.visited[f]))
+        if shadow is not None and len(shadow):
+            # A shadow ray forwarded here (shadow band) was intersected exactly on the
+            # shards it visited: their boxes are not asked about again.
+            queries.append(Query(shadow.origin, shadow.direction, shadow.tmax, self.shadow,
+                                 shadow.visited))
+        preds = []
+        if queries:
+            with stats.phase("proxy"):
+                preds, calls = predict_together(self.world, self.proxies, self.modeled,
+                                                queries, self.known)
+            # A call serves every pass of the step: counted on the pass of the bound
+            # batch's first row, so that the passes add up to the calls made.
+            stats.count("proxy_net_calls", np.zeros(calls, np.intp))
+        routed_rays = routed_shadow = None
+        if rays is not None:
+            stats.bind(ray_tok)
+            pred = preds.pop(0) if len(f) else None
+            routed_rays = self._rays_after(rays, stats, flags, target, f, pred)
+        if shadow is not None:
+            stats.bind(shadow_tok)
+            routed_shadow = self._shadow_after(shadow, stats, preds.pop(0) if preds else None)
+        return routed_rays, routed_shadow
+
+    def _rays_before(self, rays, stats):
+        """Flags after a proxy's prediction is checked, targets (all DONE) and the rows (f,)
+        int64 the proxies are asked about."""
         target = np.full(len(rays), DONE, np.int32)
         flags = rays.flags.copy()
         secondary = rays.kind == SECONDARY
@@ -134,12 +180,11 @@ class ProxyPolicy(ExactPolicy):
         flags[missed] |= FLAG_EXACT
         flags &= np.uint8(~(FLAG_TARGETED | FLAG_INTERNAL) & 0xFF)
         fresh = secondary & ~arrived & ((flags & FLAG_EXACT) == 0)
-        if fresh.any():
-            f = np.flatnonzero(fresh)
-            with stats.phase("proxy"):
-                pred = predict(self.world, self.proxies, self.modeled, rays.origin[f],
-                               rays.direction[f], rays.tmax[f], self.secondary, self.known,
-                               rays.visited[f])
+        return flags, target, np.flatnonzero(fresh)
+
+    def _rays_after(self, rays, stats, flags, target, f, pred):
+        """Targets of the rays from the proxies' answers pred for rows f (None: no row)."""
+        if pred is not None:
             stats.count("proxy_queries", f)
             _count_asked(stats, "secondary", pred, f)
             stats.count("proxy_uncertain", f[pred.uncertain])
@@ -162,24 +207,18 @@ class ProxyPolicy(ExactPolicy):
             rest = f[~pred.uncertain & (pred.inst < 0)]
             target[rest] = self._owner_of(rays.hit_inst[rest])
         rays = rays.replace(flags=flags)
-        exact = ~secondary | ((flags & FLAG_EXACT) != 0)  # primary rays are always exact
+        # primary rays are always exact
+        exact = (rays.kind != SECONDARY) | ((flags & FLAG_EXACT) != 0)
         if exact.any():
             target[exact] = route_exact_rows(self.world, self.shard, self.remote, rays,
                                              np.flatnonzero(exact), self.route_in)
         return rays, target
 
-    def route_shadow(self, shadow, stats):
-        """Decided here: occluded if any proxy confidently predicts a hit before the light.
-        Rays that cross a box of a mesh without a proxy, or (shadow_band > 0) a prediction
-        inside the band, and have no confident occluder, fall back to exact forwarding."""
-        if not len(shadow):
+    def _shadow_after(self, shadow, stats, pred):
+        """(shadow rays still live, their targets) from the proxies' answers pred (None:
+        no shadow ray)."""
+        if pred is None:
             return shadow, np.zeros(0, np.int32)
-        with stats.phase("proxy"):
-            # A shadow ray forwarded here (shadow band) was intersected exactly on the
-            # shards it visited: their boxes are not asked about again.
-            pred = predict(self.world, self.proxies, self.modeled, shadow.origin,
-                           shadow.direction, shadow.tmax, self.shadow, self.known,
-                           shadow.visited)
         stats.count("proxy_queries")
         _count_asked(stats, "shadow", pred, np.arange(len(shadow)))
         occluded = pred.inst >= 0

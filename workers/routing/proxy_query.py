@@ -54,6 +54,19 @@ class QueryKnobs:
     exact_if_ambiguous: bool = True
 
 
+@dataclass(frozen=True)
+class Query:
+    """One ray kind's questions for `predict_together`: origin (n, 3) float64 (or float32),
+    direction (n, 3) float32 world, tmax (n,) float32, knobs, visited (n,) uint64 or None
+    (as `predict`'s)."""
+
+    origin: np.ndarray
+    direction: np.ndarray
+    tmax: np.ndarray
+    knobs: QueryKnobs
+    visited: np.ndarray | None = None
+
+
 def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.ndarray,
             direction: np.ndarray, tmax: np.ndarray, knobs: QueryKnobs, known=None,
             visited: np.ndarray | None = None) -> Prediction:
@@ -62,34 +75,74 @@ def predict(world: ShardWorld, proxies: dict, remote: np.ndarray, origin: np.nda
     remote instances, intersected exactly; visited: (n,) uint64 shard bitmask of each ray,
     whose shards' boxes are not asked about (their geometry was intersected exactly, and the
     ray carries what it found)."""
+    preds, _ = predict_together(world, proxies, remote,
+                                [Query(origin, direction, tmax, knobs, visited)], known)
+    return preds[0]
+
+
+def predict_together(world: ShardWorld, proxies: dict, remote: np.ndarray,
+                     queries: list[Query], known=None) -> tuple[list[Prediction], int]:
+    """`predict` of each query, with one walk and one call of each mesh's nets for all of
+    them (a net call costs about 45 us whatever its rows: a step's secondary and shadow rays
+    are asked together). A ray's answers do not depend on the other rays of its call
+    (`Proxy.run`), so each Prediction is the one `predict` gives for its query alone.
+    Returns the Predictions and the onnxruntime calls made."""
+    sizes = [len(q.origin) for q in queries]
+    off = np.r_[0, np.cumsum(sizes)]
+    one = len(queries) == 1
+
+    def joined(field, dtype):
+        if one:
+            return np.ascontiguousarray(getattr(queries[0], field), dtype)
+        return np.concatenate([np.asarray(getattr(q, field), dtype) for q in queries])
+
+    origin, direction = joined("origin", np.float64), joined("direction", np.float32)
+    tmax = joined("tmax", np.float32)
     best_t, best_i = known_hits(known, origin, direction, tmax)
-    n, table = len(origin), world.table
-    tmax = np.ascontiguousarray(tmax, np.float32)
-    bank = _bank(proxies, knobs, table.n_mesh)
-    if n == 0 or len(remote) == 0:
-        return nothing_asked(best_t, best_i)
+    table = world.table
+    banks = [_bank(proxies, q.knobs, table.n_mesh) for q in queries]
+    if off[-1] == 0 or len(remote) == 0:
+        return [nothing_asked(best_t[a:b], best_i[a:b])
+                for a, b in zip(off[:-1], off[1:], strict=True)], 0
     boxes, bvh, col_of, members, w2l, bounds, mesh_of = table.pair_inputs(remote)
-    use_visited = visited is not None
+    use_visited = any(q.visited is not None for q in queries)
+    visited = np.zeros(0, np.uint64)
+    if use_visited:  # a query without one has visited nothing
+        visited = np.concatenate([np.zeros(n, np.uint64) if q.visited is None
+                                  else np.asarray(q.visited, np.uint64)
+                                  for q, n in zip(queries, sizes, strict=True)])
     # The crossed boxes and their local-space geometry in one walk; only the nets run per
     # mesh. Pairs whose local box the ray misses are dropped there: no rule looks at them.
     (ray, inst, mesh, has, internal, t_box, length, point, qdir, grouped,
      start) = proxy_pairs.walk_queries(
-        np.ascontiguousarray(origin, np.float64), np.ascontiguousarray(direction, np.float64),
-        tmax, boxes, bvh, col_of, members, world.owner,
-        np.ascontiguousarray(visited, np.uint64) if use_visited else np.zeros(0, np.uint64),
-        use_visited, w2l, bounds, mesh_of, bank.has)
-    if len(ray) == 0:
-        return nothing_asked(best_t, best_i)
-    vis, tp = _ask_nets(bank, len(ray), grouped, start, point, qdir)
-    internal_win, uncertain, ambiguous, first_open = proxy_pairs.decide(
-        ray, inst, mesh, np.ones(len(ray), bool), internal, t_box, length, tmax[ray], has, has,
-        vis, tp, bank.thr, bank.band, bank.margin, best_t, best_i)
-    # An internal t is the surface nearest the box exit; the ray's first surface in that box
-    # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
-    if knobs.exact_if_ambiguous:
-        uncertain |= ambiguous
-    return Prediction(best_t, best_i, uncertain, internal_win, ambiguous, first_open,
-                      ray[grouped], mesh[grouped])
+        origin, np.ascontiguousarray(direction, np.float64), tmax, boxes, bvh, col_of,
+        members, world.owner, visited, use_visited, w2l, bounds, mesh_of, banks[0].has)
+    # Pairs come ray-major: each query's are a slice, and each its own threshold.
+    cut = np.searchsorted(ray, off)
+    thr = np.concatenate([b.thr[mesh[cut[j]:cut[j + 1]]] for j, b in enumerate(banks)])
+    vis, tp, calls = _ask_nets(banks[0], len(ray), grouped, start, point, qdir, thr)
+    out = []
+    for j, (q, bank) in enumerate(zip(queries, banks, strict=True)):
+        a, b, r0, r1 = cut[j], cut[j + 1], off[j], off[j + 1]
+        bt, bi = best_t[r0:r1], best_i[r0:r1]
+        if a == b:
+            out.append(nothing_asked(bt, bi))
+            continue
+        r = ray[a:b] - r0
+        pairs = slice(a, b)
+        internal_win, uncertain, ambiguous, first_open = proxy_pairs.decide(
+            r, inst[pairs], mesh[pairs], np.ones(b - a, bool), internal[pairs], t_box[pairs],
+            length[pairs], tmax[r0:r1][r], has[pairs], has[pairs], vis[pairs], tp[pairs],
+            bank.thr, bank.band, bank.margin, bt, bi)
+        # An internal t is the surface nearest the box exit; the ray's first surface in that
+        # box lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer
+        # surface.
+        if q.knobs.exact_if_ambiguous:
+            uncertain |= ambiguous
+        mine = grouped if one else grouped[(grouped >= a) & (grouped < b)]
+        out.append(Prediction(bt, bi, uncertain, internal_win, ambiguous, first_open,
+                              ray[mine] - r0, mesh[mine]))
+    return out, calls
 
 
 @dataclass(frozen=True)
@@ -147,24 +200,29 @@ def _bank(proxies: dict, knobs: QueryKnobs, n_mesh: int) -> _Bank:
     return bank
 
 
-def _ask_nets(bank: _Bank, p: int, grouped: np.ndarray, start: np.ndarray, point, qdir):
+def _ask_nets(bank: _Bank, p: int, grouped: np.ndarray, start: np.ndarray, point, qdir,
+              thr: np.ndarray):
     """Each mesh's nets on its pairs, mesh m's pair rows at grouped[start[m]:start[m + 1]]
-    (pair order within a mesh): vis (p,) float32 (0 where not asked) and tp (p,) float32 the
-    proxy's t in local units (inf where not asked or below the threshold). The "line"
-    encoding of every mesh's pairs is one compiled pass before the nets and one after (the
-    bits of Proxy.query, mesh by mesh)."""
+    (pair order within a mesh), thr (p,) float32 each pair's visibility threshold: vis (p,)
+    float32 (0 where not asked) and tp (p,) float32 the proxy's t in local units (inf where
+    not asked or below the threshold), and the onnxruntime calls made. The "line" encoding
+    of every mesh's pairs is one compiled pass before the nets and one after (the bits of
+    Proxy.query, mesh by mesh)."""
     vis = np.zeros(p, np.float32)
     tp = np.full(p, np.inf, np.float32)
     rows = grouped
     if not len(rows):
-        return vis, tp
+        return vis, tp, 0
     groups = [(m, int(start[m]), int(start[m + 1])) for m in np.flatnonzero(np.diff(start))]
+    calls = 0
     if not bank.line:
         for m, s, e in groups:
             sel = rows[s:e]
-            vis[sel], tp[sel] = bank.proxy[m].query(point[sel], qdir[sel],
-                                                    min_visibility=float(bank.thr[m]))
-        return vis, tp
+            low = float(thr[sel].min())  # depth where any query's threshold is reached
+            v, t = bank.proxy[m].query(point[sel], qdir[sel], min_visibility=low)
+            vis[sel], tp[sel] = v, np.where(v >= thr[sel], t, np.inf)
+            calls += bank.proxy[m].calls(e - s) + bank.proxy[m].calls(int((v >= low).sum()))
+        return vis, tp, calls
     from nprt.proxies import lineenc
 
     lo, hi, centre, half, scale, dcentre = bank.consts
@@ -173,21 +231,23 @@ def _ask_nets(bank: _Bank, p: int, grouped: np.ndarray, start: np.ndarray, point
     v = np.empty(len(rows), np.float32)
     for m, s, e in groups:
         v[s:e] = bank.proxy[m].run("visibility", x[s:e])
+        calls += bank.proxy[m].calls(e - s)
     # The depth net runs where visibility reaches the threshold: those rows gathered once,
     # each mesh's still contiguous (the same rows, in the same order, as mesh by mesh).
-    deep = v >= bank.thr[which]
+    deep = v >= thr[rows]
     at = np.r_[0, np.cumsum(deep)][start]  # each mesh's first row among the deep ones
     x_deep = x[deep]
     y_deep = np.empty(len(x_deep), np.float32)
     for m, _, _ in groups:
         if at[m + 1] > at[m]:
             y_deep[at[m]:at[m + 1]] = bank.proxy[m].run("depth", x_deep[at[m]:at[m + 1]])
+            calls += bank.proxy[m].calls(int(at[m + 1] - at[m]))
     y = np.zeros(len(rows), np.float32)
     y[deep] = y_deep
     vis[rows] = v
     tp[rows] = lineenc.line_depth_rows(scale, dcentre, which, rows, on_box, qdir, y, shift,
                                        deep)
-    return vis, tp
+    return vis, tp, calls
 
 
 def nothing_asked(best_t: np.ndarray, best_i: np.ndarray) -> Prediction:

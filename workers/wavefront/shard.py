@@ -101,7 +101,7 @@ class _Step:
                  films: FilmPool):
         self.s, self.states, self.films = s, states, films
         self.lookup = lookup  # (tiles,) int64 -> index into states, -1: none in this step
-        self._tok_of, self._tok = None, None  # the last pixel column tok was asked for
+        self._toks: list = []  # (pixel column, tok) of the last two columns tok was asked for
         self.stats = SplitStats([st.stats for st in states])
         # (tiles,) int64 -> the film slot of the tile's pass (-1: none in this step), so one
         # pass over a batch adds each row to its pass's film, whatever the passes
@@ -109,16 +109,17 @@ class _Step:
         self.slot_of_tile = slots[lookup]
 
     def tok(self, pixel: np.ndarray) -> np.ndarray:
-        """pixel (n,) uint32 -> (n,) int64 index of its pass in this step. The last answer
-        is kept: a batch whose rows all go on shares its pixel column (columns are never
-        written)."""
-        if pixel is self._tok_of:
-            return self._tok
+        """pixel (n,) uint32 -> (n,) int64 index of its pass in this step. The last two
+        answers are kept (a step alternates between its rays and its shadow rays): a batch
+        whose rows all go on shares its pixel column (columns are never written)."""
+        for of, tok in self._toks:
+            if pixel is of:
+                return tok
         if len(self.states) == 1:
             tok = np.zeros(len(pixel), np.int64)
         else:
             tok = tiles.pass_slots(pixel, self.s.width, self.s.tile_size, self.lookup)
-        self._tok_of, self._tok = pixel, tok
+        self._toks = [(pixel, tok), *self._toks[:1]]
         return tok
 
     def splat(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
@@ -166,6 +167,9 @@ class Shard:
         self.configure(config.settings)
         self.passes: dict[int, _PassState] = {}  # pass index -> its state, until collected
         self.films: FilmPool | None = None  # the live passes' films (made for the tile size)
+        # Proxy policy: a step's rays and shadow rays ask the proxies together
+        # (`_wavefront_together`); False asks per ray kind, for tests to compare the two.
+        self.ask_together = True
         log.info("%r started in pid %d", self, os.getpid())
 
     def _place(self) -> None:
@@ -389,6 +393,8 @@ class Shard:
         shadow rays; repeat until every ray has ended or left. Rays leaving go into
         out_rays / out_shadow, (k,) lists of batches per target shard. With one shard
         this is the reference."""
+        if self.ask_together and len(self.remote) and isinstance(self.policy, ProxyPolicy):
+            return self._wavefront_together(step, rays, shadow, out_rays, out_shadow)
         stats = step.stats
         # Every instance is here and the policy forwards only to other shards' instances
         # (the reference): every ray ends here, so routing and visited bits are skipped.
@@ -396,50 +402,27 @@ class Shard:
         fused = self._fused_routing()
         while len(rays) or len(shadow):
             if len(rays):
-                settled = (rays.flags & FLAG_SHADE) != 0
-                arrived = None
-                if settled.any():
-                    arrived, rays = rays.take(settled), rays.take(~settled)
-                stats.bind(step.tok(rays.pixel)).count_rays(rays.kind)
-                if not alone:
-                    rays = rays.replace(visited=rays.visited | self.bit)
-                near = None
-                with stats.phase("local_intersect"):
-                    if fused is None:
-                        rays = resolve_closest(rays, self.local, self.world.lights)
-                    else:
-                        rays, near = resolve_closest_routed(rays, self.local,
-                                                            self.world.lights, fused)
+                arrived, rays, near = self._intersect(step, rays, alone, fused)
                 if alone:
-                    done = RayBatch.concat([arrived, rays])
+                    done = rays
                 else:
-                    done = RayBatch.concat([arrived, self._route(rays, stats, out_rays, near)])
-                if arrived is not None:
-                    done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
-                stats.bind(step.tok(done.pixel)).count_hops(done.hops)
-                with stats.phase("shade"):
-                    shaded = self.integrator.shade(done)
-                step.splat(shaded.pixel, shaded.rgb)
+                    with stats.phase("top_level"):
+                        if near is None:
+                            rays, target = self.policy.route_rays(rays, stats)
+                        else:
+                            rays, target = self.policy.route_rays(rays, stats, near)
+                    done = self._leave(rays, target, out_rays)
+                shaded = self._shade(step, arrived, done)
                 shadow = ShadowRayBatch.concat([shadow, shaded.shadow])
                 rays = shaded.secondary
             if len(shadow):
-                stats.bind(step.tok(shadow.pixel)).count_rays(np.full(len(shadow), SHADOW))
-                near = None
-                with stats.phase("local_intersect"):
-                    if fused is None:
-                        free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
-                                                              shadow.tmax)
-                    else:
-                        occluded, near = self.local.occluded_routed(
-                            shadow.origin, shadow.direction, shadow.tmax, fused, shadow.visited)
-                        free = ~occluded
+                free, near = self._occlude(step, shadow, fused)
                 if not len(self.remote):  # nothing elsewhere: every shadow ray ends here
                     stats.count_hops(shadow.hops)
                     step.splat(shadow.pixel[free], shadow.contribution[free])
                     shadow = ShadowRayBatch.empty()
                     continue
-                stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
-                shadow = shadow.take(free).replace(visited=shadow.visited[free] | self.bit)
+                shadow = self._unoccluded(step, shadow, free)
                 with stats.phase("top_level"):
                     if near is None:
                         shadow, target = self.policy.route_shadow(
@@ -447,20 +430,98 @@ class Shard:
                     else:
                         shadow, target = self.policy.route_shadow(
                             shadow, stats.bind(step.tok(shadow.pixel)), near.take(free))
-                self._send(shadow, target, out_shadow)
-                done = shadow.take(target == DONE)
-                stats.bind(step.tok(done.pixel)).count_hops(done.hops)
-                step.splat(done.pixel, done.contribution.astype(np.float64))
+                self._end_shadow(step, shadow, target, out_shadow)
                 shadow = ShadowRayBatch.empty()
 
-    def _route(self, rays: RayBatch, stats, out_rays: list, near=None) -> RayBatch:
-        """Route rays with their closest hit here so far: those leaving go into out_rays;
-        returns those that end here. near: the routing walk's answer (exact policy)."""
-        with stats.phase("top_level"):
-            if near is None:
-                rays, target = self.policy.route_rays(rays, stats)
+    def _wavefront_together(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch,
+                            out_rays: list, out_shadow: list) -> None:
+        """`_wavefront` for the proxy policy with other shards: each iteration routes its
+        rays and the shadow rays of the previous one's shading with one `predict` (one call
+        of each mesh's nets, which cost about 45 us each whatever their rows, not one per
+        ray kind). Each ray meets the same tests as in `_wavefront`, and a net's answer for
+        a row does not depend on its batch (`Proxy.run`), nor the film on the order of its
+        contributions (`_PassState`): the same film and counts."""
+        stats = step.stats
+        while len(rays) or len(shadow):
+            given = len(rays) > 0
+            if given:
+                arrived, rays, _ = self._intersect(step, rays, False, None)
+            if len(shadow):
+                free, _ = self._occlude(step, shadow, None)
+                shadow = self._unoccluded(step, shadow, free)
+            with stats.phase("top_level"):
+                routed_rays, (shadow, target) = self.policy.route_together(
+                    rays if given else None, step.tok(rays.pixel), shadow,
+                    step.tok(shadow.pixel), stats)
+            self._end_shadow(step, shadow, target, out_shadow)
+            shadow = ShadowRayBatch.empty()
+            if given:
+                shaded = self._shade(step, arrived, self._leave(*routed_rays, out_rays))
+                shadow, rays = shaded.shadow, shaded.secondary
+
+    def _intersect(self, step: _Step, rays: RayBatch, alone: bool, fused):
+        """Count rays and intersect them here, but for those sent here only to be shaded
+        (FLAG_SHADE). Returns (those, or None; the others, intersected; the routing walk's
+        answer for them, or None)."""
+        stats = step.stats
+        settled = (rays.flags & FLAG_SHADE) != 0
+        arrived = None
+        if settled.any():
+            arrived, rays = rays.take(settled), rays.take(~settled)
+        stats.bind(step.tok(rays.pixel)).count_rays(rays.kind)
+        if not alone:
+            rays = rays.replace(visited=rays.visited | self.bit)
+        near = None
+        with stats.phase("local_intersect"):
+            if fused is None:
+                rays = resolve_closest(rays, self.local, self.world.lights)
             else:
-                rays, target = self.policy.route_rays(rays, stats, near)
+                rays, near = resolve_closest_routed(rays, self.local, self.world.lights, fused)
+        return arrived, rays, near
+
+    def _shade(self, step: _Step, arrived: RayBatch | None, done: RayBatch):
+        """Shade the rays ending here (arrived to be shaded, then done) and add what they
+        bring to the film; returns the integrator's answer (secondary and shadow rays)."""
+        stats = step.stats
+        done = RayBatch.concat([arrived, done])
+        if arrived is not None:
+            done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
+        stats.bind(step.tok(done.pixel)).count_hops(done.hops)
+        with stats.phase("shade"):
+            shaded = self.integrator.shade(done)
+        step.splat(shaded.pixel, shaded.rgb)
+        return shaded
+
+    def _occlude(self, step: _Step, shadow: ShadowRayBatch, fused):
+        """Count shadow rays and test them against the geometry here: (n,) bool free, and
+        the routing walk's answer (None unless fused)."""
+        step.stats.bind(step.tok(shadow.pixel)).count_rays(np.full(len(shadow), SHADOW))
+        near = None
+        with step.stats.phase("local_intersect"):
+            if fused is None:
+                free = ~self.local.intersect_occluded(shadow.origin, shadow.direction,
+                                                      shadow.tmax)
+            else:
+                occluded, near = self.local.occluded_routed(
+                    shadow.origin, shadow.direction, shadow.tmax, fused, shadow.visited)
+                free = ~occluded
+        return free, near
+
+    def _unoccluded(self, step: _Step, shadow: ShadowRayBatch, free: np.ndarray):
+        """The shadow rays not occluded here, with this shard visited; the others finish."""
+        step.stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
+        return shadow.take(free).replace(visited=shadow.visited[free] | self.bit)
+
+    def _end_shadow(self, step: _Step, shadow: ShadowRayBatch, target: np.ndarray,
+                    out_shadow: list) -> None:
+        """Send routed shadow rays on; those done here add their contribution."""
+        self._send(shadow, target, out_shadow)
+        done = shadow.take(target == DONE)
+        step.stats.bind(step.tok(done.pixel)).count_hops(done.hops)
+        step.splat(done.pixel, done.contribution.astype(np.float64))
+
+    def _leave(self, rays: RayBatch, target: np.ndarray, out_rays: list) -> RayBatch:
+        """Send routed rays on (into out_rays); returns those that end here."""
         # Rays going to their hit's owner only to be shaded are not re-intersected:
         # a second Embree call with tmax == t may pick a different triangle on an edge.
         final = (target != DONE) & (target == hit_owner(self.world, rays.hit_inst))

@@ -1,0 +1,72 @@
+"""Proxy mode asks a step's rays and the shadow rays of its last shading together
+(`Shard._wavefront_together`: one call of each mesh's nets, not one per ray kind). That
+only moves the calls: the film and every statistic but the net-call count are those of
+asking per ray kind, and the calls are fewer."""
+
+from __future__ import annotations
+
+from fractions import Fraction
+
+import pytest
+
+from nprt.scene.store import open_scene
+from nprt.workers.filmsum import FilmSums
+from nprt.workers.passes import iter_passes
+from nprt.workers.settings import RenderSettings
+from nprt.workers.wavefront.inprocess import shards_in_process
+
+NET_CALLS = "proxy_net_calls"
+
+
+def _render(shards, s: RenderSettings) -> tuple[list[bytes], list[dict]]:
+    """Each pass run alone over the shards in process, its parcels delivered round by
+    round; returns per pass the film sums' bytes and the statistics summed over shards."""
+    films, stats = [], []
+    for p in iter_passes(s):
+        inbox = {p.index % len(shards): ([p], [], {p.index: Fraction(1)})}
+        back = Fraction(0)
+        while inbox:
+            arrived, inbox = inbox, {}
+            for sid, (orders, parcels, credits) in sorted(arrived.items()):
+                res = shards[sid].step(orders, parcels, credits)
+                back += sum(res.returned.values(), Fraction(0))
+                for t, out in enumerate(res.parcels):
+                    if out is not None:
+                        _, got, owed = inbox.setdefault(t, ([], [], {}))
+                        got.append(out)
+                        for i, w in out.credits.items():
+                            owed[i] = owed.get(i, Fraction(0)) + w
+        assert back == 1  # every ray of the pass ended
+        total, summed = FilmSums.zeros(p.n_pixels), {}
+        for sh in shards:
+            for _, sums, st in sh.collect([p.index]):
+                if sums is not None:
+                    total += sums
+                for part in ("rays", "transfers", "bytes", "counters"):
+                    for name, v in (st or {}).get(part, {}).items():
+                        summed[(part, name)] = summed.get((part, name), 0) + v
+                for h, v in enumerate((st or {}).get("hops_histogram", [])):
+                    summed[("hops", h)] = summed.get(("hops", h), 0) + v
+        films.append(total.to_float().tobytes())
+        stats.append(summed)
+    return films, stats
+
+
+@pytest.mark.parametrize("k", [3, 4])
+def test_asking_both_ray_kinds_together_changes_only_the_net_calls(k):
+    # city: every shard asks proxies (forest:small's 24x16 asks none a net answers)
+    s = RenderSettings(width=24, height=16, spp=2, spp_per_pass=2, seed=0, shards=k,
+                       mode="proxy")
+    shards = shards_in_process(open_scene("city:small").load(), s, warm=False)
+    runs = {}
+    for together in (False, True):
+        for sh in shards:
+            sh.ask_together = together
+        runs[together] = _render(shards, s)
+    (films_apart, stats_apart), (films, stats) = runs[False], runs[True]
+    assert films == films_apart
+    calls = sum(st.pop(("counters", NET_CALLS), 0) for st in stats)
+    calls_apart = sum(st.pop(("counters", NET_CALLS), 0) for st in stats_apart)
+    assert stats == stats_apart
+    assert sum(st.get(("counters", "proxy_queries"), 0) for st in stats) > 0
+    assert 0 < calls < calls_apart
