@@ -44,11 +44,15 @@ def start_ray(num_cpus: int | None = None) -> None:
 
     import ray
 
+    from nprt.workers.runtime.raysession import RAY_SYSTEM_CONFIG
+
     shared = os.environ.get("RAY_ADDRESS", "") not in ("", "local")
     # "local" when no cluster is named: ray.init() with no address joins whatever Ray
-    # /tmp/ray/ray_current_cluster points at (a test's cluster, another bench's).
+    # /tmp/ray/ray_current_cluster points at (a test's cluster, another bench's). A Ray
+    # started here takes the system config nprt's own start gives it (a joined one has
+    # its head's).
     ray.init(address=None if shared else "local", num_cpus=None if shared else num_cpus,
-             include_dashboard=False,
+             include_dashboard=False, _system_config=None if shared else RAY_SYSTEM_CONFIG,
              log_to_driver=False, logging_level=logging.WARNING)
 
 

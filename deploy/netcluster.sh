@@ -239,7 +239,8 @@ start_head() {  # GCS and a CPU-less raylet in the root namespace, on the bridge
     --ray-client-server-port=$((GCS_PORT + 1)) --dashboard-agent-listen-port=$((GCS_PORT + 2)) \
     --dashboard-port=$((GCS_PORT + 3)) \
     --num-cpus=0 --object-store-memory=$((STORE_MB * 1024 * 1024)) --include-dashboard=false \
-    --disable-usage-stats --temp-dir="$STATE/ray" --resources='{"netcluster_head": 1}'
+    --disable-usage-stats --temp-dir="$STATE/ray" --resources='{"netcluster_head": 1}' \
+    --system-config='{"max_direct_call_object_size":1048576}'  # nprt's (raysession.py)
 }
 
 start_node() {  # start_node I : a raylet and object store inside namespace I

@@ -46,6 +46,16 @@ def test_the_cluster_head_starts_ray_with_nprts_system_config():
     assert yaml.safe_load(config) == RAY_SYSTEM_CONFIG
 
 
+def test_the_shaped_test_cluster_starts_ray_with_nprts_system_config():
+    """deploy/netcluster.sh (bench_network's two shaped nodes) starts its head with the
+    same config, so its renders pay what a local or `ray up` render pays per parcel."""
+    script = (REPO / "deploy" / "netcluster.sh").read_text()
+    configs = [line.split("--system-config=", 1)[1].split()[0] for line in script.splitlines()
+               if "--system-config=" in line]
+    assert len(configs) == 1
+    assert yaml.safe_load(shlex.split(configs[0])[0]) == RAY_SYSTEM_CONFIG
+
+
 def test_a_delivery_makes_no_object_ref_and_still_arrives(ray_local):
     """Nobody reads a delivery's answer, so `deliver` returns none. The parcel still
     reaches the wavefront thread: on an actor with no shard loaded, its step fails, and
