@@ -54,6 +54,10 @@ VARIANTS = {
                                              {"enable_task_events": False}, 0),
     # what the shards run with: RAY_SYSTEM_CONFIG, pool.py's options, remote.py's deliver
     "nprt": (RAY_SYSTEM_CONFIG, {"enable_task_events": False}, 0),
+    # and deliveries run by one thread of their own (a concurrency group), not by any of
+    # the actor's 8, which then take turns at the GIL
+    "nprt_one_delivery_thread": (RAY_SYSTEM_CONFIG, {"enable_task_events": False,
+                                                     "concurrency_groups": {"deliver": 1}}, 0),
 }
 _TICK = os.sysconf("SC_CLK_TCK")
 
@@ -97,13 +101,17 @@ class _Peer:
             self.cv.wait_for(lambda: self.n >= n, timeout=120)
             return self.n
 
-    def send(self, peer, rows: int, calls: int, num_returns: int = 1) -> float:
+    def send(self, peer, rows: int, calls: int, num_returns: int = 1,
+             group: str | None = None) -> float:
         """Sends `calls` parcels of `rows` rays to peer (`deliver`, or `deliver0` that
-        returns no object ref); the calling thread's CPU seconds."""
+        returns no object ref; in concurrency group `group`); the calling thread's CPU
+        seconds."""
         from nprt.workers.runtime.protocol import Parcel
 
         batch = _batch(rows)
         deliver = peer.deliver0 if num_returns == 0 else peer.deliver
+        if group:
+            deliver = deliver.options(concurrency_group=group)
         c0 = time.thread_time()
         for i in range(calls):
             deliver.remote(Parcel(0, {i: 1}, batch))
@@ -117,10 +125,14 @@ def measure(actor_options: dict, num_returns: int, sizes, calls: int, rounds: in
     system = {name: node.all_processes[key][0].process.pid
               for name, key in (("raylet", "raylet"), ("gcs", "gcs_server"))
               if node is not None and node.all_processes.get(key)}
-    cls = ray.remote(_Peer).options(num_cpus=0, max_concurrency=8, **actor_options)
+    options = dict(actor_options)
+    groups = options.pop("concurrency_groups", None)  # only ray.remote takes these
+    cls = ray.remote(_Peer) if groups is None else ray.remote(concurrency_groups=groups)(_Peer)
+    cls = cls.options(num_cpus=0, max_concurrency=8, **options)
+    group = next(iter(groups or {}), None)
     a, b = cls.remote(), cls.remote()
     pids = {"send": ray.get(a.pid.remote()), "receive": ray.get(b.pid.remote()), **system}
-    ray.get(a.send.remote(b, 10, 50, num_returns))  # warm both sides (imports, first calls)
+    ray.get(a.send.remote(b, 10, 50, num_returns, group))  # warm both sides (imports, first calls)
     ray.get(b.wait_for.remote(50))
     time.sleep(1.0)
     c0, t0 = {k: proc_cpu(p) for k, p in pids.items()}, time.perf_counter()
@@ -132,7 +144,7 @@ def measure(actor_options: dict, num_returns: int, sizes, calls: int, rounds: in
         runs = []
         for _ in range(rounds):
             c0, t0 = {k: proc_cpu(p) for k, p in pids.items()}, time.perf_counter()
-            thread_s = ray.get(a.send.remote(b, rows, calls, num_returns))
+            thread_s = ray.get(a.send.remote(b, rows, calls, num_returns, group))
             done = ray.get(b.wait_for.remote(done + calls))
             time.sleep(1.1)  # Ray's deferred work: task events go out every second
             dt = time.perf_counter() - t0
