@@ -1,6 +1,7 @@
 """The hot path of POST /v1/jobs: a valid job body is parsed by pydantic straight from its
-bytes, stored on the writer thread and answered, without FastAPI's per-request dependency
-and validation machinery (about half the CPU of an admission). Anything else (a body that
+bytes (once: its settings are neither validated nor dumped again), stored on the writer
+thread and answered from the stored row, without FastAPI's per-request dependency and
+validation machinery (about half the CPU of an admission). Anything else (a body that
 does not validate, a bad header, a refusal) goes on to the FastAPI route, which answers it
 as documented; a refusal is a read, so asking twice changes nothing."""
 
@@ -12,7 +13,7 @@ from starlette.types import Scope
 
 from nprt.service.bodyguard import BodyMiddleware
 from nprt.service.errors import ServiceError
-from nprt.service.schemas import JobCreate, JobPublic
+from nprt.service.schemas import JobCreate, JobPublic, queued_job_json
 
 MAX_KEY_CHARS = 200  # the route's Idempotency-Key limit
 
@@ -37,14 +38,15 @@ async def _admit(api, headers: dict, body: bytes) -> Response | None:
     except ValidationError:
         return None
     frames = None if job.frames is None else (job.frames.first, job.frames.last)
-    settings = job.render_settings()
     try:
-        rec, created = await api.submit_async(job.scene, settings, key, frames)
+        # The JobCreate is a RenderSettings: its settings fields are stored as they are.
+        rec, created = await api.submit_async(job.scene, job, key, frames)
     except ServiceError:
         return None
-    out = {"location": f"/v1/jobs/{rec.id}"}
-    if not created:
-        out["idempotent-replayed"] = "true"
-    # A replayed key's job has these settings too (a different request is a Conflict).
-    return Response(JobPublic.from_record(rec, settings).model_dump_json(), 202, out,
-                    media_type="application/json")
+    headers = {"location": f"/v1/jobs/{rec.id}"}
+    if created:
+        body = queued_job_json(rec, rec.settings_json)
+    else:  # a replayed key's job has these settings too (a different request is a Conflict)
+        headers["idempotent-replayed"] = "true"
+        body = JobPublic.from_record(rec, job.render_settings()).model_dump_json()
+    return Response(body, 202, headers, media_type="application/json")

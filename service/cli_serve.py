@@ -181,9 +181,12 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # uvloop and httptools (dependencies) for the HTTP loop: accepting, reading and writing
     # in C. gRPC runs in a process of its own (nprt.service.grpc_child).
     # log_config=None: uvicorn's records go through the root handler (text or JSON) too.
+    # access_log: uvicorn formats each request's access line before the logger drops it;
+    # above INFO (the benchmarks' WARNING) none would be written.
     options = {"host": args.host, "port": args.port, "log_level": level.lower(),
                "log_config": None, "timeout_graceful_shutdown": 3, "loop": "uvloop",
-               "http": "httptools"}
+               "http": "httptools",
+               "access_log": logging.getLevelName(level.upper()) <= logging.INFO}
     try:
         if grpc_port is not None:
             grpc = _start_grpc(args, settings, grpc_port)

@@ -10,8 +10,9 @@ import os
 import shutil
 import sqlite3
 import threading
-import uuid
 from pathlib import Path
+
+from pydantic_core import from_json
 
 from nprt.service import checkpoint, images
 from nprt.service.config import ServiceSettings
@@ -77,7 +78,8 @@ class JobApi:
                            idempotency_key: str | None = None,
                            frames: tuple[int, int] | None = None) -> tuple[JobRecord, bool]:
         """submit() from the event loop: checked here, stored on the writer thread in one
-        transaction with the admissions queued beside it."""
+        transaction with the admissions queued beside it. settings may be the validated
+        JobCreate itself: only its RenderSettings fields are stored."""
         row = self._row(scene, settings, idempotency_key, frames)
         try:
             return self._created(row, await self._writer.insert(*row))
@@ -86,14 +88,15 @@ class JobApi:
 
     def _row(self, scene: str, settings: RenderSettings, idempotency_key: str | None,
              frames: tuple[int, int] | None) -> tuple:
-        """The store row of a valid job (InvalidJob, UnknownScene otherwise)."""
+        """The store row of a valid job (InvalidJob, UnknownScene otherwise); its settings
+        as JSON text."""
         frames = None if frames is None else [int(frames[0]), int(frames[1])]
         n_frames = 1 if frames is None else frames[1] - frames[0] + 1
         if n_frames < 1:
             raise InvalidJob("frames", f"last frame {frames[1]} is before first {frames[0]}")
         self._check_cost(settings, n_frames)
         self.scenes.check(scene)
-        return (new_job_id(), scene, settings.model_dump(mode="json"),
+        return (new_job_id(), scene, settings_json(settings),
                 count_passes(settings) * n_frames, idempotency_key, frames,
                 self.settings.max_queued_jobs)
 
@@ -101,7 +104,7 @@ class JobApi:
     def _created(row: tuple, rec: JobRecord) -> tuple[JobRecord, bool]:
         job_id, scene, stored, _, key, frames, _ = row
         if rec.id != job_id:  # the key was stored already
-            if (rec.scene, rec.settings, rec.frames) != (scene, stored, frames):
+            if (rec.scene, rec.settings, rec.frames) != (scene, from_json(stored), frames):
                 raise Conflict(f"Idempotency-Key {key!r} was used for job {rec.id} "
                                "with a different request")
             return rec, False
@@ -191,6 +194,16 @@ class JobApi:
         return self.settings.jobs_dir / job_id
 
 
+def settings_json(settings: RenderSettings) -> str:
+    """The JSON text of the RenderSettings fields of `settings` (a RenderSettings or a
+    subclass such as the validated JobCreate, whose other fields are left out), as the store
+    keeps it; pydantic serialises it in a fraction of json.dumps(model_dump())'s time."""
+    return _SETTINGS_SERIALIZER.to_json(settings).decode()
+
+
+_SETTINGS_SERIALIZER = RenderSettings.__pydantic_serializer__
+
+
 class _JobIds:
     """uuid4 hex ids from os.urandom, a batch of random bytes at a time: os.urandom releases
     the GIL, and on an event loop sharing it with the store writer and event feed threads
@@ -208,13 +221,21 @@ class _JobIds:
     def __call__(self) -> str:
         with self._lock:
             if not self._ids:
-                raw = os.urandom(16 * self.BATCH)
-                self._ids = [uuid.UUID(bytes=raw[i:i + 16], version=4).hex
-                             for i in range(0, len(raw), 16)]
+                self._ids = _uuid4_hexes(self.BATCH)
             return self._ids.pop()
 
     def _forget(self) -> None:
         self._ids = []
+
+
+def _uuid4_hexes(n: int) -> list[str]:
+    """n random uuid4s as 32 hex digits (uuid.uuid4().hex), from one os.urandom call: the
+    version and variant bits set on the bytes, a fraction of building each UUID."""
+    raw = bytearray(os.urandom(16 * n))
+    raw[6::16] = bytes(b & 0x0F | 0x40 for b in raw[6::16])  # version 4
+    raw[8::16] = bytes(b & 0x3F | 0x80 for b in raw[8::16])  # variant RFC 4122
+    text = raw.hex()
+    return [text[i:i + 32] for i in range(0, len(text), 32)]
 
 
 new_job_id = _JobIds()

@@ -12,6 +12,7 @@ import tempfile
 import threading
 import time
 from collections import OrderedDict
+from functools import cache
 from pathlib import Path
 
 from nprt.scene.errors import SceneError, UnsafePath
@@ -42,8 +43,13 @@ def demo_sizes() -> tuple[str, ...]:
 
 def is_demo(ref: str) -> bool:
     """'forest', or 'forest:tiny' with a size the demos know."""
-    name, colon, size = ref.partition(":")
-    return name in demo_names() and (not colon or size in demo_sizes())
+    return ref in _demo_refs()
+
+
+@cache
+def _demo_refs() -> frozenset[str]:
+    """Every demo name, alone and with each size (a set: every admission asks)."""
+    return frozenset(demo_names()) | {f"{n}:{s}" for n in demo_names() for s in demo_sizes()}
 
 
 def load_scene_ref(source: str, root: Path | None = None) -> Scene | SceneMeta:

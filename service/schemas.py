@@ -7,6 +7,7 @@ from functools import lru_cache
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic_core import to_json
 
 from nprt.service.problems import Problem
 from nprt.service.store import JobRecord
@@ -93,6 +94,22 @@ class JobPublic(BaseModel):
                    retries=r.retries,
                    frames=None if r.frames is None else FrameRange(first=r.frames[0],
                                                                    last=r.frames[1]))
+
+
+def queued_job_json(rec: JobRecord, settings_json: str) -> bytes:
+    """JobPublic.from_record(rec).model_dump_json() of a job just stored (queued, nothing
+    done, no cancel, no retry) whose settings serialise to `settings_json`, in a tenth of
+    its time: the admission's answer. The variable parts go through pydantic's serialiser;
+    tests hold the two equal."""
+    frames = b"null" if rec.frames is None else to_json(
+        {"first": rec.frames[0], "last": rec.frames[1]})
+    return b"".join((
+        b'{"id":', to_json(rec.id), b',"scene":', to_json(rec.scene),
+        b',"state":"queued","settings":', settings_json.encode(),
+        b',"progress":0.0,"passes_done":0,"passes_total":', b"%d" % rec.passes_total,
+        b',"created_at":', to_json(_time(rec.created_at)),
+        b',"started_at":null,"finished_at":null,"error":null,"stats":null,'
+        b'"pixel_samples":null,"cancel_requested":false,"retries":0,"frames":', frames, b"}"))
 
 
 @lru_cache(maxsize=1024)

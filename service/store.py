@@ -13,6 +13,8 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pydantic_core import from_json
+
 STATES = ("queued", "preparing", "running", "succeeded", "failed", "canceled")
 TERMINAL = frozenset({"succeeded", "failed", "canceled"})
 UNFINISHED = ("queued", "preparing", "running")
@@ -154,10 +156,11 @@ class JobStore:
         with self._rlock:
             return self._rdb.execute(sql, args).fetchall()
 
-    def insert(self, job_id: str, scene: str, settings: dict, passes_total: int,
+    def insert(self, job_id: str, scene: str, settings: dict | str, passes_total: int,
                idempotency_key: str | None = None,
                frames: list[int] | None = None, max_queued: int | None = None) -> JobRecord:
-        """Store a queued job. With an idempotency key that is already stored, nothing is
+        """Store a queued job; settings as a dict or as its JSON text (stored as given; the
+        record has it parsed). With an idempotency key that is already stored, nothing is
         inserted and the stored job is returned (compare its id to tell). With max_queued,
         QueueFull when that many jobs are queued (checked in the same statement, so
         concurrent inserts from any process never overshoot it; O(1), a counter)."""
@@ -181,12 +184,15 @@ class JobStore:
                 raise
         return out
 
-    def _insert(self, job_id: str, scene: str, settings: dict, passes_total: int,
+    def _insert(self, job_id: str, scene: str, settings: dict | str, passes_total: int,
                 idempotency_key: str | None, frames: list[int] | None,
                 max_queued: int | None) -> JobRecord | QueueFull:
         now = time.time()
         depth = -1 if max_queued is None else max_queued
-        settings_json = json.dumps(settings)
+        if isinstance(settings, str):  # JSON text already (an admission's, from pydantic)
+            settings_json, settings = settings, from_json(settings)
+        else:
+            settings_json = json.dumps(settings)
         cur = self._db.execute(
             "INSERT INTO jobs (id, scene, settings, state, created_at, passes_total, "
             "idempotency_key, frames) SELECT ?, ?, ?, 'queued', ?, ?, ?, ? WHERE ? < 0 OR "

@@ -44,16 +44,18 @@ def _pythonpath(root: Path) -> str:
 
 
 def start_service(root: Path, data_dir: Path, max_jobs: int, api_workers: int | None = None,
-                  env: dict[str, str] | None = None) -> tuple[subprocess.Popen, str, int, str]:
+                  env: dict[str, str] | None = None, api_only: bool = False
+                  ) -> tuple[subprocess.Popen, str, int, str]:
     """`nprt serve` of the checkout at root in a process group of its own, with
-    `env` (NPRT_* settings) added to this environment. Returns (process, host, REST port,
-    gRPC target)."""
+    `env` (NPRT_* settings) added to this environment; api_only: no scheduler, no gRPC.
+    Returns (process, host, REST port, gRPC target)."""
     port, grpc_port = _free_port(), _free_port()
     env = {**os.environ, "PYTHONPATH": _pythonpath(root),
            "NPRT_MAX_CONCURRENT_JOBS": str(max_jobs), **(env or {})}
     env.pop("NPRT_API_TOKEN", None)
     cmd = [sys.executable, "-m", "service", "serve", "--data-dir", str(data_dir), "--port",
-           str(port), "--grpc-port", str(grpc_port), "--log-level", "warning"]
+           str(port), "--grpc-port", "-1" if api_only else str(grpc_port), "--log-level",
+           "warning", *(["--api-only"] if api_only else [])]
     if api_workers is not None:
         cmd += ["--workers", str(api_workers)]
     # A process group of its own (stopped as one), in this client's session: with
@@ -140,6 +142,23 @@ def http_workers(pid: int) -> int:
 def api_cpu_s(pid: int) -> float:
     """CPU seconds of the serving processes so far."""
     return sum(_cpu_s(p) for p in api_pids(pid))
+
+
+def api_cpu_ns(pid: int) -> int:
+    """On-CPU nanoseconds so far of every thread of the serving processes (schedstat: not
+    in clock ticks; a thread that has ended no longer counts). Linux only."""
+    total = 0
+    for p in api_pids(pid):
+        try:
+            tasks = list(Path(f"/proc/{p}/task").iterdir())
+        except OSError:
+            continue
+        for task in tasks:
+            try:
+                total += int((task / "schedstat").read_text().split()[0])
+            except OSError:
+                pass
+    return total
 
 
 def render_cpu_s(pid: int) -> float:
