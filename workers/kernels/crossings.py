@@ -22,6 +22,7 @@ from nprt.workers.kernels.bvh import (
 )
 from nprt.workers.kernels.nearest import near_search
 from nprt.workers.kernels.pairs import to_local_ray
+from nprt.workers.traversal.planar import DIR_MAX, DIR_MIN, GAP_MIN
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 # The loops over rays allocate nothing, so they run without reference counting.
@@ -87,8 +88,8 @@ def occluded1_ray(fn, scene, ptr, rh, ri, o0, o1, o2, d0, d1, d2, tfar):
 @njit(**JIT)
 def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, col_of, use_bvh,
                  flat, node_box, node_child, node_start, node_count, prim, mesh_of,
-                 scene_of_mesh, world_to_local, best_t, best_inst, best_prim, best_u, best_v,
-                 route, cand_owner, cands, cand_flat, cand_bvh, visited, near_t, near_owner,
+                 scene_of_mesh, planes, world_to_local, best_t, best_inst, best_prim, best_u,
+                 best_v, route, cand_owner, cands, cand_flat, cand_bvh, visited, near_t, near_owner,
                  near_tmax):
     """Each ray's closest hit among the instance boxes `members` (k,) int64 (indices into
     boxes (m, 2, 3) float64; col_of (m,) int32 >= 0 for members), in one loop a ray: the
@@ -101,7 +102,9 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
     best_* (n,) (best_inst -1: none yet): a hit at t <= tmax wins on a smaller t, on
     equal t the lower instance, so the answer depends neither on the order boxes are
     traced in nor on how instances are split over shards. origin, direction (n, 3)
-    float64, tmax (n,) float32.
+    float64, tmax (n,) float32. planes (M, 3) float64 (`nprt.workers.traversal.planar.
+    plane_rows`): a box whose mesh lies in a plane the local ray leaves is not traced,
+    Embree would find nothing there.
 
     With route, each ray then also gets the exact policy's next stop (`near_search`):
     near_t (n,) float64 and near_owner (n,) int32, the nearest entry and its owner of a
@@ -121,8 +124,8 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
     f_te, f_ok = np.empty(flat.shape[1]), np.empty(flat.shape[1], np.bool_)
     _closest_rays(fn, origin, direction, tmax, box_slack, far, boxes, members, col_of, use_bvh,
                   flat, node_box, node_child, node_start, node_count, prim, mesh_of,
-                  scene_of_mesh, world_to_local, best_t, best_inst, best_prim, best_u, best_v,
-                  route, near_tmax, rh, ri, ptr, stack, q_t, q_id, f_te, f_ok,
+                  scene_of_mesh, planes, world_to_local, best_t, best_inst, best_prim, best_u,
+                  best_v, route, near_tmax, rh, ri, ptr, stack, q_t, q_id, f_te, f_ok,
                   not np.isnan(flat).any())
     if route:
         bvh = (node_box, node_child, node_start, node_count, prim)
@@ -134,8 +137,8 @@ def closest_walk(fn, origin, direction, tmax, box_slack, far, boxes, members, co
 @njit(**JIT_RAW)
 def _closest_rays(fn, origin, direction, tmax, box_slack, far, boxes, members, col_of, use_bvh,
                   flat, node_box, node_child, node_start, node_count, prim, mesh_of,
-                  scene_of_mesh, world_to_local, best_t, best_inst, best_prim, best_u, best_v,
-                  route, near_tmax, rh, ri, ptr, stack, q_t, q_id, f_te, f_ok, plain):
+                  scene_of_mesh, planes, world_to_local, best_t, best_inst, best_prim, best_u,
+                  best_v, route, near_tmax, rh, ri, ptr, stack, q_t, q_id, f_te, f_ok, plain):
     """`closest_walk`'s loop over the rays, on scratch the caller made (rh, ri, ptr from
     `_scratch`; stack, q_t, q_id, f_te, f_ok sized as there). Compiled without numba's
     reference counting, which it does not need (it allocates nothing): with it, every
@@ -169,7 +172,7 @@ def _closest_rays(fn, origin, direction, tmax, box_slack, far, boxes, members, c
             h -= 1
             if not q_t[h] <= cut * (1.0 + box_slack):
                 break  # everything left is entered beyond the closest hit
-            cut = _closest_box(fn, q_id[h], r, cut, far, tmax, mesh_of, scene_of_mesh,
+            cut = _closest_box(fn, q_id[h], r, cut, far, tmax, mesh_of, scene_of_mesh, planes,
                                world_to_local, origin, direction, ptr, rh, ri, best_t,
                                best_inst, best_prim, best_u, best_v)
         if route:
@@ -190,12 +193,24 @@ def _enqueue(q_t, q_id, h, t, x):
 
 @njit(inline="always", **JIT)
 def _flat_queue(flat, plain, members, o0, o1, o2, i0, i1, i2, tmax, te, ok, q_t, q_id):
-    """Queue (`_enqueue`) every member box the ray crosses before tmax: the slabs of all
-    of them in one branch-free loop (it vectorises), into the scratch te, ok (k,).
-    Returns the queue's length. With no NaN plane in flat (plain, a bool) and a ray of
-    finite origin and finite, nonzero 1 / direction, no product of the slab can be NaN,
-    so it runs without NaN handling (`_slab_planes_finite`: the same values, and a
-    cheaper loop: the NaN-aware one's masks were most of the walk's own time)."""
+    """Queue (`_enqueue`) every member box the ray crosses before tmax (`_flat_slabs`).
+    Returns the queue's length."""
+    _flat_slabs(flat, plain, o0, o1, o2, i0, i1, i2, tmax, te, ok)
+    h = 0
+    for j in range(flat.shape[1]):
+        if ok[j]:
+            h = _enqueue(q_t, q_id, h, te[j], members[j])
+    return h
+
+
+@njit(inline="always", **JIT)
+def _flat_slabs(flat, plain, o0, o1, o2, i0, i1, i2, tmax, te, ok):
+    """The slab tests of every box in flat against the ray, in one branch-free loop (it
+    vectorises): ok[j] box j is crossed before tmax, te[j] its entry (scratch (k,)).
+    With no NaN plane in flat (plain, a bool) and a ray of finite origin and finite,
+    nonzero 1 / direction, no product of the slab can be NaN, so it runs without NaN
+    handling (`_slab_planes_finite`: the same values, and a cheaper loop: the NaN-aware
+    one's masks were most of the walk's own time)."""
     if plain and _finite(o0, o1, o2, i0, i1, i2) and i0 != 0.0 and i1 != 0.0 and i2 != 0.0:
         for j in range(flat.shape[1]):
             ok[j], te[j], _ = _slab_planes_finite(flat[0, j], flat[1, j], flat[2, j],
@@ -206,16 +221,11 @@ def _flat_queue(flat, plain, members, o0, o1, o2, i0, i1, i2, tmax, te, ok, q_t,
             ok[j], te[j], _ = _slab_planes(flat[0, j], flat[1, j], flat[2, j], flat[3, j],
                                            flat[4, j], flat[5, j], o0, o1, o2, i0, i1, i2,
                                            tmax)
-    h = 0
-    for j in range(flat.shape[1]):
-        if ok[j]:
-            h = _enqueue(q_t, q_id, h, te[j], members[j])
-    return h
 
 
 @njit(inline="always", **JIT)
-def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, world_to_local, origin,
-                 direction, ptr, rh, ri, best_t, best_inst, best_prim, best_u, best_v):
+def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, planes, world_to_local,
+                 origin, direction, ptr, rh, ri, best_t, best_inst, best_prim, best_u, best_v):
     """Trace ray r in instance b and fold its hit into best_*. Returns the new cut (the
     closest hit's t so far, or tmax) as float64.
 
@@ -227,10 +237,13 @@ def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, world_to_loca
     all lie beyond cut), and accepts the same hits up to C; so its last accepted hit at
     or before cut, the answer, is the same triangle, u and v."""
     o0, o1, o2, d0, d1, d2 = to_local_ray(world_to_local, b, origin, direction, r)
+    m = mesh_of[b]
+    if _leaves_plane(planes, m, o0, o1, o2, d0, d1, d2):
+        return cut  # Embree finds no hit there (`nprt.workers.traversal.planar`)
     tfar = far
     if TFAR_MIN < cut and cut * (1.0 + TFAR_MARGIN_REL) < far:
         tfar = np.float32(cut * (1.0 + TFAR_MARGIN_REL))
-    t, p, u, v = closest1(fn, scene_of_mesh[mesh_of[b]], ptr, rh, ri, o0, o1, o2, d0, d1, d2,
+    t, p, u, v = closest1(fn, scene_of_mesh[m], ptr, rh, ri, o0, o1, o2, d0, d1, d2,
                           tfar)
     if p < 0 or not t <= tmax[r]:
         return cut
@@ -245,20 +258,20 @@ def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, world_to_loca
 @njit(**JIT)
 def occluded_walk(fn, origin, direction, tmax, box_slack, boxes, members, col_of, use_bvh, flat,
                   node_box, node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
-                  world_to_local, occluded, route, cand_owner, cands, cand_flat, cand_bvh,
+                  planes, world_to_local, occluded, route, cand_owner, cands, cand_flat, cand_bvh,
                   visited, near_t, near_owner):
     """occluded[r] = some box of `members` crossed before tmax[r] holds a triangle on
-    (0, tmax[r]); a ray stops at its first occluder, the boxes tried nearest first.
-    Arrays as `closest_walk`; with route, a ray not occluded here also gets the exact
+    (0, tmax[r]); a ray stops at its first occluder. Any order of trying the boxes gives
+    the same answer, so they are tried in the BVH's order or the flat loop's (members'),
+    with no queue. Arrays as `closest_walk`; with route, a ray not occluded here also gets the exact
     policy's next stop before tmax stretched by box_slack (a shadow ray keeps its tmax),
     as `closest_walk`'s (near_* of an occluded ray mean nothing: it ends here)."""
     rh, ri, ptr = _scratch()
     stack, stack_t = np.empty(node_child.shape[0] + 1, np.int32), np.empty(node_child.shape[0] + 1)
-    q_t, q_id = np.empty(boxes.shape[0] + 1), np.empty(boxes.shape[0] + 1, np.int64)
     f_te, f_ok = np.empty(flat.shape[1]), np.empty(flat.shape[1], np.bool_)
     _occluded_rays(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, flat, node_box,
-                   node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
-                   world_to_local, occluded, rh, ri, ptr, stack, stack_t, q_t, q_id, f_te, f_ok,
+                   node_child, node_start, node_count, prim, mesh_of, scene_of_mesh, planes,
+                   world_to_local, occluded, rh, ri, ptr, stack, stack_t, f_te, f_ok,
                    not np.isnan(flat).any())
     if route:
         bvh = (node_box, node_child, node_start, node_count, prim)
@@ -269,9 +282,8 @@ def occluded_walk(fn, origin, direction, tmax, box_slack, boxes, members, col_of
 
 @njit(**JIT_RAW)
 def _occluded_rays(fn, origin, direction, tmax, boxes, members, col_of, use_bvh, flat, node_box,
-                   node_child, node_start, node_count, prim, mesh_of, scene_of_mesh,
-                   world_to_local, occluded, rh, ri, ptr, stack, stack_t, q_t, q_id, f_te, f_ok,
-                   plain):
+                   node_child, node_start, node_count, prim, mesh_of, scene_of_mesh, planes,
+                   world_to_local, occluded, rh, ri, ptr, stack, stack_t, f_te, f_ok, plain):
     """`occluded_walk`'s loop over the rays, on the caller's scratch, without reference
     counting (as `_closest_rays`)."""
     for r in range(origin.shape[0]):
@@ -294,38 +306,62 @@ def _occluded_rays(fn, origin, direction, tmax, boxes, members, col_of, use_bvh,
                 for x in range(node_start[node], node_start[node] + node_count[node]):
                     b = prim[x]
                     if col_of[b] >= 0 and _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1,
-                                                        i2, tmax, mesh_of, scene_of_mesh,
+                                                        i2, tmax, mesh_of, scene_of_mesh, planes,
                                                         world_to_local, origin, direction,
                                                         ptr, rh, ri):
                         occluded[r] = True
                         break
-        else:
-            h = _flat_queue(flat, plain, members, o0, o1, o2, i0, i1, i2, tm, f_te, f_ok, q_t, q_id)
-            while h > 0:
-                h -= 1
-                if _occluded_in(fn, q_id[h], r, tmax, mesh_of, scene_of_mesh, world_to_local,
-                                origin, direction, ptr, rh, ri):
+        else:  # any order gives the same answer: the crossed boxes in member order
+            _flat_slabs(flat, plain, o0, o1, o2, i0, i1, i2, tm, f_te, f_ok)
+            for j in range(flat.shape[1]):
+                if f_ok[j] and _occluded_in(fn, members[j], r, tmax, mesh_of, scene_of_mesh,
+                                            planes, world_to_local, origin, direction, ptr,
+                                            rh, ri):
                     occluded[r] = True
                     break
 
 
 @njit(inline="always", **JIT)
-def _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1, i2, tmax, mesh_of, scene_of_mesh,
+def _occluded_box(fn, b, r, boxes, o0, o1, o2, i0, i1, i2, tmax, mesh_of, scene_of_mesh, planes,
                   world_to_local, origin, direction, ptr, rh, ri):
     """Whether ray r crosses instance b's box before tmax[r] and a triangle there blocks
     (0, tmax[r])."""
     ok, _, _ = _slab(boxes, b, o0, o1, o2, i0, i1, i2, np.float64(tmax[r]))
-    return ok and _occluded_in(fn, b, r, tmax, mesh_of, scene_of_mesh, world_to_local, origin,
-                               direction, ptr, rh, ri)
+    return ok and _occluded_in(fn, b, r, tmax, mesh_of, scene_of_mesh, planes, world_to_local,
+                               origin, direction, ptr, rh, ri)
 
 
 @njit(inline="always", **JIT)
-def _occluded_in(fn, b, r, tmax, mesh_of, scene_of_mesh, world_to_local, origin, direction,
-                 ptr, rh, ri):
+def _occluded_in(fn, b, r, tmax, mesh_of, scene_of_mesh, planes, world_to_local, origin,
+                 direction, ptr, rh, ri):
     """Whether a triangle of instance b blocks (0, tmax[r]) of ray r."""
     l0, l1, l2, e0, e1, e2 = to_local_ray(world_to_local, b, origin, direction, r)
-    return occluded1_ray(fn, scene_of_mesh[mesh_of[b]], ptr, rh, ri, l0, l1, l2, e0, e1, e2,
-                         tmax[r])
+    m = mesh_of[b]
+    if _leaves_plane(planes, m, l0, l1, l2, e0, e1, e2):
+        return False  # Embree finds no hit there (`nprt.workers.traversal.planar`)
+    return occluded1_ray(fn, scene_of_mesh[m], ptr, rh, ri, l0, l1, l2, e0, e1, e2, tmax[r])
+
+
+@njit(inline="always", **JIT)
+def _leaves_plane(planes, m, o0, o1, o2, d0, d1, d2):
+    """Whether mesh m lies in a plane of its local axes that the local ray o, d (float32
+    scalars, as Embree gets them) leaves, within the bounds under which Embree's robust
+    test rejects every triangle of it (`nprt.workers.traversal.planar`). planes (M, 3)
+    float64: per mesh axis (-1: not planar), the plane's coordinate c, reach."""
+    a = planes[m, 0]
+    if a < 0.0:
+        return False
+    reach = planes[m, 2]
+    if not (abs(o0) <= reach and abs(o1) <= reach and abs(o2) <= reach
+            and abs(d0) <= DIR_MAX and abs(d1) <= DIR_MAX and abs(d2) <= DIR_MAX):
+        return False  # also any NaN
+    oa, da = o0, d0
+    if a == 1.0:
+        oa, da = o1, d1
+    elif a == 2.0:
+        oa, da = o2, d2
+    gap = planes[m, 1] - np.float64(oa)  # c - O_a
+    return (gap < -GAP_MIN and da > DIR_MIN) or (gap > GAP_MIN and da < -DIR_MIN)
 
 
 @njit(inline="always", **JIT)

@@ -11,6 +11,7 @@ import numpy as np
 from nprt.workers.kernels import crossings, records
 from nprt.workers.traversal import rtc
 from nprt.workers.traversal.geometry import MeshGeometry
+from nprt.workers.traversal.planar import plane_rows
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.lights import FAR_T
 
@@ -57,6 +58,7 @@ class LocalGeometry:
         if missing:
             raise ValueError(f"instances reference meshes {sorted(missing)} not held here")
         self._scene_of_mesh = None
+        self._planes = None
         self._walk_inputs = None
         self._routed = None  # (cand_owner, its route inputs)
         self._no_route = None
@@ -104,6 +106,14 @@ class LocalGeometry:
             self._scene_of_mesh = scenes
         return self._scene_of_mesh
 
+    def _mesh_planes(self) -> np.ndarray:
+        """(M, 3) float64 `plane_rows` of the base meshes held here (made once)."""
+        if self._planes is None:
+            self._planes = plane_rows({m: (g.mesh.vertices, g.mesh.faces)
+                                       for m, g in self.geometry.items()},
+                                      len(self._scenes()))
+        return self._planes
+
     def intersect_closest(self, origin: np.ndarray, direction: np.ndarray, tmax: np.ndarray,
                           hit_inst: np.ndarray | None = None,
                           hit_prim: np.ndarray | None = None):
@@ -150,8 +160,8 @@ class LocalGeometry:
         # hit). With the margin it reports what it reports with tfar = FAR_T (see
         # crossings._closest_box, tests/workers/test_rtc.py).
         crossings.closest_walk(np.uint64(rtc.INTERSECT1), o, d, tmax, BOX_TMAX_SLACK_REL, FAR_T,
-                               *self._walk(), mesh_of, self._scenes(), w2l, run_t, run_inst,
-                               run_prim, run_u, run_v, *route)
+                               *self._walk(), mesh_of, self._scenes(), self._mesh_planes(), w2l,
+                               run_t, run_inst, run_prim, run_u, run_v, *route)
         use_record = hit_inst is not None
         if not use_record:
             hit_inst = hit_prim = np.zeros(n, np.int32)
@@ -181,6 +191,6 @@ class LocalGeometry:
         mesh_of, _, w2l = self.table.kernel_arrays()
         route = self._route_args(n, cand_owner, visited)
         crossings.occluded_walk(np.uint64(rtc.OCCLUDED1), o, d, tmax, BOX_TMAX_SLACK_REL,
-                                *self._walk(), mesh_of, self._scenes(), w2l, occluded,
-                                *route[:-1])
+                                *self._walk(), mesh_of, self._scenes(), self._mesh_planes(),
+                                w2l, occluded, *route[:-1])
         return occluded, NearestRemote(*route[-3:-1], tmax) if route[0] else None
