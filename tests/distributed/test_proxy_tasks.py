@@ -23,6 +23,9 @@ pytest.importorskip("torch", reason="training needs PyTorch")
 QUICK = ProxyConfig(steps=60, n_samples=1 << 13, grid=16,
                     eval_samples=1 << 11, calibrate=False)
 WIDTHS = (8,)
+# Per instance (sphere, sphere, torus, torus, capsule, capsule): the sphere's work equals the
+# other two's, so the work-balanced partition keeps each mesh whole on one of two shards.
+WORK = np.array([1.0, 1.0, 0.5, 0.5, 0.5, 0.5])
 
 
 def _mesh(name: str, tm: trimesh.Trimesh) -> Mesh:
@@ -55,7 +58,7 @@ def test_proxies_train_as_parallel_tasks_and_a_failed_task_falls_back_to_exact(
     seen = []
     trainer = RayTrainer(meta.source, cache.dir, on_progress=seen.append,
                          names={i: m.name for i, m in enumerate(meta.meshes)})
-    plan = plan_proxies(meta, partition(meta, 2), target_accuracy=0.5, cache=cache,
+    plan = plan_proxies(meta, partition(meta, 2, work=WORK), target_accuracy=0.5, cache=cache,
                         config=QUICK, widths=WIDTHS, trainer=trainer)
     by_name = {d.name: d for d in plan.decisions}
     assert by_name["sphere"].decision == by_name["capsule"].decision == "proxy"
@@ -73,6 +76,6 @@ def test_proxies_train_as_parallel_tasks_and_a_failed_task_falls_back_to_exact(
     assert [r["state"] for r in seen[0]] == ["training"] * 3
     # Trained once: planning again finds them cached and starts no task.
     again = RayTrainer(meta.source, cache.dir)
-    plan_proxies(meta, partition(meta, 2), target_accuracy=0.5, cache=cache, config=QUICK,
-                 widths=WIDTHS, trainer=again)
+    plan_proxies(meta, partition(meta, 2, work=WORK), target_accuracy=0.5, cache=cache,
+                 config=QUICK, widths=WIDTHS, trainer=again)
     assert [r["mesh"] for r in again.progress] == [1]  # only the failed one is retried
