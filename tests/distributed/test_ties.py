@@ -25,8 +25,8 @@ WALL, WALL_TWIN, FLOOR, FLOOR_SHIFTED = range(4)
 def tie_scene(with_wall: bool = True) -> Scene:
     """A wall and its twin (identical geometry and placement, different materials), two
     coplanar floors offset in their plane (their triangles tie where they overlap, and
-    nearly tie elsewhere), and a quad light lying in the wall's plane. All four meshes
-    have the same bytes, so the partition puts each pair on two shards for K = 2, 3, 4.
+    nearly tie elsewhere), and a quad light lying in the wall's plane. For K = 2, 3, 4 the
+    partition puts at least one tied pair on two shards (both for K = 2 and 4).
     The twin comes first in the instance list, each floor's instance after the other's
     shard order, so the shard a ray meets first holds the instance that must lose."""
     meshes = tuple(plane_mesh(half=1.0, divisions=6, name=f"m{i}", material=i)
@@ -65,8 +65,11 @@ def test_exact_equals_reference_bit_for_bit_where_surfaces_coincide(ray_local, t
     scene = tie_scene()
     owner = partition(scene, k).instance_shard
     inst_of = {i.mesh: n for n, i in enumerate(scene.instances)}
-    for a, b in ((WALL, WALL_TWIN), (FLOOR, FLOOR_SHIFTED)):
-        assert owner[inst_of[a]] != owner[inst_of[b]], f"k={k}: meshes {a}, {b} share a shard"
+    # The partition balances ray work: at K = 3 (four meshes on three shards) it keeps the
+    # lighter pair, the walls, together. A tie must cross shards for the test to bite.
+    split = [owner[inst_of[a]] != owner[inst_of[b]]
+             for a, b in ((WALL, WALL_TWIN), (FLOOR, FLOOR_SHIFTED))]
+    assert any(split), f"k={k}: every tied pair shares a shard ({owner.tolist()})"
     img = render(scene, RenderSettings(**TIE_SETTINGS, shards=k)).film.image()
     if not np.array_equal(img, tie_reference):
         where = dump_images(tmp_path, f"ties_k{k}", img, tie_reference)
