@@ -36,8 +36,10 @@ def test_band_one_falls_back_everywhere_and_equals_exact(exact_k4, scenes, refer
     result = render(scenes["city"], settings(K, mode="proxy", proxy=knobs))
     c = _stats(result)["counters"]
     assert c["proxy_queries"] > 0, c
-    # Every prediction lies within 1 of any threshold: none is trusted.
-    assert c.get("proxy_shadow_occluded", 0) == 0 and c.get("proxy_mispredictions", 0) == 0, c
+    # Every prediction lies within 1 of any threshold: none is trusted. (A shadow ray may
+    # still end on a known instance, another shard's instance of a mesh this shard holds,
+    # intersected exactly: where placement splits a mesh, proxy_shadow_occluded counts it.)
+    assert c.get("proxy_mispredictions", 0) == 0, c
     assert c["proxy_uncertain"] > 0 and c["proxy_shadow_uncertain"] > 0, c
     # (Transfers differ from exact mode: the plan replicates meshes lighter than a proxy.)
     assert_matches(tmp_path, "city_band1", result.film.image(), references["city"].film.image())
