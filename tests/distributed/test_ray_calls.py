@@ -12,7 +12,7 @@ import yaml
 
 from nprt.workers.runtime.protocol import Parcel, ShardConfig
 from nprt.workers.runtime.raysession import RAY_SYSTEM_CONFIG, _starts_local
-from nprt.workers.runtime.remote import CONCURRENCY_GROUPS, ShardActor
+from nprt.workers.runtime.remote import ShardActor
 from nprt.workers.settings import RenderSettings
 
 REPO = Path(__file__).resolve().parents[2]
@@ -60,8 +60,8 @@ def test_a_delivery_makes_no_object_ref_and_still_arrives(ray_local):
     """Nobody reads a delivery's answer, so `deliver` returns none. The parcel still
     reaches the wavefront thread: on an actor with no shard loaded, its step fails, and
     the next poll says so."""
-    actor = ray.remote(concurrency_groups=CONCURRENCY_GROUPS)(ShardActor).options(
-        num_cpus=0, enable_task_events=False).remote(ShardConfig(0, 1, RenderSettings()), None)
+    actor = ray.remote(ShardActor).options(num_cpus=0, enable_task_events=False).remote(
+        ShardConfig(0, 1, RenderSettings()), None)
     try:
         assert actor.deliver.remote(Parcel(None, {})) is None  # epoch None: no run begun
         with pytest.raises(ray.exceptions.RayTaskError, match="failed in its wavefront"):

@@ -25,12 +25,7 @@ from nprt.scene.store import ObjectStoreSource
 from nprt.workers.runtime.placement import make_plan, plan_placement  # noqa: F401 (make_plan re-exported)
 from nprt.workers.runtime.protocol import MeshRequest, ShardConfig
 from nprt.workers.runtime.raysession import acquire_ray, release_ray
-from nprt.workers.runtime.remote import (
-    CONCURRENCY_GROUPS,
-    MAX_CONCURRENCY,
-    ShardActor,
-    build_world,
-)
+from nprt.workers.runtime.remote import MAX_CONCURRENCY, ShardActor, build_world
 from nprt.workers.settings import RenderSettings
 
 log = logging.getLogger(__name__)
@@ -171,8 +166,7 @@ class ShardPool:
                 opts["scheduling_strategy"] = PlacementGroupSchedulingStrategy(
                     self.pg, placement_group_bundle_index=sid)
             opts.update((shard_options or [{}] * self.k)[sid])
-            actor = ray.remote(concurrency_groups=CONCURRENCY_GROUPS)(ShardActor).options(
-                **opts).remote(
+            actor = ray.remote(ShardActor).options(**opts).remote(
                 ShardConfig(sid, self.k, settings),
                 MeshRequest(self.source, tuple(shard_meshes[sid])), all_req)
             self.actors.append(actor)

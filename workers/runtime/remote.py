@@ -21,12 +21,11 @@ parcel"):
   shard that dies is found by the coordinator's polls), and without one a parcel makes
   no return object to register, reply with and free. With task events off (`pool.py`),
   Ray's CPU per 100-ray parcel fell by a fifth.
-- `deliver` runs on one thread of its own (the "deliver" concurrency group). Run by any
-  of the actor's MAX_CONCURRENCY threads, back-to-back deliveries land on several threads
-  that take turns at the GIL, each turn a futex wake-up; one thread takes them in turn.
-  This cut the receiving process's CPU per 100-ray parcel by about 40 %, and the sender's
-  Ray threads' by more. Deliveries are appends, so one thread keeps up; the long polls
-  and `collect` keep the other threads.
+- Tried and dropped: `deliver` on one thread of its own (a concurrency group of 1), so
+  that back-to-back deliveries do not take turns at the GIL on several of the actor's
+  threads. It halved Ray's CPU per 100-ray parcel at a load average of about 60, but on
+  a quieter machine it cost 0-15 % more (bench_ray_calls variant
+  `nprt_one_delivery_thread`, three locked runs).
 
 `build_world` is a Ray task that builds the instance table, whose BVH is built by a
 compiled kernel, on a worker: the driver keeps only the reference to it."""
@@ -43,9 +42,6 @@ import ray
 from nprt.workers.runtime.protocol import Parcel, PollReply
 
 MAX_CONCURRENCY = 8  # Ray threads per actor: deliver, poll and collect never wait on a step
-# Deliveries run on one thread of their own, not on any of the MAX_CONCURRENCY (see the
-# module docstring); ray.remote takes these (pool.py), `.options` does not.
-CONCURRENCY_GROUPS = {"deliver": 1}
 SETTLE_S = 30.0  # a settling poll waits at most this long for the step in progress
 
 
@@ -137,7 +133,7 @@ class ShardActor:
             with self._step_lock:
                 self._shard.reset()
 
-    @ray.method(num_returns=0, concurrency_group="deliver")
+    @ray.method(num_returns=0)
     def deliver(self, parcel: Parcel) -> None:
         with self._cv:
             if parcel.epoch != self._epoch:
