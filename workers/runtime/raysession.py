@@ -54,11 +54,17 @@ RAY_SYSTEM_CONFIG = {"max_direct_call_object_size": 1 << 20}
 
 def _starts_local(address: str | None) -> bool:
     """Whether ray.init(address) would start a Ray (and so accept a system config) rather
-    than join one: Ray's own resolution of None, "auto", "local" and RAY_ADDRESS."""
+    than join one: Ray's own resolution of None, "auto", "local" and RAY_ADDRESS. Its
+    warnings (several Rays on this host) are ray.init's to print, at the level it sets."""
+    services_log = logging.getLogger("ray._private.services")
+    level = services_log.level
+    services_log.setLevel(logging.ERROR)
     try:
         return canonicalize_bootstrap_address(address) is None
     except Exception:  # no cluster where one was named: ray.init says so itself
         return False
+    finally:
+        services_log.setLevel(level)
 
 
 def _init(address: str | None) -> None:
