@@ -31,8 +31,9 @@ class Partition:
     shard_meshes   : per shard, the sorted mesh indices it holds
     shard_bytes    : (k,) int64, geometry bytes per shard (each held mesh counted once)
     shard_work     : (k,) float64, estimated ray work per shard (replicated meshes left out)
-    byte_cap       : the bytes a shard may hold (BYTE_SLACK x the bytes-only rule's largest
-                     shard); a shard exceeds it only where no shard could take a piece
+    byte_cap       : the bytes of its own pieces a shard may hold (BYTE_SLACK x the
+                     bytes-only rule's largest shard, at least the largest mesh); no shard
+                     holds more, the replicated meshes coming on top
     bytes_only_max : the largest shard's bytes under the bytes-only rule, for comparison
     bytes_only_work : (k,) float64, estimated work per shard under that rule
     """
@@ -84,19 +85,22 @@ def partition(scene: Scene, k: int, replicated=(), work=None) -> Partition:
     on each shard's bytes.
 
     The rule:
-    1. Pieces. Every instanced mesh is one piece; while there are fewer pieces than shards,
-       or the piece with the most work has more than PIECE_SHARE of a shard's fair share
-       (total work / k), that mesh is cut into one more piece (at most one piece per
-       instance, and at most MAX_PIECES_PER_SHARD x k pieces in all). A mesh's pieces are
-       spatially coherent groups of near-equal size, from recursive median bisection of
-       the instance centres along the longest axis.
+    1. Pieces. Every instanced mesh is one piece, and while there are fewer pieces than
+       shards the mesh with the most work per piece is cut into one more. A mesh's pieces
+       are spatially coherent groups of near-equal work, from recursive weighted-median
+       bisection of the instance centres along the longest axis.
     2. Cap. byte_cap = BYTE_SLACK x the largest shard of the bytes-only rule (the same
        pieces, largest mesh first to the shard with the fewest bytes), and at least the
-       largest mesh.
-    3. Work, largest first (LPT): each piece goes to the shard with the least work among
-       those it fits in under the cap (a mesh already held costs no bytes); where it fits
-       nowhere, to the shard whose bytes grow least. The first k pieces take the k empty
-       shards, so none stays empty.
+       largest mesh. That packing is the fallback: it always fits.
+    3. Pack by work, largest piece first, each to the least-loaded shard it fits in under
+       the cap (a mesh already held costs no bytes); where a piece would overflow, a
+       tighter cap is tried. Then a local search moves a piece off the busiest shard, or
+       swaps it for a lighter one, while that lowers the larger of the two shards' work.
+    4. Cut the mesh of the busiest shard's heaviest piece once more and pack again, until
+       the busiest shard is within BALANCED of the fair share (total work / k), no piece
+       there can be cut (one instance each), or there are MAX_PIECES_PER_SHARD x k pieces.
+       The packing with the least work on its busiest shard (under the cap) is kept.
+    Every shard gets at least one piece.
 
     work: (n_instances,) float64 per-instance ray work; None: nprt.scene.workload's
     `instance_work` (metadata only). replicated: mesh indices every shard will hold
