@@ -13,20 +13,23 @@ PR #19420 declined one).
 
 Per-call settings, measured with `bench/render/bench_ray_calls.py` (two threaded actors
 exchanging nprt parcels; whole-process CPU from /proc, Ray's threads and the raylet
-counted; bench/README.md "Ray's CPU per parcel"):
+counted):
 - `max_direct_call_object_size` (`RAY_SYSTEM_CONFIG`): a call argument up to this size
   travels inline in the call (gRPC) instead of through the object store. Ray's default,
   100 kB, sends a parcel of more than about 1,100 rays (92 bytes a ray) through plasma:
   a put, a seal, a pin and a free in the sender's raylet, and the receiver's fetch,
-  together about 1.1 ms of CPU more than inline for a 460 kB parcel (5,000 rays), most
-  of it in the raylet. Ray caps the inlined bytes of one call at
+  together 1.1-1.4 ms of CPU more than inline for a 460 kB parcel (5,000 rays), about
+  1 ms of it in the raylet. Ray caps the inlined bytes of one call at
   `task_rpc_inlined_bytes_limit` (10 MB), so a larger parcel still goes through plasma.
   A system config is fixed when Ray starts: it applies to a Ray that nprt starts here;
   a cluster gets it from `ray start --head --system-config` (deploy/cluster.yaml, and
   every node fetches the head's).
-- Task events (`enable_task_events=False` on the shard actors: `pool.py`) and the
-  metrics Ray records are Ray's observability, which nprt does not read: its job
-  statistics come from the shards' own poll replies."""
+- Task events are off for the shard actors (`enable_task_events=False`, `pool.py`): Ray
+  records each call for its dashboard and state API, which nprt does not read (its job
+  statistics come from the shards' poll replies). With `deliver` returning no ref
+  (`remote.py`) this cut 0-21 % of the CPU per 100-ray parcel in three runs; either
+  alone was within the run-to-run noise. Turning metrics collection off
+  (`enable_metrics_collection`) changed nothing measurable, so it stays on."""
 
 from __future__ import annotations
 

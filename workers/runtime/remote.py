@@ -15,17 +15,16 @@ process, and runs the shard as a mailbox:
 
 A job run is an epoch (`begin`): parcels of any other epoch are dropped on arrival, so
 after a fault the coordinator starts a new epoch and stale parcels in flight are harmless.
-Ray's CPU per parcel (bench/render/bench_ray_calls.py, bench/README.md "Ray's CPU per
-parcel"):
+Ray's CPU per parcel (bench/render/bench_ray_calls.py):
 - `deliver` returns no object ref (`num_returns=0`): nobody reads a delivery's answer (a
   shard that dies is found by the coordinator's polls), and without one a parcel makes
-  no return object to register, reply with and free. With task events off (`pool.py`),
-  Ray's CPU per 100-ray parcel fell by a fifth.
+  no return object to register, reply with and free. Together with task events off
+  (`pool.py`), Ray's CPU per 100-ray parcel fell by 0-21 % in three runs.
 - Tried and dropped: `deliver` on one thread of its own (a concurrency group of 1), so
   that back-to-back deliveries do not take turns at the GIL on several of the actor's
   threads. It halved Ray's CPU per 100-ray parcel at a load average of about 60, but on
   a quieter machine it cost 0-15 % more (bench_ray_calls variant
-  `nprt_one_delivery_thread`, three locked runs).
+  `nprt_one_delivery_thread`, two locked runs).
 
 `build_world` is a Ray task that builds the instance table, whose BVH is built by a
 compiled kernel, on a worker: the driver keeps only the reference to it."""
