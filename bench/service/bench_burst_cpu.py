@@ -145,18 +145,31 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     out = RESULTS / "bench_burst_cpu.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    shown = {k: v for k, v in vars(args).items() if k not in ("service_root", "versus")}
-    out.write_text(json.dumps({"results": results, "args": shown, "load_average_before": load,
-        "load_average_after": os.getloadavg(), "cpus": os.cpu_count(), "markdown": table},
-        indent=1))
-    from bench.common import publish
-
     command = " ".join(re.sub(r"/\S*", "<checkout>", a) if "/" in a else a
                        for a in (argv if argv is not None else sys.argv[1:]))
-    publish("bench_burst_cpu", f"{table}\n\nLoad average {load[0]:.1f} before, "
-            f"{os.getloadavg()[0]:.1f} after (2 cores, shared). Command: `python -m "
-            f"bench.service.bench_burst_cpu {command}`.", out)
+    shown = {k: str(v) for k, v in vars(args).items() if k not in ("service_root", "versus")}
+    out.write_text(json.dumps({"results": results, "args": shown, "command": command,
+                               "load_average_before": load,
+                               "load_average_after": os.getloadavg(), "cpus": os.cpu_count(),
+                               "markdown": table}, indent=1))
+    write_readme()
     return 0
+
+
+def write_readme() -> None:
+    """bench/README.md's section from the saved result."""
+    from bench.common import publish
+
+    out = RESULTS / "bench_burst_cpu.json"
+    saved = json.loads(out.read_text())
+    publish("bench_burst_cpu", "## API CPU per request over sockets "
+            "(`bench/service/bench_burst_cpu.py`)\n\n" + saved["markdown"] + "\n\n"
+            f"Load average {saved['load_average_before'][0]:.1f} before, "
+            f"{saved['load_average_after'][0]:.1f} after ({saved['cpus']} cores, shared; under "
+            f"the bench lock). Command: `python -m bench.service.bench_burst_cpu "
+            f"{saved['command']}`. The /healthz row is the floor of any request on a new "
+            "connection (uvicorn's protocol and the kernel's TCP work); POST less it is what "
+            "the admission itself costs.", out)
 
 
 if __name__ == "__main__":

@@ -362,6 +362,27 @@ def findings(runs: dict[str, dict]) -> str:
             "a host with 2 or more cores) split the burst between two loops.")
 
 
+SESSION8 = (
+    "Issue 24, eighth session: the CPU of an admission cut, measured over sockets by "
+    "`bench_burst_cpu` (section below; on-CPU ns of every API thread, 3,000 burst POSTs a "
+    "round, under the bench lock, load 2-3.5): 221.5 -> 170.8 us an admission, of which "
+    "the admission itself (less a GET /healthz on a new connection, the floor) 123.8 -> 81.7 "
+    "us. The job body is validated once and its settings stored as the JSON text "
+    "RenderSettings' serializer writes (no second model, no model_dump + json.dumps), the "
+    "202 body is written from the stored row (equal byte for byte to JobPublic's, tested), "
+    "the API workers collect young objects every 50,000 allocations instead of 700 (the "
+    "requests in flight set off a collection every few admissions: 11-14 us of CPU each, "
+    "in process), uvicorn no longer formats access lines that WARNING drops, and the gRPC "
+    "child runs on uvloop (213-223 against 240 us of CPU per Health.Check). In the run of "
+    "the tables above (21:30-21:35, load 2.3-4.0, this session's service against 5315b43's, "
+    "rounds alternating) the API's CPU over the burst fell from 0.17 to 0.12 s and POST p99 "
+    "from 216 to 127 ms (rounds 150 / 216 / 131 against 127 / 128 / 104). The tick-counted "
+    "'API CPU per POST, one at a time' (100 POSTs, 10 ms ticks) read 0.3 before and 0.5 "
+    "after in this run: too coarse to compare (0.2-1.0 between rounds of one service in the "
+    "seventh session); in process one at a time costs 177-197 us after against 208-284 "
+    "before (diagnostic, unlocked).")
+
+
 WORKERS = (
     "One API worker against two, same code, the same client, one locked run with `before` "
     "(15:45-15:50, load 7-21; `--repeat 2 --set after:NPRT_API_WORKERS=1 --versus "
@@ -439,7 +460,8 @@ def write_readme() -> None:
                     "that the service, on the same 2 cores, lost to its client; the "
                     "service's costs are the same either way, and `before` and `after` "
                     "are measured with the same client.\n\n"
-                    + summary_table(runs) + "\n\n" + findings(runs) + "\n\n" + SESSION7
+                    + summary_table(runs) + "\n\n" + findings(runs) + "\n\n" + SESSION8
+                    + "\n\n" + SESSION7
                     + "\n\n" + WORKERS
                     + "\n\n"
                     + "\n\n".join(parts))
