@@ -51,3 +51,26 @@ def test_an_order_or_camera_parcel_keeps_its_fields():
     got, _ = _roundtrip(sent)
     assert got.rays is None and got.shadow is None
     assert all(np.array_equal(a, b) for a, b in zip(got.camera, cam, strict=True))
+
+
+def test_columns_received_read_only_reach_the_kernels_as_the_shards_own_rays():
+    """Ray hands call arguments over read-only, and numba types a read-only array apart
+    (it compiled every walk again inside the first render on Ray). A received parcel's
+    columns and camera arrays are writable, of the same numba type as the sender's."""
+    numba = pytest.importorskip("numba")
+    rng = np.random.default_rng(3)
+    cam = (np.arange(4, dtype=np.uint32), np.arange(4, dtype=np.uint32) * 2)
+    sent = Parcel(2, {0: 1}, _random(RayBatch, 9, rng), _random(ShadowRayBatch, 4, rng),
+                  camera=cam)
+    buffers = []
+    blob = pickle.dumps(sent, protocol=5, buffer_callback=buffers.append)
+    frozen = [pickle.PickleBuffer(bytes(b.raw())) for b in buffers]  # as Ray's: read-only
+    assert all(memoryview(b).readonly for b in frozen)
+    got = pickle.loads(blob, buffers=frozen)
+    pairs = [(getattr(a, name), getattr(b, name)) for a, b in
+             ((sent.rays, got.rays), (sent.shadow, got.shadow)) for name in a._SPEC]
+    pairs += list(zip(sent.camera, got.camera, strict=True))
+    for x, y in pairs:
+        assert y.flags.writeable
+        assert numba.typeof(y) == numba.typeof(x)
+        assert x.tobytes() == y.tobytes()

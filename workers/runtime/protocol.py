@@ -106,10 +106,21 @@ def _pack(batch):
     return type(batch), len(batch), offsets, buf
 
 
+def _writable(a: np.ndarray) -> np.ndarray:
+    """`a`, or a copy where it is read-only. Ray hands call arguments over read-only (views
+    of the received bytes or of the object store), and numba compiles a kernel again for
+    read-only arrays (`readonly array(...)` is another type): the kernels that the shard's
+    warm-up compiled for its own writable rays were compiled again, for 15-20 s of CPU per
+    shard, inside the first render on a machine whose cache lacked the read-only variants.
+    A copy costs a memcpy a parcel (a few tens of us for 5,000 rays)."""
+    return a if a.flags.writeable else a.copy()
+
+
 def _unpack(packed):
     if packed is None:
         return None
     cls, n, offsets, buf = packed
+    buf = _writable(buf)
     cols = {}
     for (name, (width, dtype)), o in zip(cls._SPEC.items(), offsets, strict=True):
         shape = (n,) if width is None else (n, width)
@@ -118,6 +129,8 @@ def _unpack(packed):
 
 
 def _rebuild_parcel(epoch, credits, rays, shadow, orders, camera, source, sent_at) -> Parcel:
+    if camera is not None:
+        camera = tuple(_writable(a) for a in camera)
     return Parcel(epoch, credits, _unpack(rays), _unpack(shadow), orders, camera, source,
                   sent_at)
 
