@@ -26,7 +26,7 @@ from nprt.scene.model import Mesh
 from nprt.workers.filmsum import MAX_EXP, FilmSums
 from nprt.workers.kernels import tiles
 from nprt.workers.kernels.filmsum import splat
-from nprt.workers.passes import Pass, count_tiles, pass_at
+from nprt.workers.passes import Pass, count_tiles, pass_at, tile_of
 from nprt.workers.routing.exact import DONE, hit_owner, nearest_unvisited, visited_bit
 from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
 from nprt.workers.runtime.protocol import EVERYWHERE, MeshRequest, Parcel, ShardConfig
@@ -242,13 +242,25 @@ class Shard:
                 "meshes": sorted(self.meshes), "load_s": round(self.load_s, 4)}
 
     def warm(self) -> float:
-        """Trace a 4x4-pixel, 1-sample pass and drop it, so every kernel is compiled (or
-        loaded from numba's cache) before the first timed pass. Returns seconds taken."""
+        """Trace two 4x4-pixel, 1-sample passes and drop them, so every kernel is compiled
+        (or loaded from numba's cache) before the first timed pass: one at the image's
+        centre and one halfway to its bottom edge, where a view usually meets geometry (a
+        corner tile often sees only sky, and then the shading kernels were compiled inside
+        the first render). Returns seconds taken."""
         t0 = time.perf_counter()
         s = self.config.settings
         self.begin(s)
-        p = Pass(0, 0, 0, min(4, s.width), min(4, s.height), 0, 1)
-        self.step([p], [], {0: Fraction(1)})
+        passes = {}
+        for y in (s.height // 2, (3 * s.height) // 4):
+            # A 4x4 corner of the pass (chunk 0) whose tile holds pixel (width / 2, y): the
+            # step keeps a pass's state by its index, so the block must lie in that tile.
+            whole = pass_at(s, int(tile_of(s, np.uint32([y * s.width + s.width // 2]))[0]))
+            w, h = min(4, whole.x1 - whole.x0), min(4, whole.y1 - whole.y0)
+            x0 = min(max(s.width // 2 - w // 2, whole.x0), whole.x1 - w)
+            y0 = min(max(y - h // 2, whole.y0), whole.y1 - h)
+            passes[whole.index] = Pass(whole.index, x0, y0, x0 + w, y0 + h, whole.sample0,
+                                       whole.sample0 + 1)
+        self.step(list(passes.values()), [], {i: Fraction(1) for i in passes})
         self.reset()
         self._warm_occlusion()
         self.policy.warm()
