@@ -70,3 +70,31 @@ def test_asking_both_ray_kinds_together_changes_only_the_net_calls(k):
     assert stats == stats_apart
     assert sum(st.get(("counters", "proxy_queries"), 0) for st in stats) > 0
     assert 0 < calls < calls_apart
+
+
+def test_shadow_rays_asked_alone_count_their_net_calls_on_their_own_pass():
+    """A step whose iteration has only shadow rays left asks the proxies with no ray batch
+    bound; the net calls go on the shadow rays' pass, whatever batch (perhaps one of no
+    rows, as on a 14-shard render) the step's statistics had bound before."""
+    import numpy as np
+
+    from nprt.workers.stats.counters import RenderStats, SplitStats
+    from nprt.workers.wavefront.batch import ShadowRayBatch
+
+    s = RenderSettings(width=24, height=16, spp=1, seed=0, shards=3, mode="proxy")
+    shards = shards_in_process(open_scene("city:small").load(), s, warm=False)
+    rays = shards[0].integrator.primary(next(iter_passes(s)))
+    n = len(rays)
+    shadow = ShadowRayBatch(origin=rays.origin, direction=rays.direction,
+                            tmax=np.full(n, np.inf, np.float32),
+                            contribution=np.ones((n, 3), np.float32), pixel=rays.pixel,
+                            visited=np.zeros(n, np.uint64), hops=np.zeros(n, np.uint8))
+    calls = 0
+    for sh in shards:
+        stats = SplitStats([RenderStats(), RenderStats()]).bind(np.zeros(0, np.int64))
+        tok = np.ones(n, np.int64)  # every shadow ray belongs to the step's second pass
+        sh.policy.route_together(None, None, shadow, tok, stats)
+        per_pass = stats._counters.get("proxy_net_calls", np.zeros(2, np.int64))
+        assert per_pass[0] == 0
+        calls += per_pass[1]
+    assert calls > 0  # some shard's nets were asked

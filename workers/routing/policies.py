@@ -152,8 +152,10 @@ class ProxyPolicy(ExactPolicy):
             with stats.phase("proxy"):
                 preds, calls = predict_together(self.world, self.proxies, self.modeled,
                                                 queries, self.known)
-            # A call serves every pass of the step: counted on the pass of the bound
-            # batch's first row, so that the passes add up to the calls made.
+            # A call serves every pass of the step: counted on the pass of the first row
+            # of a batch that was asked about (bound here: the batch bound before may have
+            # no rows), so that the passes add up to the calls made.
+            stats.bind(ray_tok if rays is not None and len(f) else shadow_tok)
             stats.count("proxy_net_calls", np.zeros(calls, np.intp))
         routed_rays = routed_shadow = None
         if rays is not None:
