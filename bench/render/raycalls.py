@@ -15,11 +15,14 @@ from nprt.workers.runtime.raysession import acquire_ray, release_ray
 from nprt.workers.wavefront.batch import RayBatch
 
 
-@ray.remote(num_cpus=0, max_concurrency=8)
+# As the shards run (workers/runtime/pool.py, remote.py): no task events, and `deliver`
+# returns no object ref.
+@ray.remote(num_cpus=0, max_concurrency=8, enable_task_events=False)
 class _Sink:
     def __init__(self):
         self.n = 0
 
+    @ray.method(num_returns=0)
     def deliver(self, parcel) -> None:
         self.n += 1
 
