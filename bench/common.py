@@ -52,7 +52,7 @@ def start_ray(num_cpus: int | None = None) -> None:
     # started here takes the system config nprt's own start gives it (a joined one has
     # its head's).
     ray.init(address=None if shared else "local", num_cpus=None if shared else num_cpus,
-             include_dashboard=False, _system_config=None if shared else RAY_SYSTEM_CONFIG,
+             include_dashboard=False, _system_config=None if shared else dict(RAY_SYSTEM_CONFIG),
              log_to_driver=False, logging_level=logging.WARNING)
 
 

@@ -168,8 +168,9 @@ def _one(variant: str, sizes, calls: int, rounds: int, idle_s: float) -> dict:
     import logging
 
     system_config, actor_options, num_returns = VARIANTS[variant]
+    config = dict(system_config) if system_config else None  # ray.init adds to it
     ray.init(address="local", num_cpus=4, include_dashboard=False, log_to_driver=False,
-             logging_level=logging.ERROR, _system_config=system_config or None)
+             logging_level=logging.ERROR, _system_config=config)
     try:
         return measure(actor_options, num_returns, sizes, calls, rounds, idle_s)
     finally:

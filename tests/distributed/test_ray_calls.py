@@ -68,3 +68,12 @@ def test_a_delivery_makes_no_object_ref_and_still_arrives(ray_local):
             ray.get(actor.poll.remote(None, 60.0))
     finally:
         ray.kill(actor)
+
+
+def test_the_system_config_survives_a_ray_started_with_it():
+    """ray.init adds its own entries (object spilling, with its session's directory) to the
+    dict it is given: nprt's config is read-only and every start passes a copy, so a later
+    start (and the comparisons above) see nprt's settings only."""
+    with pytest.raises(TypeError):
+        RAY_SYSTEM_CONFIG["max_direct_call_object_size"] = 1  # type: ignore[index]
+    assert dict(RAY_SYSTEM_CONFIG) == {"max_direct_call_object_size": 1 << 20}

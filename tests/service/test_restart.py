@@ -114,8 +114,10 @@ def test_killed_scheduler_leaves_the_api_answering_and_the_job_resumes(tmp_path)
 
 # One pass of 128x128 x 16 samples: the cancel is stored long before the renderer reaches
 # the pass boundary where it would act on it.
-ONE_LONG_PASS = {"scene": "forest:tiny", "width": 128, "height": 128, "spp": 16,
-                 "bounces": 3, "shadow_rays": 1, "tile_size": 128, "spp_per_pass": 16}
+# One pass of about 2.5 s in the reference (forest at default size; 0.15 s with the
+# forest:tiny pass this used to be, which a loaded CI host saw finish before the cancel).
+ONE_LONG_PASS = {"scene": "forest", "width": 128, "height": 128, "spp": 32,
+                 "bounces": 8, "shadow_rays": 4, "tile_size": 128, "spp_per_pass": 32}
 
 
 def test_canceled_job_stays_canceled_after_kill_and_restart(tmp_path):

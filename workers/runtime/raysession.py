@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import logging
 import threading
+from types import MappingProxyType
 
 import ray
 from ray._private.services import canonicalize_bootstrap_address
@@ -52,7 +53,9 @@ def ray_console() -> dict:
 
 
 # Ray's system config for a Ray that nprt starts (see the module docstring).
-RAY_SYSTEM_CONFIG = {"max_direct_call_object_size": 1 << 20}
+# Read-only: ray.init adds its own entries (object spilling, with the session's directory)
+# to the dict it is given, so every caller passes a copy (`dict(RAY_SYSTEM_CONFIG)`).
+RAY_SYSTEM_CONFIG = MappingProxyType({"max_direct_call_object_size": 1 << 20})
 
 
 def _starts_local(address: str | None) -> bool:
@@ -71,7 +74,7 @@ def _starts_local(address: str | None) -> bool:
 
 
 def _init(address: str | None) -> None:
-    config = RAY_SYSTEM_CONFIG if _starts_local(address) else None
+    config = dict(RAY_SYSTEM_CONFIG) if _starts_local(address) else None
     ray.init(address=address, include_dashboard=False, _system_config=config, **ray_console())
 
 
