@@ -105,7 +105,7 @@ class ProxyPolicy(ExactPolicy):
         self.shadow = QueryKnobs(k.threshold, band[1], 0.0, k.internal_ambiguous == "exact")
 
     def warm(self) -> None:
-        """The proxy query kernels too, which the shard's warm-up pass (a 4x4 corner tile)
+        """The proxy query kernels too, which the shard's warm-up passes (two 4x4 blocks)
         may never reach: one ray through the centre of each of a few modeled boxes, from
         outside it, with both knobs (else a job's first proxy query compiles them, 20 s of
         CPU inside its render on a fresh cache)."""
