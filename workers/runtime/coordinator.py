@@ -53,6 +53,7 @@ from nprt.scene.meta import SceneMeta
 from nprt.scene.model import Scene
 from nprt.workers.filmsum import FilmSums
 from nprt.workers.passes import Pass, count_tiles
+from nprt.workers.runtime import remote
 from nprt.workers.runtime.calltrace import StepTrace
 from nprt.workers.runtime.pool import (  # noqa: F401 (ShardStartError re-exported)
     PoolRegistry,
@@ -372,7 +373,8 @@ class Coordinator:
         while True:
             try:
                 self.pool.resync()  # a restarted shard holds its start-up frame
-                refs = [a.begin.remote(epoch, self.s, self.actors, self.trace is not None)
+                hold = (remote.HOLD_RAYS, remote.HOLD_S)
+                refs = [a.begin.remote(epoch, self.s, self.actors, self.trace is not None, hold)
                         for a in self.actors]
                 self._incarnations = ray.get(refs, timeout=BEGIN_TIMEOUT_S)
                 self.totals = [None] * self.k

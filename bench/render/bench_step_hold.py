@@ -1,0 +1,134 @@
+"""How long a shard waits to merge parcels into one step (nprt.workers.runtime.remote,
+HOLD_RAYS and HOLD_S), side by side in one run: the 1-core reference, then each scene at one
+K in exact and proxy mode with each hold setting.
+
+A step pays a fixed cost (a Ray call per target, the per-step glue) and a cost per ray. A
+shard whose inbox holds few rays can step at once (small steps: more fixed cost per ray) or
+wait a little for more (fewer, bigger steps, but the wait can leave its core idle). Per
+row: render wall and CPU against the reference's, steps, parcels, mean rays per step, Ray's
+threads (shard CPU outside the wavefront thread), the busy fraction, and whether the film
+equals the no-hold film (exact mode: it must; films never depend on step grouping).
+
+Meaningful on a machine with a core per shard and one for the coordinator: on fewer cores
+the shards wait for CPU anyway, and their steps are big whatever the hold.
+
+    python -m bench.render.bench_step_hold --scenes city forest --k 8
+    python -m bench.render.bench_step_hold --smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from bench.common import add_output_flags, finish, machine, smoke
+from bench.render.bench_strong_scaling import run_one
+from nprt.scene.store import open_scene
+from nprt.workers.runtime import remote
+from nprt.workers.settings import RenderSettings
+
+HOLDS = [(0, 0.0), (8192, 0.002), (8192, 0.004), (16384, 0.008)]  # (rays, seconds)
+
+
+def _render(coord, scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
+    """One render on a started pool: its wall, CPU (shards and coordinator) and counts."""
+    from nprt.workers.render import render
+
+    c0, t0 = coord.cpu_s, time.perf_counter()
+    result = render(scene, s, renderer=coord)
+    wall = time.perf_counter() - t0
+    info, st = coord.info(), result.stats.to_dict()
+    shards = info["shard_stats"]  # this render's totals: `begin` zeroes them
+    coord_cpu = coord.cpu_s - c0
+    shard_cpu = sum(x["cpu_s"] for x in shards)
+    return {"mode": s.mode, "k": s.shards, "render_s": round(wall, 3),
+            "cpu_s": round(shard_cpu + coord_cpu, 3), "coordinator_cpu_s": round(coord_cpu, 3),
+            "ray_threads_s": round(shard_cpu - sum(x["wavefront_cpu_s"] for x in shards), 3),
+            "busy_fraction": [x["busy_fraction"] for x in shards],
+            "steps": sum(x["steps"] for x in shards), "parcels": sum(x["calls"] for x in shards),
+            "transfers": st["total_transfers"], "ray_bytes": st["total_bytes"],
+            "phase_cpu_s": st["phase_cpu_s"]}, result.film.image()
+
+
+def bench(args) -> dict:
+    from nprt.workers.render import make_renderer
+
+    rows = []
+    saved = remote.HOLD_RAYS, remote.HOLD_S
+    try:
+        for name in args.scenes:
+            scene = open_scene(name if args.size == "default" else f"{name}:{args.size}")
+            base = dict(width=args.width, height=args.height, spp=args.spp, seed=0)
+            ref, _, _ = run_one(scene.load(), RenderSettings(**base, shards=0))
+            ref.update(scene=name)
+            rows.append(ref)
+            print(f"{name} reference {ref['render_s']:.2f} s, cpu {ref['cpu_s']:.2f} s", flush=True)
+            for mode in args.modes:
+                s = RenderSettings(**base, shards=args.k, mode=mode)
+                coord = make_renderer(scene, s)
+                try:
+                    _render(coord, scene, s)  # the pool's first render: caches warm
+                    first = None
+                    for _ in range(args.rounds):
+                        for hold in HOLDS:
+                            remote.HOLD_RAYS, remote.HOLD_S = hold
+                            row, img = _render(coord, scene, s)
+                            first = img if first is None else first
+                            row |= {"scene": name, "hold_rays": hold[0], "hold_ms": hold[1] * 1e3,
+                                    "wall_ratio": round(row["render_s"] / ref["render_s"], 3),
+                                    "cpu_ratio": round(row["cpu_s"] / ref["cpu_s"], 3),
+                                    "rays_per_parcel": round(row["transfers"]
+                                                             / max(1, row["parcels"]), 1),
+                                    "same_film_as_no_hold": bool(np.array_equal(img, first))}
+                            rows.append(row)
+                            print(_line(row), flush=True)
+                finally:
+                    coord.close()
+    finally:
+        remote.HOLD_RAYS, remote.HOLD_S = saved
+    return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count()},
+            "settings": vars(args) | {"out": str(args.out)}, "holds": HOLDS, "rows": rows}
+
+
+def _line(r: dict) -> str:
+    return (f"{r['scene']} {r['mode']} K={r['k']} hold {r['hold_rays']:6d} rays "
+            f"{r['hold_ms']:4.1f} ms: wall {r['render_s']:6.2f} s ({r['wall_ratio']:.2f}x) cpu "
+            f"{r['cpu_s']:6.1f} s ({r['cpu_ratio']:.2f}x) steps {r['steps']:5d} parcels "
+            f"{r['parcels']:5d} Ray threads {r['ray_threads_s']:5.1f} s same film "
+            f"{r['same_film_as_no_hold']}")
+
+
+def markdown(res: dict) -> str:
+    head = ("| scene | mode | K | hold rays | hold ms | render s | vs reference | CPU s | CPU vs "
+            "ref | steps | parcels | rays / parcel | Ray threads s | same film |\n"
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n")
+    return head + "".join(
+        f"| {r['scene']} | {r['mode']} | {r['k']} | {r['hold_rays']} | {r['hold_ms']:g} | "
+        f"{r['render_s']:.2f} | {r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x"
+        f" | {r['steps']} | {r['parcels']} | {r['rays_per_parcel']:.0f} | "
+        f"{r['ray_threads_s']:.1f} | {'yes' if r['same_film_as_no_hold'] else 'NO'} |\n"
+        for r in res["rows"] if r["k"])
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="+", default=["city", "forest"])
+    ap.add_argument("--size", default="default")
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--height", type=int, default=360)
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
+    ap.add_argument("--k", type=int, default=8)
+    ap.add_argument("--rounds", type=int, default=1, help="times through the hold settings")
+    add_output_flags(ap)
+    args = smoke(ap.parse_args(), scenes=["forest"], size="tiny", width=32, height=24, spp=2,
+                 modes=["exact"], k=2)
+    res = bench(args)
+    finish(res, args.out / "bench_step_hold.json", markdown=markdown, update_readme=False)
+
+
+if __name__ == "__main__":
+    main()
