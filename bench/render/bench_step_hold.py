@@ -13,6 +13,7 @@ Meaningful on a machine with a core per shard and one for the coordinator: on fe
 the shards wait for CPU anyway, and their steps are big whatever the hold.
 
     python -m bench.render.bench_step_hold --scenes city forest --k 8
+    python -m bench.render.bench_step_hold --scenes city --k 4 --holds 0:0 16384:8 --rounds 2
     python -m bench.render.bench_step_hold --smoke
 """
 
@@ -30,7 +31,20 @@ from nprt.scene.store import open_scene
 from nprt.workers.runtime import remote
 from nprt.workers.settings import RenderSettings
 
-HOLDS = [(0, 0.0), (8192, 0.002), (8192, 0.004), (16384, 0.008)]  # (rays, seconds)
+HOLDS = ["0:0", "8192:2", "8192:4", "16384:8"]  # rays:milliseconds; the first is the baseline
+
+
+def parse_hold(text: str) -> tuple[int, float]:
+    """'RAYS:MS' -> (rays, seconds)."""
+    try:
+        rays, ms = text.split(":")
+        hold = int(rays), float(ms) / 1e3
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"a hold is RAYS:MS, such as 16384:8, not {text!r}") from None
+    if hold[0] < 0 or hold[1] < 0:
+        raise argparse.ArgumentTypeError(f"a hold cannot be negative: {text!r}")
+    return hold
 
 
 def _render(coord, scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
@@ -41,13 +55,14 @@ def _render(coord, scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
     result = render(scene, s, renderer=coord)
     wall = time.perf_counter() - t0
     info, st = coord.info(), result.stats.to_dict()
-    shards = info["shard_stats"]  # this render's totals: `begin` zeroes them
+    # This render's shard totals (`begin` zeroes them); the coordinator's add up over renders.
+    shards = info["shard_stats"]
     coord_cpu = coord.cpu_s - c0
     shard_cpu = sum(x["cpu_s"] for x in shards)
     return {"mode": s.mode, "k": s.shards, "render_s": round(wall, 3),
             "cpu_s": round(shard_cpu + coord_cpu, 3), "coordinator_cpu_s": round(coord_cpu, 3),
             "ray_threads_s": round(shard_cpu - sum(x["wavefront_cpu_s"] for x in shards), 3),
-            "busy_fraction": [x["busy_fraction"] for x in shards],
+            "busy_fraction": [round(x["busy_s"] / wall, 3) for x in shards],
             "steps": sum(x["steps"] for x in shards), "parcels": sum(x["calls"] for x in shards),
             "transfers": st["total_transfers"], "ray_bytes": st["total_bytes"],
             "phase_cpu_s": st["phase_cpu_s"]}, result.film.image()
@@ -73,7 +88,7 @@ def bench(args) -> dict:
                     _render(coord, scene, s)  # the pool's first render: caches warm
                     first = None
                     for _ in range(args.rounds):
-                        for hold in HOLDS:
+                        for hold in args.holds:
                             remote.HOLD_RAYS, remote.HOLD_S = hold
                             row, img = _render(coord, scene, s)
                             first = img if first is None else first
@@ -90,7 +105,7 @@ def bench(args) -> dict:
     finally:
         remote.HOLD_RAYS, remote.HOLD_S = saved
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count()},
-            "settings": vars(args) | {"out": str(args.out)}, "holds": HOLDS, "rows": rows}
+            "settings": vars(args) | {"out": str(args.out)}, "rows": rows}
 
 
 def _line(r: dict) -> str:
@@ -123,9 +138,12 @@ def main():
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--k", type=int, default=8)
     ap.add_argument("--rounds", type=int, default=1, help="times through the hold settings")
+    ap.add_argument("--holds", nargs="+", type=parse_hold, default=[parse_hold(h) for h in HOLDS],
+                    help="RAYS:MS settings to compare, the first the baseline (default: "
+                         + " ".join(HOLDS) + ")")
     add_output_flags(ap)
     args = smoke(ap.parse_args(), scenes=["forest"], size="tiny", width=32, height=24, spp=2,
-                 modes=["exact"], k=2)
+                 modes=["exact"], k=2, holds=[(0, 0.0), (1 << 30, 0.002)])
     res = bench(args)
     finish(res, args.out / "bench_step_hold.json", markdown=markdown, update_readme=False)
 

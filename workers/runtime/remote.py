@@ -46,9 +46,11 @@ SETTLE_S = 30.0  # a settling poll waits at most this long for the step in progr
 # A step's fixed cost (a Ray call per target, per-step glue) is paid per step, its ray work
 # per ray: with rays (not orders) for fewer than HOLD_RAYS in the inbox, the wavefront thread
 # waits up to HOLD_S for more before stepping (0: step on whatever is there). The coordinator
-# hands both to `begin`, so a benchmark sets them in its driver.
-HOLD_RAYS = 8192
-HOLD_S = 0.004
+# hands both to `begin`, so a benchmark sets them in its driver. On 16 cores at K = 8 (city
+# and forest, both modes; bench_step_hold, bench/README.md) this hold took 6-11 % off the
+# CPU against none (32-41 % fewer steps) at a wall within -0/+8 %, one run each.
+HOLD_RAYS = 16384
+HOLD_S = 0.008
 
 
 class ShardActor:
