@@ -11,13 +11,37 @@ from __future__ import annotations
 
 import time
 from collections import defaultdict
-from contextlib import contextmanager
 
 import numpy as np
 
+from nprt.workers.kernels.counts import add_column, add_pairs
 from nprt.workers.runtime.protocol import KIND_NAMES
 
 MAX_HOPS = 64
+
+
+class _Phase:
+    """`RenderStats.phase`: a plain context manager object (a generator-based one cost
+    twice as much, and a step enters phases a few dozen times)."""
+
+    __slots__ = ("stats", "name", "t0", "c0")
+
+    def __init__(self, stats: RenderStats, name: str):
+        self.stats, self.name = stats, name
+
+    def __enter__(self) -> None:
+        self.stats._open.append([0.0, 0.0])
+        self.t0, self.c0 = time.perf_counter(), time.process_time()
+
+    def __exit__(self, *exc) -> None:
+        dt, dc = time.perf_counter() - self.t0, time.process_time() - self.c0
+        st = self.stats
+        inner = st._open.pop()
+        st.phase_s[self.name] += dt - inner[0]
+        st.phase_cpu_s[self.name] += dc - inner[1]
+        if st._open:  # the enclosing phase does not count this one's time again
+            st._open[-1][0] += dt
+            st._open[-1][1] += dc
 
 
 class RenderStats:
@@ -31,20 +55,9 @@ class RenderStats:
         self.hops = np.zeros(MAX_HOPS + 1, np.int64)  # rays finished after h transfers
         self._open: list[list[float]] = []  # running phases: [wall, cpu] of nested ones
 
-    @contextmanager
-    def phase(self, name: str):
-        t0, c0 = time.perf_counter(), time.process_time()
-        self._open.append([0.0, 0.0])
-        try:
-            yield
-        finally:
-            inner = self._open.pop()
-            dt, dc = time.perf_counter() - t0, time.process_time() - c0
-            self.phase_s[name] += dt - inner[0]
-            self.phase_cpu_s[name] += dc - inner[1]
-            if self._open:  # the enclosing phase does not count this one's time again
-                self._open[-1][0] += dt
-                self._open[-1][1] += dc
+    def phase(self, name: str) -> _Phase:
+        """A context that adds its wall and CPU time to `name`, less its nested phases'."""
+        return _Phase(self, name)
 
     def count_rays(self, kind: np.ndarray | int, n: int | None = None) -> None:
         """Count traced rays by kind: an array of kinds, or one kind and a count."""
@@ -97,6 +110,28 @@ class RenderStats:
         return s
 
 
+_EVERY = np.zeros(0, bool)  # add_pairs' mask for "every row"
+
+
+def _add(out: np.ndarray, tok: np.ndarray, key, cap: int, mask=None) -> None:
+    """out (t, w) int64 += 1 at [tok, min(key, cap)] of each row (where mask): key (n,) or
+    one value for every row; tok (n,) int64."""
+    tok = np.ascontiguousarray(tok, np.int64)
+    for name, a in (("key", key), ("mask", mask)):
+        if isinstance(a, np.ndarray) and a.shape != tok.shape:
+            raise ValueError(f"{name}: expected shape {tok.shape} (the bound batch), "
+                             f"got {a.shape}")
+    if isinstance(key, np.ndarray):
+        key = np.ascontiguousarray(key)
+        if key.dtype != np.uint8:
+            key = key.astype(np.int64)
+        add_pairs(out, tok, key, cap, _EVERY if mask is None else np.ascontiguousarray(mask))
+    elif mask is None:
+        add_column(out, tok, min(int(key), cap))
+    else:
+        add_column(out, tok[mask], min(int(key), cap))
+
+
 class SplitStats:
     """Statistics of one merged wavefront step over several passes. Counts go to the
     pass of each ray (a re-run pass drops exactly its own); stage times cannot be
@@ -138,46 +173,54 @@ class SplitStats:
         have = self._counters.get(name)
         self._counters[name] = per if have is None else have + per
 
-    def count_rays(self, kind: np.ndarray) -> None:
-        """kind : (n,) uint8 of the bound batch. One bincount over (pass, kind): O(n)
-        for any number of passes in the step."""
-        t = len(self.parts)
-        self._rays += np.bincount(self.tok * 3 + kind, minlength=3 * t).reshape(t, 3)
+    def count_rays(self, kind: np.ndarray | int) -> None:
+        """kind : (n,) uint8 of the bound batch's rows, or one kind for them all. One pass
+        over the rows (`add_pairs`): O(n) for any number of passes in the step."""
+        _add(self._rays, self.tok, kind, 2)
 
     def count_hops(self, hops: np.ndarray, rows=None) -> None:
-        """hops : (n,) of the bound batch; rows: which of them finished."""
-        tok = self.tok if rows is None else self.tok[rows]
-        hops = hops if rows is None else hops[rows]
-        width = MAX_HOPS + 1
-        self._hops += np.bincount(tok * width + np.minimum(hops, MAX_HOPS),
-                                  minlength=width * len(self.parts)).reshape(-1, width)
+        """hops : (n,) of the bound batch; rows: which of them finished (mask or indices)."""
+        tok = self.tok
+        if rows is not None:
+            rows = np.asarray(rows)
+            if rows.dtype != bool:
+                tok, hops, rows = np.take(tok, rows), np.take(hops, rows), None
+        _add(self._hops, tok, hops, MAX_HOPS, rows)
 
-    def count_transfers(self, kind: np.ndarray, per_row: int) -> None:
-        """Rays of the bound batch sent to another shard: kind (n,) int of each row,
-        per_row bytes each."""
-        t = len(self.parts)
-        per = np.bincount(self.tok * 3 + kind, minlength=3 * t).reshape(t, 3)
+    def count_transfers(self, kind: np.ndarray | int, per_row: int) -> None:
+        """Rays of the bound batch sent to another shard: kind (n,) int of each row (or one
+        for them all), per_row bytes each."""
+        per = np.zeros_like(self._sent)
+        _add(per, self.tok, kind, 2)
         self._sent += per
         self._sent_bytes += per * per_row
 
     def finish(self) -> None:
         """Add the step's counts to each pass's RenderStats, and its phase times shared
-        out by rays traced."""
+        out by rays traced. Plain Python numbers throughout (`tolist`): a step holds
+        dozens of passes, and numpy scalars and a nonzero scan per pass and kind cost more
+        than the counting itself."""
         traced = self._rays.sum(axis=1)
-        share = traced / traced.sum() if traced.sum() else \
-            np.full(len(self.parts), 1.0 / max(len(self.parts), 1))
-        counters = list(self._counters.items())
+        share = (traced / traced.sum() if traced.sum() else
+                 np.full(len(self.parts), 1.0 / max(len(self.parts), 1))).tolist()
+        rays, sent, sent_bytes = (a.tolist() for a in (self._rays, self._sent,
+                                                        self._sent_bytes))
+        hopped = self._hops.any(axis=1).tolist()
+        counters = [(name, per.tolist()) for name, per in self._counters.items()]
+        phases = list(self.times.phase_s.items())
+        cpu = list(self.times.phase_cpu_s.items())
         for j, (part, w) in enumerate(zip(self.parts, share, strict=True)):
-            for k in np.flatnonzero(self._rays[j]):
-                part.rays[KIND_NAMES[k]] += int(self._rays[j, k])
-            for k in np.flatnonzero(self._sent[j]):
-                part.count_transfer(KIND_NAMES[k], int(self._sent[j, k]),
-                                    int(self._sent_bytes[j, k]))
-            part.hops += self._hops[j]
+            for k, name in enumerate(KIND_NAMES):
+                if rays[j][k]:
+                    part.rays[name] += rays[j][k]
+                if sent[j][k]:
+                    part.count_transfer(name, sent[j][k], sent_bytes[j][k])
+            if hopped[j]:
+                part.hops += self._hops[j]
             for name, per in counters:
                 if per[j]:
-                    part.counters[name] += int(per[j])
-            for name, s in self.times.phase_s.items():
-                part.phase_s[name] += float(s * w)
-            for name, s in self.times.phase_cpu_s.items():
-                part.phase_cpu_s[name] += float(s * w)
+                    part.counters[name] += per[j]
+            for name, s in phases:
+                part.phase_s[name] += s * w
+            for name, s in cpu:
+                part.phase_cpu_s[name] += s * w

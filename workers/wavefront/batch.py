@@ -58,6 +58,7 @@ class _Batch:
     """Shared struct-of-arrays behaviour; subclasses are frozen dataclasses."""
 
     _SPEC: dict = {}
+    _ROW_BYTES = 0  # bytes of one row over all columns, set from _SPEC below
 
     # Columns are read through the instance __dict__, which holds exactly the dataclass
     # fields in _SPEC order: calling dataclasses.fields() on every take/replace cost ~5 %
@@ -74,7 +75,9 @@ class _Batch:
 
     @property
     def nbytes(self) -> int:
-        return int(sum(getattr(self, name).nbytes for name in self._SPEC))
+        """Bytes of the columns: every column has its spec's dtype and width (checked when
+        the batch is made), so this is rows x `row_bytes`."""
+        return len(self) * self._ROW_BYTES
 
     @classmethod
     def _trusted(cls, cols: dict):
@@ -109,6 +112,21 @@ class _Batch:
         return self._trusted({**self.__dict__, **changes})
 
     @classmethod
+    def gather(cls, parts: list):
+        """One batch of the rows of parts, [(batch, rows)] in order, where rows is an index
+        array, a bool mask or None (every row): one copy per column, where a take then a
+        concat would copy twice. A single part whose rows are all of its batch gives that
+        batch itself (batches are immutable)."""
+        parts = [(b, _rows(b, r)) for b, r in parts if b is not None]
+        parts = [(b, r) for b, r in parts if (len(b) if r is None else len(r))]
+        if not parts:
+            return cls.empty()
+        if len(parts) == 1:
+            b, r = parts[0]
+            return b if r is None else b.take(r)
+        return cls._trusted(gather_columns(parts, cls._SPEC))
+
+    @classmethod
     def concat(cls, batches: list):
         batches = [b for b in batches if b is not None and len(b)]
         if not batches:
@@ -127,6 +145,40 @@ class _Batch:
                           for name, (w, dt) in cls._SPEC.items()})
             cls._EMPTY = made
         return made
+
+
+def _rows(batch, rows):
+    """rows of batch as an index array, or None for every row in order."""
+    if rows is None:
+        return None
+    rows = np.asarray(rows)
+    if rows.dtype == bool:
+        rows = np.flatnonzero(rows)
+        if len(rows) == len(batch):
+            return None
+    return rows
+
+
+def gather_columns(parts: list, names) -> dict:
+    """{name: column} of the rows of parts [(batch, rows (r,) int index array or None: all)]
+    in order, for the columns named (any subset of the batches' spec): each column made
+    once at its full length and filled part by part."""
+    spec = parts[0][0]._SPEC
+    sizes = [len(b) if r is None else len(r) for b, r in parts]
+    n = sum(sizes)
+    out = {}
+    for name in names:
+        width, dtype = spec[name]
+        col = np.empty((n,) if width is None else (n, width), dtype)
+        a = 0
+        for (b, r), m in zip(parts, sizes, strict=True):
+            if r is None:
+                col[a:a + m] = b.__dict__[name]
+            else:  # mode "clip": take into `out` without its bounds-checked buffer
+                np.take(b.__dict__[name], r, axis=0, out=col[a:a + m], mode="clip")
+            a += m
+        out[name] = col
+    return out
 
 
 _RAY_SPEC = {
@@ -214,3 +266,4 @@ class ShadowRayBatch(_Batch):
 for _cls in (RayBatch, ShadowRayBatch):  # _Batch walks _SPEC in place of the fields
     if [f.name for f in fields(_cls)] != list(_cls._SPEC):
         raise TypeError(f"{_cls.__name__}: _SPEC and the dataclass fields differ")
+    _cls._ROW_BYTES = sum(np.dtype(dt).itemsize * (w or 1) for w, dt in _cls._SPEC.values())

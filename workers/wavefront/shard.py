@@ -25,9 +25,10 @@ import numpy as np
 from nprt.scene.model import Mesh
 from nprt.workers.filmsum import MAX_EXP, FilmSums
 from nprt.workers.kernels import tiles
+from nprt.workers.kernels.buckets import group_rows, mark_for_owner
 from nprt.workers.kernels.filmsum import splat
 from nprt.workers.passes import Pass, count_tiles, pass_at, tile_of
-from nprt.workers.routing.exact import DONE, hit_owner, nearest_unvisited, visited_bit
+from nprt.workers.routing.exact import DONE, nearest_unvisited, visited_bit
 from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
 from nprt.workers.runtime.protocol import EVERYWHERE, MeshRequest, Parcel, ShardConfig
 from nprt.workers.settings import RenderSettings
@@ -92,6 +93,9 @@ class StepResult:
     bytes_in: int = 0
 
 
+TOKS_KEPT = 4  # pass tokens an iteration reuses: rays, shadow rays, the unoccluded, done
+
+
 class _Step:
     """The passes of one step. A ray's pixel names its tile, and at most one pass per tile
     is live (the coordinator's rule), so `tok` finds each ray's pass without a column on
@@ -101,26 +105,36 @@ class _Step:
                  films: FilmPool):
         self.s, self.states, self.films = s, states, films
         self.lookup = lookup  # (tiles,) int64 -> index into states, -1: none in this step
-        self._toks: list = []  # (pixel column, tok) of the last two columns tok was asked for
+        self._toks: list = []  # (pixel column, tok) of the last columns tok was asked for
         self.stats = SplitStats([st.stats for st in states])
         # (tiles,) int64 -> the film slot of the tile's pass (-1: none in this step), so one
         # pass over a batch adds each row to its pass's film, whatever the passes
         slots = np.array([st.slot[0] for st in states] + [-1], np.int64)
         self.slot_of_tile = slots[lookup]
 
-    def tok(self, pixel: np.ndarray) -> np.ndarray:
-        """pixel (n,) uint32 -> (n,) int64 index of its pass in this step. The last two
-        answers are kept (a step alternates between its rays and its shadow rays): a batch
-        whose rows all go on shares its pixel column (columns are never written)."""
+    def tok(self, pixel: np.ndarray, of: np.ndarray | None = None, rows=None) -> np.ndarray:
+        """pixel (n,) uint32 -> (n,) int64 index of its pass in this step. The last few
+        answers are kept (an iteration asks about its rays, its shadow rays and their
+        subsets): a batch whose rows all go on shares its pixel column (columns are never
+        written). of, rows: pixel is of[rows] (rows an index array or bool mask), so where
+        of's answer is kept, this one is that answer's rows: a take, not a lookup."""
+        tok = self._kept(pixel)
+        if tok is not None:
+            return tok
+        if len(self.states) == 1:
+            tok = np.zeros(len(pixel), np.int64)
+        elif of is not None and (known := self._kept(of)) is not None:
+            tok = known[rows]
+        else:
+            tok = tiles.pass_slots(pixel, self.s.width, self.s.tile_size, self.lookup)
+        self._toks = [(pixel, tok), *self._toks[:TOKS_KEPT - 1]]
+        return tok
+
+    def _kept(self, pixel: np.ndarray) -> np.ndarray | None:
         for of, tok in self._toks:
             if pixel is of:
                 return tok
-        if len(self.states) == 1:
-            tok = np.zeros(len(pixel), np.int64)
-        else:
-            tok = tiles.pass_slots(pixel, self.s.width, self.s.tile_size, self.lookup)
-        self._toks = [(pixel, tok), *self._toks[:1]]
-        return tok
+        return None
 
     def splat(self, pixel: np.ndarray, rgb: np.ndarray) -> None:
         """Add rgb (n, 3) float32 or float64 at pixel (n,) uint32 to each pass's film."""
@@ -326,27 +340,26 @@ class Shard:
         # counters): every second of a step is in some phase.
         with times.phase("bookkeeping"):
             with times.phase("receive"):
-                rays = [p.rays for p in parcels if p.rays is not None]
+                received = [p.rays for p in parcels if p.rays is not None]
                 shadow = [p.shadow for p in parcels if p.shadow is not None]
                 bytes_in = sum(p.nbytes for p in parcels)
                 if parcels:
                     times.phase_s["transfer_wait"] += max(
                         0.0, time.time() - min(p.sent_at for p in parcels))
                 step = self._open(sorted(credits), times)
-            out_rays = [[] for _ in range(self.k)]
-            out_shadow = [[] for _ in range(self.k)]
+            out_rays, out_shadow = [], []  # (batch, rows, targets, tokens) leaving (`_send`)
             out_camera = [[] for _ in range(self.k)]
+            made = []  # the camera rays that start here
             with times.phase("generate"):
                 if orders:
-                    rays.append(self._generate(orders, step, out_camera))
+                    made.append(self._generate(orders, step, out_camera))
                 for p in parcels:
                     if p.camera is not None:  # camera rays sent by name: made here
                         cam = self.integrator.camera_rays(*p.camera)
-                        rays.append(cam.replace(hops=np.ones(len(cam), np.uint8)))
-            rays = RayBatch.concat(rays)
-            shadow = ShadowRayBatch.concat(shadow)
-            n_in = len(rays) + len(shadow)
-            self._wavefront(step, rays, shadow, out_rays, out_shadow)
+                        made.append(cam.replace(hops=np.ones(len(cam), np.uint8)))
+            arrived, rays = _split_settled(received, made)
+            n_in = len(arrived) + len(rays) + sum(len(b) for b in shadow)
+            self._wavefront(step, arrived, rays, shadow, out_rays, out_shadow)
             with times.phase("send"):
                 parcels_out, returned = self._pack(step, out_rays, out_shadow, out_camera,
                                                    credits)
@@ -399,40 +412,46 @@ class Shard:
             out_camera[int(dest)].append((rays.pixel[rows], rays.sample[rows]))
         return rays.take(here)
 
-    def _wavefront(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch,
+    def _wavefront(self, step: _Step, arrived: RayBatch, rays: RayBatch, shadow: list,
                    out_rays: list, out_shadow: list) -> None:
         """Intersect locally, route (top level, proxies), shade what ends here, trace its
-        shadow rays; repeat until every ray has ended or left. Rays leaving go into
-        out_rays / out_shadow, (k,) lists of batches per target shard. With one shard
-        this is the reference."""
+        shadow rays; repeat until every ray has ended or left. arrived: rays sent here only
+        to be shaded (`_split_settled`); shadow: the shadow batches received. Rays leaving
+        go into out_rays / out_shadow (`_send`). With one shard this is the reference."""
         if self.ask_together and len(self.remote) and isinstance(self.policy, ProxyPolicy):
-            return self._wavefront_together(step, rays, shadow, out_rays, out_shadow)
+            return self._wavefront_together(step, arrived, rays, ShadowRayBatch.concat(shadow),
+                                            out_rays, out_shadow)
         stats = step.stats
         # Every instance is here and the policy forwards only to other shards' instances
         # (the reference): every ray ends here, so routing and visited bits are skipped.
         alone = not len(self.remote) and type(self.policy) is ExactPolicy
         fused = self._fused_routing()
-        while len(rays) or len(shadow):
-            if len(rays):
-                arrived, rays, near = self._intersect(step, rays, alone, fused)
-                if alone:
-                    done = rays
-                else:
+        waiting = shadow  # shadow batches to trace, joined once (received ones too)
+        while len(arrived) or len(rays) or any(len(b) for b in waiting):
+            if len(arrived) or len(rays):
+                rays, near = self._intersect(step, rays, alone, fused)
+                done = None  # every row of rays ends here
+                if not alone:
                     with stats.phase("top_level"):
                         if near is None:
                             rays, target = self.policy.route_rays(rays, stats)
                         else:
                             rays, target = self.policy.route_rays(rays, stats, near)
-                    done = self._leave(rays, target, out_rays)
-                shaded = self._shade(step, arrived, done)
-                shadow = ShadowRayBatch.concat([shadow, shaded.shadow])
+                    rays, done = self._leave(step, rays, target, out_rays)
+                shaded = self._shade(step, arrived, rays, done)
+                arrived = RayBatch.empty()
+                waiting = [*waiting, shaded.shadow]
                 rays = shaded.secondary
+            shadow, waiting = ShadowRayBatch.concat(waiting), []
             if len(shadow):
                 free, near = self._occlude(step, shadow, fused)
                 if not len(self.remote):  # nothing elsewhere: every shadow ray ends here
                     stats.count_hops(shadow.hops)
-                    step.splat(shadow.pixel[free], shadow.contribution[free])
-                    shadow = ShadowRayBatch.empty()
+                    lit = np.flatnonzero(free)  # a take: a bool index of (n, 3) is ~6x slower
+                    step.splat(shadow.pixel[lit], np.take(shadow.contribution, lit, axis=0))
+                    continue
+                if near is not None and type(self.policy) is ExactPolicy:
+                    self._route_shadow_all(step, shadow, free, near, out_shadow)
                     continue
                 shadow = self._unoccluded(step, shadow, free)
                 with stats.phase("top_level"):
@@ -443,10 +462,9 @@ class Shard:
                         shadow, target = self.policy.route_shadow(
                             shadow, stats.bind(step.tok(shadow.pixel)), near.take(free))
                 self._end_shadow(step, shadow, target, out_shadow)
-                shadow = ShadowRayBatch.empty()
 
-    def _wavefront_together(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch,
-                            out_rays: list, out_shadow: list) -> None:
+    def _wavefront_together(self, step: _Step, arrived: RayBatch, rays: RayBatch,
+                            shadow: ShadowRayBatch, out_rays: list, out_shadow: list) -> None:
         """`_wavefront` for the proxy policy with other shards: each iteration routes its
         rays and the shadow rays of the previous one's shading with one `predict` (one call
         of each mesh's nets, which cost about 45 us each whatever their rows, not one per
@@ -454,10 +472,10 @@ class Shard:
         a row does not depend on its batch (`Proxy.run`), nor the film on the order of its
         contributions (`_PassState`): the same film and counts."""
         stats = step.stats
-        while len(rays) or len(shadow):
-            given = len(rays) > 0
+        while len(arrived) or len(rays) or len(shadow):
+            given = len(arrived) + len(rays) > 0
             if given:
-                arrived, rays, _ = self._intersect(step, rays, False, None)
+                rays, _ = self._intersect(step, rays, False, None)
             if len(shadow):
                 free, _ = self._occlude(step, shadow, None)
                 shadow = self._unoccluded(step, shadow, free)
@@ -468,18 +486,14 @@ class Shard:
             self._end_shadow(step, shadow, target, out_shadow)
             shadow = ShadowRayBatch.empty()
             if given:
-                shaded = self._shade(step, arrived, self._leave(*routed_rays, out_rays))
+                shaded = self._shade(step, arrived, *self._leave(step, *routed_rays, out_rays))
+                arrived = RayBatch.empty()
                 shadow, rays = shaded.shadow, shaded.secondary
 
     def _intersect(self, step: _Step, rays: RayBatch, alone: bool, fused):
-        """Count rays and intersect them here, but for those sent here only to be shaded
-        (FLAG_SHADE). Returns (those, or None; the others, intersected; the routing walk's
-        answer for them, or None)."""
+        """Count rays and intersect them here. Returns (rays, intersected; the routing
+        walk's answer for them, or None)."""
         stats = step.stats
-        settled = (rays.flags & FLAG_SHADE) != 0
-        arrived = None
-        if settled.any():
-            arrived, rays = rays.take(settled), rays.take(~settled)
         stats.bind(step.tok(rays.pixel)).count_rays(rays.kind)
         if not alone:
             rays = rays.replace(visited=rays.visited | self.bit)
@@ -489,16 +503,16 @@ class Shard:
                 rays = resolve_closest(rays, self.local, self.world.lights)
             else:
                 rays, near = resolve_closest_routed(rays, self.local, self.world.lights, fused)
-        return arrived, rays, near
+        return rays, near
 
-    def _shade(self, step: _Step, arrived: RayBatch | None, done: RayBatch):
-        """Shade the rays ending here (arrived to be shaded, then done) and add what they
-        bring to the film; returns the integrator's answer (secondary and shadow rays)."""
+    def _shade(self, step: _Step, arrived: RayBatch, rays: RayBatch, done):
+        """Shade the rays ending here (arrived to be shaded, then the rows done (index array,
+        or None: all) of rays) and add what they bring to the film; returns the
+        integrator's answer (secondary and shadow rays)."""
         stats = step.stats
-        done = RayBatch.concat([arrived, done])
-        if arrived is not None:
-            done = done.replace(flags=done.flags & np.uint8(~FLAG_SHADE & 0xFF))
-        stats.bind(step.tok(done.pixel)).count_hops(done.hops)
+        rows, done = done, RayBatch.gather([(arrived, None), (rays, done)])
+        tok = step.tok(done.pixel) if len(arrived) else step.tok(done.pixel, rays.pixel, rows)
+        stats.bind(tok).count_hops(done.hops)
         with stats.phase("shade"):
             shaded = self.integrator.shade(done)
         step.splat(shaded.pixel, shaded.rgb)
@@ -507,7 +521,7 @@ class Shard:
     def _occlude(self, step: _Step, shadow: ShadowRayBatch, fused):
         """Count shadow rays and test them against the geometry here: (n,) bool free, and
         the routing walk's answer (None unless fused)."""
-        step.stats.bind(step.tok(shadow.pixel)).count_rays(np.full(len(shadow), SHADOW))
+        step.stats.bind(step.tok(shadow.pixel)).count_rays(SHADOW)
         near = None
         with step.stats.phase("local_intersect"):
             if fused is None:
@@ -522,93 +536,141 @@ class Shard:
     def _unoccluded(self, step: _Step, shadow: ShadowRayBatch, free: np.ndarray):
         """The shadow rays not occluded here, with this shard visited; the others finish."""
         step.stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
-        return shadow.take(free).replace(visited=shadow.visited[free] | self.bit)
+        kept = shadow.take(free)
+        step.tok(kept.pixel, shadow.pixel, free)  # kept for the routing's question
+        return kept.replace(visited=kept.visited | self.bit)
+
+    def _route_shadow_all(self, step: _Step, shadow: ShadowRayBatch, free: np.ndarray,
+                          near, out_shadow: list) -> None:
+        """`_unoccluded`, then routing and `_end_shadow`, for exact forwarding with the
+        routing walk's answer: every row is routed (the answer is meaningless for the
+        occluded ones, which then finish here), so the unoccluded rows are not copied out
+        first. The same targets: `next_stop` is per row, and the walk's tmax is the rays'
+        own, so no row is asked again (`nprt.workers.routing.exact._routed`). The visited
+        bit goes on as the rows leave (`_by_target`)."""
+        step.stats.count_hops(shadow.hops, ~free)  # occluded here: these rays finish too
+        with step.stats.phase("top_level"):
+            _, target = self.policy.route_shadow(shadow, step.stats.bind(step.tok(shadow.pixel)),
+                                                 near)
+        self._end_shadow(step, shadow, np.where(free, target, DONE), out_shadow, free)
 
     def _end_shadow(self, step: _Step, shadow: ShadowRayBatch, target: np.ndarray,
-                    out_shadow: list) -> None:
-        """Send routed shadow rays on; those done here add their contribution."""
-        self._send(shadow, target, out_shadow)
-        done = shadow.take(target == DONE)
-        step.stats.bind(step.tok(done.pixel)).count_hops(done.hops)
-        step.splat(done.pixel, done.contribution.astype(np.float64))
+                    out_shadow: list, free: np.ndarray | None = None) -> None:
+        """Send routed shadow rays on; those done here add their contribution (free: (n,)
+        bool, the rows not occluded, where occluded ones are among the DONE targets)."""
+        done = self._send(step, shadow, target, out_shadow)
+        if free is not None:
+            done = done[free[done]]
+        pixel, hops, rgb = shadow.pixel, shadow.hops, shadow.contribution
+        if len(done) < len(shadow):  # only the columns a finished shadow ray still needs
+            pixel, hops, rgb = pixel[done], hops[done], np.take(rgb, done, axis=0)
+        step.stats.bind(step.tok(pixel, shadow.pixel, done)).count_hops(hops)
+        step.splat(pixel, rgb.astype(np.float64))
 
-    def _leave(self, rays: RayBatch, target: np.ndarray, out_rays: list) -> RayBatch:
-        """Send routed rays on (into out_rays); returns those that end here."""
+    def _leave(self, step: _Step, rays: RayBatch, target: np.ndarray, out_rays: list
+               ) -> tuple:
+        """Send routed rays on (into out_rays); returns (rays, flagged; the rows of those
+        that end here, (r,) int64 or None: all)."""
         # Rays going to their hit's owner only to be shaded are not re-intersected:
         # a second Embree call with tmax == t may pick a different triangle on an edge.
-        final = (target != DONE) & (target == hit_owner(self.world, rays.hit_inst))
-        if final.any():
-            rays = rays.replace(flags=rays.flags | (final * FLAG_SHADE).astype(np.uint8))
-        self._send(rays, target, out_rays)
-        return rays.take(target == DONE)
+        flags, marked = mark_for_owner(rays.flags, np.ascontiguousarray(target, np.int32),
+                                       rays.hit_inst, self.world.owner, np.uint8(FLAG_SHADE))
+        if marked:
+            rays = rays.replace(flags=flags)
+        done = self._send(step, rays, target, out_rays)
+        return rays, (None if len(done) == len(rays) else done)
 
     def _pack(self, step: _Step, out_rays: list, out_shadow: list, out_camera: list,
               credits: dict[int, Fraction]) -> tuple[list, dict]:
         """One parcel per target holding every pass's rays for it. A pass's weight is
         shared equally by the parcels that carry its rays; a pass with no ray leaving
         returns its whole weight."""
-        indices = [st.pass_.index for st in step.states]
-        targets = [[] for _ in indices]  # per pass: targets its rays go to
-        batches = []
-        for t in range(self.k):
-            r, sh = RayBatch.concat(out_rays[t]), ShadowRayBatch.concat(out_shadow[t])
-            cam = None
-            if out_camera[t]:
-                cam = tuple(np.concatenate(c) for c in zip(*out_camera[t], strict=True))
-            batches.append((r, sh, cam))
-            cam_pixel = cam[0] if cam is not None else np.zeros(0, np.uint32)
-            if len(r) + len(sh) + len(cam_pixel) == 0:
-                continue
-            tok = np.concatenate([step.tok(r.pixel), step.tok(sh.pixel), step.tok(cam_pixel)])
-            for j in np.unique(tok):
-                targets[j].append(t)
-            self._count_transfers(step, r, sh, cam)
+        npass = len(step.states)
+        seen = np.zeros((self.k, npass), bool)  # target, pass: the pass has rays for it
+        rays = self._by_target(RayBatch, step, out_rays, seen, None)
+        shadow = self._by_target(ShadowRayBatch, step, out_shadow, seen, SHADOW)
+        cams: list = [None] * self.k
+        for t, sent in enumerate(out_camera):
+            if sent:
+                cam = cams[t] = tuple(np.concatenate(c) for c in zip(*sent, strict=True))
+                tok = step.tok(cam[0])
+                seen[t, tok] = True
+                step.stats.bind(tok)  # by name: primary transfers of 8 bytes
+                step.stats.count_transfers(PRIMARY, sum(a.itemsize for a in cam))
+                step.stats.count("camera_rays_sent_by_name")
         parcels: list = [None] * self.k
-        shares: list[dict] = [{} for _ in range(self.k)]
         returned = {}
-        for j, i in enumerate(indices):
-            w = credits[i]
-            if not targets[j]:
+        shares: list[dict] = [{} for _ in range(self.k)]
+        by_pass = [[] for _ in step.states]  # per pass: the targets its rays go to
+        for j, t in zip(*(a.tolist() for a in np.nonzero(seen.T)), strict=True):
+            by_pass[j].append(t)
+        for st, targets in zip(step.states, by_pass, strict=True):
+            i, w = st.pass_.index, credits[st.pass_.index]
+            if not targets:
                 returned[i] = w
                 continue
-            part = w / len(targets[j])
-            for t in targets[j]:
+            part = w / len(targets)
+            for t in targets:
                 shares[t][i] = part
-        for t, (r, sh, cam) in enumerate(batches):
+        for t in range(self.k):
             if shares[t]:
-                parcels[t] = Parcel(-1, shares[t], r if len(r) else None,
-                                    sh if len(sh) else None, camera=cam)
+                parcels[t] = Parcel(-1, shares[t], rays[t], shadow[t], camera=cams[t])
         return parcels, returned
 
-    def _count_transfers(self, step: _Step, rays: RayBatch, shadow: ShadowRayBatch,
-                         camera: tuple | None) -> None:
-        """Transfers and bytes by kind, counted on each ray's pass; camera rays sent by
-        name count as primary transfers of their 8 bytes."""
-        stats = step.stats
-        if camera is not None:
-            stats.bind(step.tok(camera[0]))
-            stats.count_transfers(np.full(len(camera[0]), PRIMARY, np.int64),
-                                  sum(a.itemsize for a in camera))
-            stats.count("camera_rays_sent_by_name")
-        for batch, kind in ((rays, None), (shadow, SHADOW)):
-            if len(batch):
-                stats.bind(step.tok(batch.pixel)).count_transfers(
-                    batch.kind if kind is None else np.full(len(batch), kind, np.int64),
-                    batch.nbytes // len(batch))
+    def _by_target(self, cls, step: _Step, pending: list, seen: np.ndarray, kind) -> list:
+        """The rows leaving in pending [(batch, rows (m,) int64, targets (m,) int32 sorted,
+        their pass tokens (m,) int64)] (`_send`) as (k,) batches or None per target shard,
+        one hop more, each target's rows in the order they were sent. All of a step's rows
+        for other shards are gathered with one take per column, each target's batch a view
+        of it (small parts made a take per part and a concat per target cost a numpy call
+        per column each). Counts their transfers and marks seen[target, pass]; kind: the
+        ray kind of a shadow batch (None: the batch's kind column)."""
+        if not pending:
+            return [None] * self.k
+        if len(pending) == 1:
+            batch, rows, targets, tok = pending[0]
+        else:  # rows of the concatenated batches, grouped by target (stable)
+            sizes = np.array([len(b) for b, _, _, _ in pending])
+            offset = np.cumsum(sizes) - sizes
+            rows = np.concatenate([r + o for (_, r, _, _), o in zip(pending, offset,
+                                                                    strict=True)])
+            targets = np.concatenate([x for _, _, x, _ in pending])
+            order, _ = group_rows(targets, self.k)
+            rows, targets = rows[order], targets[order]
+            tok = np.concatenate([x for _, _, _, x in pending])[order]
+            batch = cls.concat([b for b, _, _, _ in pending])
+        moving = batch.take(rows)
+        if kind is None:
+            moving = moving.replace(hops=moving.hops + np.uint8(1))
+        else:  # shadow rays carry this shard's visited bit from here on (`_route_shadow_all`)
+            moving = moving.replace(hops=moving.hops + np.uint8(1),
+                                    visited=moving.visited | self.bit)
+        seen[targets, tok] = True
+        step.stats.bind(tok).count_transfers(moving.kind if kind is None else kind,
+                                             moving._ROW_BYTES)
+        bounds = np.searchsorted(targets, np.arange(self.k + 1)).tolist()
+        return [moving.rows(a, b) if b > a else None
+                for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
 
-    def _send(self, batch, target: np.ndarray, out: list) -> None:
-        """Bucket the rows of batch leaving for another shard by target, one hop more."""
-        away = np.flatnonzero(target != DONE)
-        if not len(away):
-            return
-        # One gather, grouped by target (stable: each target's rows keep their order), then
-        # a view per target, instead of a gather per target.
-        t = target[away]
-        by_target = np.argsort(t, kind="stable")
-        t = t[by_target]
-        moving = batch.take(away[by_target])
-        moving = moving.replace(hops=moving.hops + np.uint8(1))
-        starts = np.flatnonzero(np.r_[True, t[1:] != t[:-1]])  # t is sorted: no np.unique
-        dests = t[starts]
-        for dest, a, b in zip(dests, starts, [*starts[1:], len(t)], strict=True):
-            out[int(dest)].append(moving.rows(int(a), int(b)))
+    def _send(self, step: _Step, batch, target: np.ndarray, out: list) -> np.ndarray:
+        """Note the rows of batch leaving for another shard, grouped by target, into out
+        as (batch, rows (m,) int64, targets (m,) int32, pass tokens (m,) int64), gathered
+        in `_pack`. Returns the rows (r,) int64 that end here (target DONE), in order."""
+        order, starts = group_rows(np.ascontiguousarray(target, np.int32), self.k)
+        if starts[1] < len(order):
+            away = order[starts[1]:]
+            out.append((batch, away, target[away].astype(np.int32),
+                        step.tok(batch.pixel)[away]))
+        return order[:starts[1]]
+
+
+def _split_settled(received: list, made: list) -> tuple[RayBatch, RayBatch]:
+    """(the rays sent here only to be shaded (FLAG_SHADE: their hit is final), the flag
+    cleared; every other ray) of the received batches, then the made ones, in order."""
+    rays = RayBatch.concat(received + made)
+    settled = (rays.flags & FLAG_SHADE) != 0
+    if not settled.any():
+        return RayBatch.empty(), rays
+    arrived = rays.take(settled)
+    arrived = arrived.replace(flags=arrived.flags & np.uint8(~FLAG_SHADE & 0xFF))
+    return arrived, rays.take(~settled)
