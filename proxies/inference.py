@@ -155,6 +155,21 @@ class Proxy:
         out = [_even_call(call, x[s:s + chunk]) for s in range(0, len(x), chunk)]
         return np.concatenate(out)
 
+    def run_even(self, net: str, x: np.ndarray) -> np.ndarray:
+        """`run` of x (n, k) float32 (C-contiguous) whose n is even, as a caller that lays
+        out its rows with `run`'s padding passes them (nprt.workers.routing.net_rows): no
+        copy to pad. Returns y (n,) float32."""
+        n = len(x)
+        if n % 2:
+            raise ValueError(f"run_even needs an even number of rows, got {n}")
+        call = self._calls.get(net)
+        if call is None:
+            call = self._calls[net] = self._caller(net)
+        chunk = self.chunk_rows
+        if n <= chunk:
+            return call(x).reshape(-1)
+        return np.concatenate([call(x[s:s + chunk]).reshape(-1) for s in range(0, n, chunk)])
+
     @property
     def chunk_rows(self) -> int:
         """Rows per onnxruntime call (`run` splits larger inputs)."""

@@ -20,13 +20,14 @@ _PROBE = """
 import json, sys
 from nprt.scene.demos import make_demo
 from nprt.workers.kernels import crossings
-from nprt.workers.routing import proxy_pairs
+from nprt.workers.routing import net_rows, proxy_pairs
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
 
 mode, k = sys.argv[1], int(sys.argv[2])
 kernels = {"occluded_walk": crossings.occluded_walk, "walk_queries": proxy_pairs.walk_queries,
-           "decide": proxy_pairs.decide}
+           "decide": proxy_pairs.decide_queries, "net_inputs": net_rows.net_inputs,
+           "deep_inputs": net_rows.deep_inputs, "net_answers": net_rows.net_answers}
 s = RenderSettings(width=64, height=48, spp=1, mode=mode, shards=k)
 shards = shards_in_process(make_demo("forest", "small"), s, warm=False)
 before = {n: len(f.signatures) for n, f in kernels.items()}
@@ -54,5 +55,6 @@ def test_warm_up_compiles_the_occlusion_walk(k):
 def test_warm_up_compiles_the_proxy_query_kernels():
     got = _probe("proxy", 2)
     assert max(got["modeled"]) > 0, got  # some shard answers boxes by proxy
-    assert got["before"]["walk_queries"] == got["before"]["decide"] == 0, got
-    assert got["after"]["walk_queries"] >= 1 and got["after"]["decide"] >= 1, got
+    names = ("walk_queries", "decide", "net_inputs", "deep_inputs", "net_answers")
+    assert all(got["before"][n] == 0 for n in names), got
+    assert all(got["after"][n] >= 1 for n in names), got

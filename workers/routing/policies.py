@@ -15,7 +15,6 @@ from nprt.proxies.accuracy import counter_name, job_bands
 from nprt.workers.routing.exact import (
     DONE,
     candidate_owner,
-    hit_owner,
     nearest_unvisited,
     route_exact,
     route_exact_rows,
@@ -45,6 +44,11 @@ class ExactPolicy:
         self.world, self.shard, self.remote = world, shard, remote
         self.cand_owner = candidate_owner(world, remote)
         self._route_in = None
+        # `_owner_of` by instance, DONE at index -1 (no hit, or a light: any negative inst)
+        owner = np.asarray(world.owner, np.int32)
+        self._owner_lut = np.append(
+            np.where((owner == EVERYWHERE) | (owner == shard), DONE, owner), DONE
+        ).astype(np.int32)
 
     @property
     def route_in(self) -> tuple:
@@ -67,9 +71,9 @@ class ExactPolicy:
         the routing walks are warmed by the shard's warm-up pass itself."""
 
     def _owner_of(self, inst: np.ndarray) -> np.ndarray:
-        """Shard owning each hit instance, DONE when it is here (or none)."""
-        owner = hit_owner(self.world, inst)
-        return np.where((owner == EVERYWHERE) | (owner == self.shard), DONE, owner)
+        """(n,) int32 shard owning each hit instance (n,) int32, DONE when it is here (or
+        none: -1, or a light's negative id)."""
+        return self._owner_lut[np.maximum(inst, -1)]
 
 
 class ProxyPolicy(ExactPolicy):
@@ -222,11 +226,11 @@ class ProxyPolicy(ExactPolicy):
         if pred is None:
             return shadow, np.zeros(0, np.int32)
         stats.count("proxy_queries")
-        _count_asked(stats, "shadow", pred, np.arange(len(shadow)))
+        _count_asked(stats, "shadow", pred, None)
         occluded = pred.inst >= 0
         stats.count("proxy_shadow_occluded", occluded)
         stats.count_hops(shadow.hops, occluded)  # they finish here
-        stats.count("proxy_shadow_uncertain", np.flatnonzero(~occluded)[pred.uncertain[~occluded]])
+        stats.count("proxy_shadow_uncertain", ~occluded & pred.uncertain)
         shadow = shadow.take(~occluded)
         target = np.full(len(shadow), DONE, np.int32)
         unknown = pred.uncertain[~occluded]
@@ -238,14 +242,14 @@ class ProxyPolicy(ExactPolicy):
         return shadow, target
 
 
-def _count_asked(stats: SplitStats, kind: str, pred, rows: np.ndarray) -> None:
+def _count_asked(stats: SplitStats, kind: str, pred, rows: np.ndarray | None) -> None:
     """Box queries per mesh (what the accuracy prediction weighs each proxy's error by);
-    rows (n,) maps the prediction's rays to the bound batch. The pairs come grouped by mesh:
-    a slice a mesh, not a mask."""
+    rows (n,) maps the prediction's rays to the bound batch (None: they are its rows). The
+    pairs come grouped by mesh: a slice a mesh, not a mask."""
     mesh = pred.asked_mesh
     if not len(mesh):
         return
-    asked = rows[pred.asked_ray]
+    asked = pred.asked_ray if rows is None else rows[pred.asked_ray]
     cut = [0, *(np.flatnonzero(mesh[1:] != mesh[:-1]) + 1).tolist(), len(mesh)]
     for s, e in zip(cut[:-1], cut[1:], strict=True):
         stats.count(counter_name(kind, mesh[s]), asked[s:e])

@@ -233,3 +233,36 @@ def decide(ray, inst, mesh, crosses, internal, t_box, length, tmax, asked, has, 
         uncertain[r] = True
     ambiguous = inner_hits - internal_win.astype(np.int64) > 0
     return internal_win, uncertain, ambiguous, first_open
+
+
+@njit(**JIT)
+def decide_queries(off, cut, ray, inst, mesh, internal, t_box, length, tmax, has, vis, tp,
+                   thr_q, band_q, margin_q, exact_if_ambiguous, best_t, best_i):
+    """`decide` of each query of a `predict_together` call, in one call: query j's rays are
+    off[j]:off[j + 1] of best_t (n,) float32 / best_i (n,) int32 (lowered in place) and tmax
+    (n,) float32, its pairs cut[j]:cut[j + 1] (pairs come ray-major; ray (p,) int64 over all
+    rays), its knobs row j of thr_q (q, meshes) float32, band_q and margin_q (q, meshes)
+    float64, and exact_if_ambiguous (q,) bool (its ambiguous rays are uncertain). Every pair
+    crosses; asked = has. Returns internal_win, uncertain, ambiguous (n,) bool and
+    first_open (n,) int32, nothing for a query without pairs."""
+    n = len(best_t)
+    internal_win = np.zeros(n, np.bool_)
+    uncertain = np.zeros(n, np.bool_)
+    ambiguous = np.zeros(n, np.bool_)
+    first_open = np.full(n, -1, np.int32)
+    for j in range(len(off) - 1):
+        a, b, r0, r1 = cut[j], cut[j + 1], off[j], off[j + 1]
+        if a == b:
+            continue
+        r = ray[a:b] - r0
+        tm = np.empty(b - a, np.float32)  # each pair's ray's tmax
+        for k in range(b - a):
+            tm[k] = tmax[r0 + r[k]]
+        w, u, g, f = decide(r, inst[a:b], mesh[a:b], np.ones(b - a, np.bool_), internal[a:b],
+                            t_box[a:b], length[a:b], tm, has[a:b], has[a:b], vis[a:b], tp[a:b],
+                            thr_q[j], band_q[j], margin_q[j], best_t[r0:r1], best_i[r0:r1])
+        if exact_if_ambiguous[j]:
+            u |= g
+        internal_win[r0:r1], uncertain[r0:r1] = w, u
+        ambiguous[r0:r1], first_open[r0:r1] = g, f
+    return internal_win, uncertain, ambiguous, first_open

@@ -9,7 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from nprt.workers.routing import proxy_pairs
+from nprt.workers.kernels.bvh import bvh_build
+from nprt.workers.routing import net_rows, proxy_pairs
 from nprt.workers.wavefront.world import ShardWorld
 
 
@@ -88,7 +89,8 @@ def predict_together(world: ShardWorld, proxies: dict, remote: np.ndarray,
     (`Proxy.run`), so each Prediction is the one `predict` gives for its query alone.
     Returns the Predictions and the onnxruntime calls made."""
     sizes = [len(q.origin) for q in queries]
-    off = np.r_[0, np.cumsum(sizes)]
+    off = np.zeros(len(sizes) + 1, np.int64)
+    np.cumsum(sizes, out=off[1:])
     one = len(queries) == 1
 
     def joined(field, dtype):
@@ -104,7 +106,8 @@ def predict_together(world: ShardWorld, proxies: dict, remote: np.ndarray,
     if off[-1] == 0 or len(remote) == 0:
         return [nothing_asked(best_t[a:b], best_i[a:b])
                 for a, b in zip(off[:-1], off[1:], strict=True)], 0
-    boxes, bvh, col_of, members, w2l, bounds, mesh_of = table.pair_inputs(remote)
+    boxes, bvh, col_of, members, ids, owner, w2l, bounds, mesh_of = _walk_inputs(
+        table, world.owner, remote)
     use_visited = any(q.visited is not None for q in queries)
     visited = np.zeros(0, np.uint64)
     if use_visited:  # a query without one has visited nothing
@@ -116,33 +119,86 @@ def predict_together(world: ShardWorld, proxies: dict, remote: np.ndarray,
     (ray, inst, mesh, has, internal, t_box, length, point, qdir, grouped,
      start) = proxy_pairs.walk_queries(
         origin, np.ascontiguousarray(direction, np.float64), tmax, boxes, bvh, col_of,
-        members, world.owner, visited, use_visited, w2l, bounds, mesh_of, banks[0].has)
+        members, owner, visited, use_visited, w2l, bounds, mesh_of, banks[0].has)
+    inst = ids[inst]  # positions in the asked set -> instance ids
     # Pairs come ray-major: each query's are a slice, and each its own threshold.
     cut = np.searchsorted(ray, off)
-    thr = np.concatenate([b.thr[mesh[cut[j]:cut[j + 1]]] for j, b in enumerate(banks)])
-    vis, tp, calls = _ask_nets(banks[0], len(ray), grouped, start, point, qdir, thr)
+    thr_q, band_q, margin_q, amb_q = _stacked(banks, queries)
+    vis, tp, calls = _ask_nets(banks[0], len(ray), grouped, start, point, qdir, thr_q, cut,
+                               mesh)
+    # An internal t is the surface nearest the box exit; the ray's first surface in that box
+    # lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer surface.
+    internal_win, uncertain, ambiguous, first_open = proxy_pairs.decide_queries(
+        off, cut, ray, inst, mesh, internal, t_box, length, tmax, has, vis, tp, thr_q, band_q,
+        margin_q, amb_q, best_t, best_i)
     out = []
-    for j, (q, bank) in enumerate(zip(queries, banks, strict=True)):
+    for j in range(len(queries)):
         a, b, r0, r1 = cut[j], cut[j + 1], off[j], off[j + 1]
-        bt, bi = best_t[r0:r1], best_i[r0:r1]
-        if a == b:
-            out.append(nothing_asked(bt, bi))
-            continue
-        r = ray[a:b] - r0
-        pairs = slice(a, b)
-        internal_win, uncertain, ambiguous, first_open = proxy_pairs.decide(
-            r, inst[pairs], mesh[pairs], np.ones(b - a, bool), internal[pairs], t_box[pairs],
-            length[pairs], tmax[r0:r1][r], has[pairs], has[pairs], vis[pairs], tp[pairs],
-            bank.thr, bank.band, bank.margin, bt, bi)
-        # An internal t is the surface nearest the box exit; the ray's first surface in that
-        # box lies anywhere in (0, t]. Any internal hit that did not win may hide a nearer
-        # surface.
-        if q.knobs.exact_if_ambiguous:
-            uncertain |= ambiguous
         mine = grouped if one else grouped[(grouped >= a) & (grouped < b)]
-        out.append(Prediction(bt, bi, uncertain, internal_win, ambiguous, first_open,
+        out.append(Prediction(best_t[r0:r1], best_i[r0:r1], uncertain[r0:r1],
+                              internal_win[r0:r1], ambiguous[r0:r1], first_open[r0:r1],
                               ray[mine] - r0, mesh[mine]))
     return out, calls
+
+
+# The last banks `_stacked` stacked: (banks, exact_if_ambiguous, arrays).
+_STACKED: list = [None]
+
+
+def _stacked(banks: list, queries: list) -> tuple:
+    """Per query j: thr_q (q, meshes) float32, band_q, margin_q (q, meshes) float64 and
+    exact_if_ambiguous (q,) bool, as `proxy_pairs.decide_queries` takes them (a shard asks
+    with the same banks at every step: kept for the last ones)."""
+    amb = tuple(bool(q.knobs.exact_if_ambiguous) for q in queries)
+    got = _STACKED[0]
+    if (got is not None and len(got[0]) == len(banks) and got[1] == amb
+            and all(x is y for x, y in zip(got[0], banks, strict=True))):
+        return got[2]
+    arrays = (np.stack([b.thr for b in banks]), np.stack([b.band for b in banks]),
+              np.stack([b.margin for b in banks]), np.array(amb, bool))
+    _STACKED[0] = (tuple(banks), amb, arrays)
+    return arrays
+
+
+# id(table) -> (weak reference to the table, {asked set's bytes: `_walk_inputs`' tuple})
+_WALKS: dict = {}
+
+
+def _walk_inputs(table, owner: np.ndarray, remote: np.ndarray) -> tuple:
+    """`walk_queries`' arrays for the instances remote (k,) of table, restricted to them:
+    their world boxes (k, 2, 3) and a BVH over those alone (the table's BVH also holds this
+    shard's boxes, which the walk would visit only to skip: 10-15 % of the walk's CPU at
+    K = 8), col_of and members the positions 0..k-1, ids (k,) int32 each position's instance
+    id (walk_queries' inst are positions), owner, w2l, bounds and mesh_of of those ids.
+    The walk meets the same boxes in the same order: crossings are sorted by position, and
+    a box passing the slab test is reached through any BVH over it (`bvh._node_hit`).
+    Without the table's BVH (few or non-finite boxes) the walk's plain loop, as before.
+    Kept per table and set: a shard asks about the same instances at every step."""
+    got = _WALKS.get(id(table))
+    if got is None or got[0]() is not table:
+        key = id(table)
+        got = _WALKS[key] = (weakref.ref(table, lambda _, key=key: _WALKS.pop(key, None)), {})
+    which = np.asarray(remote).astype(np.int64).tobytes()
+    hit = got[1].get(which)
+    if hit is not None:
+        return hit
+    boxes, bvh, col_of, members, w2l, bounds, mesh_of = table.pair_inputs(remote)
+    ids = np.array(members, np.int32)
+    if len(col_of):
+        boxes = np.ascontiguousarray(boxes[members])
+        bvh = bvh_build(boxes)
+        col_of = np.arange(len(members), dtype=np.int32)
+        members = np.arange(len(members), dtype=np.int64)
+    else:  # the plain loop reads members' rows of the whole table's arrays
+        members = np.arange(len(ids), dtype=np.int64)
+        boxes = np.ascontiguousarray(boxes[ids])
+    hit = (boxes, bvh, col_of, members, ids, np.ascontiguousarray(owner[ids], np.int32),
+           np.ascontiguousarray(w2l[ids]), np.ascontiguousarray(bounds[ids]),
+           np.ascontiguousarray(mesh_of[ids]))
+    if len(got[1]) >= 8:  # a shard asks about one or two sets
+        got[1].clear()
+    got[1][which] = hit
+    return hit
 
 
 @dataclass(frozen=True)
@@ -201,53 +257,54 @@ def _bank(proxies: dict, knobs: QueryKnobs, n_mesh: int) -> _Bank:
 
 
 def _ask_nets(bank: _Bank, p: int, grouped: np.ndarray, start: np.ndarray, point, qdir,
-              thr: np.ndarray):
+              thr_q: np.ndarray, cut: np.ndarray, mesh: np.ndarray):
     """Each mesh's nets on its pairs, mesh m's pair rows at grouped[start[m]:start[m + 1]]
-    (pair order within a mesh), thr (p,) float32 each pair's visibility threshold: vis (p,)
+    (pair order within a mesh), each pair's visibility threshold thr_q[j, mesh of the pair]
+    for the pairs cut[j]:cut[j + 1] of query j (thr_q (q, meshes) float32): vis (p,)
     float32 (0 where not asked) and tp (p,) float32 the proxy's t in local units (inf where
     not asked or below the threshold), and the onnxruntime calls made. The "line" encoding
-    of every mesh's pairs is one compiled pass before the nets and one after (the bits of
+    of every mesh's pairs is compiled passes around the nets (`net_rows`: the bits of
     Proxy.query, mesh by mesh)."""
     vis = np.zeros(p, np.float32)
     tp = np.full(p, np.inf, np.float32)
     rows = grouped
     if not len(rows):
         return vis, tp, 0
-    groups = [(m, int(start[m]), int(start[m + 1])) for m in np.flatnonzero(np.diff(start))]
-    calls = 0
     if not bank.line:
-        for m, s, e in groups:
+        thr = np.concatenate([thr_q[j, mesh[cut[j]:cut[j + 1]]] for j in range(len(thr_q))])
+        calls = 0
+        for m in np.flatnonzero(np.diff(start)):
+            s, e = int(start[m]), int(start[m + 1])
             sel = rows[s:e]
             low = float(thr[sel].min())  # depth where any query's threshold is reached
             v, t = bank.proxy[m].query(point[sel], qdir[sel], min_visibility=low)
             vis[sel], tp[sel] = v, np.where(v >= thr[sel], t, np.inf)
             calls += bank.proxy[m].calls(e - s) + bank.proxy[m].calls(int((v >= low).sum()))
         return vis, tp, calls
-    from nprt.proxies import lineenc
-
     lo, hi, centre, half, scale, dcentre = bank.consts
-    which = np.repeat(np.arange(len(start) - 1), np.diff(start))  # the mesh of each row
-    x, on_box, shift = lineenc.line_inputs_rows(lo, hi, centre, half, which, rows, point, qdir)
-    v = np.empty(len(rows), np.float32)
-    for m, s, e in groups:
-        v[s:e] = bank.proxy[m].run("visibility", x[s:e])
-        calls += bank.proxy[m].calls(e - s)
-    # The depth net runs where visibility reaches the threshold: those rows gathered once,
-    # each mesh's still contiguous (the same rows, in the same order, as mesh by mesh).
-    deep = v >= thr[rows]
-    at = np.r_[0, np.cumsum(deep)][start]  # each mesh's first row among the deep ones
-    x_deep = x[deep]
-    y_deep = np.empty(len(x_deep), np.float32)
-    for m, _, _ in groups:
-        if at[m + 1] > at[m]:
-            y_deep[at[m]:at[m + 1]] = bank.proxy[m].run("depth", x_deep[at[m]:at[m + 1]])
-            calls += bank.proxy[m].calls(int(at[m + 1] - at[m]))
-    y = np.zeros(len(rows), np.float32)
-    y[deep] = y_deep
-    vis[rows] = v
-    tp[rows] = lineenc.line_depth_rows(scale, dcentre, which, rows, on_box, qdir, y, shift,
-                                       deep)
+    x, on_box, shift, at = net_rows.net_inputs(lo, hi, centre, half, start, grouped, point, qdir)
+    v = np.empty(len(x), np.float32)
+    calls = _run_blocks(bank.proxy, "visibility", x, at, v)
+    # The depth net runs where visibility reaches the threshold: those rows gathered, each
+    # mesh's still one block (the same rows, in the same order, as mesh by mesh).
+    x_deep, dat, deep = net_rows.deep_inputs(v, thr_q, cut, mesh, start, grouped, at, x)
+    y = np.empty(len(x_deep), np.float32)
+    calls += _run_blocks(bank.proxy, "depth", x_deep, dat, y)
+    vis, tp = net_rows.net_answers(p, start, grouped, at, v, deep, y, on_box, shift, qdir,
+                                   scale, dcentre)
     return vis, tp, calls
+
+
+def _run_blocks(proxy: list, net: str, x: np.ndarray, at: np.ndarray, out: np.ndarray) -> int:
+    """out[at[m]:at[m + 1]] = mesh m's net on x's rows there (each block of an even count,
+    `net_rows`), for every mesh with rows; returns the onnxruntime calls made."""
+    calls = 0
+    bounds = at.tolist()
+    for m in np.flatnonzero(at[1:] > at[:-1]).tolist():
+        s, e = bounds[m], bounds[m + 1]
+        out[s:e] = proxy[m].run_even(net, x[s:e])
+        calls += proxy[m].calls(e - s)
+    return calls
 
 
 def nothing_asked(best_t: np.ndarray, best_i: np.ndarray) -> Prediction:
