@@ -13,9 +13,9 @@ from nprt.workers.kernels.buckets import group_rows
 from nprt.workers.passes import count_tiles, pass_at
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import MAX_HOPS, RenderStats, SplitStats
-from nprt.workers.wavefront.batch import SHADOW, RayBatch, ShadowRayBatch
+from nprt.workers.wavefront.batch import FLAG_SHADE, SHADOW, RayBatch, ShadowRayBatch
 from nprt.workers.wavefront.filmpool import FilmPool
-from nprt.workers.wavefront.shard import _PassState, _Step
+from nprt.workers.wavefront.shard import _PassState, _split_settled, _Step
 
 
 def _random(cls, rng, n: int):
@@ -151,3 +151,26 @@ def test_a_row_of_no_pass_in_the_step_is_refused_by_the_counts():
         stats.count_rays(SHADOW)
     with pytest.raises(ValueError, match="expected shape"):
         stats.count_hops(np.zeros(4, np.uint8))
+
+
+@pytest.mark.parametrize("first", [True, False])
+def test_split_settled_gives_the_flagged_rays_then_the_rest_in_order(first):
+    """Whether a parcel holds its rays to be shaded first (as `_by_target` packs them) or
+    anywhere: the flagged rays of every parcel in order, their flag cleared, and the rest
+    followed by the rays made here."""
+    rng = np.random.default_rng(5)
+    received = []
+    for n in (30, 0, 17, 25):
+        b = _random(RayBatch, rng, n)
+        flagged = rng.random(n) < 0.4
+        if first:
+            flagged = np.sort(flagged)[::-1]
+        flags = (b.flags & np.uint8(~FLAG_SHADE & 0xFF)) | (flagged * FLAG_SHADE).astype(np.uint8)
+        received.append(b.replace(flags=flags))
+    made = [_random(RayBatch, rng, 9)]
+    arrived, rays = _split_settled(received, made)
+    whole = RayBatch.concat(received)
+    mask = (whole.flags & FLAG_SHADE) != 0
+    want = whole.take(mask)
+    _same(arrived, want.replace(flags=want.flags & np.uint8(~FLAG_SHADE & 0xFF)))
+    _same(rays, RayBatch.concat([whole.take(~mask), *made]))

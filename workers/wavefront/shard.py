@@ -620,7 +620,8 @@ class Shard:
     def _by_target(self, cls, step: _Step, pending: list, seen: np.ndarray, kind) -> list:
         """The rows leaving in pending [(batch, rows (m,) int64, targets (m,) int32 sorted,
         their pass tokens (m,) int64)] (`_send`) as (k,) batches or None per target shard,
-        one hop more, each target's rows in the order they were sent. All of a step's rows
+        one hop more, each target's rows in the order they were sent (rays to be shaded
+        there first, FLAG_SHADE). All of a step's rows
         for other shards are gathered with one take per column, each target's batch a view
         of it (small parts made a take per part and a concat per target cost a numpy call
         per column each). Counts their transfers and marks seen[target, pass]; kind: the
@@ -639,6 +640,11 @@ class Shard:
             rows, targets = rows[order], targets[order]
             tok = np.concatenate([x for _, _, _, x in pending])[order]
             batch = cls.concat([b for b, _, _, _ in pending])
+        if kind is None:  # a target's rays to be shaded there first: `_split_settled` slices
+            settled = (np.take(batch.flags, rows) & FLAG_SHADE) != 0
+            if settled.any():
+                order, _ = group_rows((targets * 2 + ~settled).astype(np.int32), 2 * self.k)
+                rows, targets, tok = rows[order], targets[order], tok[order]
         moving = batch.take(rows)
         if kind is None:
             moving = moving.replace(hops=moving.hops + np.uint8(1))
@@ -666,11 +672,22 @@ class Shard:
 
 def _split_settled(received: list, made: list) -> tuple[RayBatch, RayBatch]:
     """(the rays sent here only to be shaded (FLAG_SHADE: their hit is final), the flag
-    cleared; every other ray) of the received batches, then the made ones, in order."""
-    rays = RayBatch.concat(received + made)
-    settled = (rays.flags & FLAG_SHADE) != 0
-    if not settled.any():
-        return RayBatch.empty(), rays
-    arrived = rays.take(settled)
-    arrived = arrived.replace(flags=arrived.flags & np.uint8(~FLAG_SHADE & 0xFF))
-    return arrived, rays.take(~settled)
+    cleared; every other ray) of the received batches, then the made ones, in order. A
+    parcel holds its rays to be shaded first (`Shard._by_target`), so each part is a slice
+    and the two batches are joined without a gather (any other order is taken apart)."""
+    settled, rest = [], []
+    for b in received:
+        flagged = (b.flags & FLAG_SHADE) != 0
+        s = int(np.count_nonzero(flagged))
+        if s == 0:
+            rest.append(b)
+        elif flagged[:s].all():
+            settled.append(b.rows(0, s))
+            rest.append(b.rows(s, len(b)))
+        else:
+            settled.append(b.take(flagged))
+            rest.append(b.take(~flagged))
+    arrived = RayBatch.concat(settled)
+    if len(arrived):
+        arrived = arrived.replace(flags=arrived.flags & np.uint8(~FLAG_SHADE & 0xFF))
+    return arrived, RayBatch.concat(rest + made)
