@@ -18,7 +18,9 @@ KERNELS = WORKERS / "kernels"
 # CPU seconds to compile every kernel with an empty cache: 15.0 s for a 16x12 reference
 # render of forest:tiny with NUMBA_CACHE_DIR empty, against 0.9 s warm (2 cores, 2026-11-26).
 COLD_COMPILE_CPU_S = 15
-SHARD_ONLY = ("nearest",)  # the Wald step routes between shards: the reference never runs it
+# The Wald step routes between shards, and buckets sorts rays leaving for them: the
+# reference never runs either.
+SHARD_ONLY = ("nearest", "buckets")
 PROXY_ONLY = ("proxy_pairs",)  # only proxy mode asks the proxies
 
 
