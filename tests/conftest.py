@@ -30,6 +30,7 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: _weight(item.nodeid.split("::")[0], slow_files))
 
 
+@pytest.hookimpl(optionalhook=True)  # an xdist hook: unknown to pytest without it
 def pytest_xdist_setupnodes(config, specs):
     """Before xdist starts its workers: compile the kernels here if numba's cache is cold."""
     from nprt.workers.jitcache import cold_kernel_modules  # reads files: imports no numba
