@@ -14,7 +14,6 @@ from collections import defaultdict
 
 import numpy as np
 
-from nprt.workers.kernels.counts import add_column, add_pairs
 from nprt.workers.runtime.protocol import KIND_NAMES
 
 MAX_HOPS = 64
@@ -116,6 +115,10 @@ _EVERY = np.zeros(0, bool)  # add_pairs' mask for "every row"
 def _add(out: np.ndarray, tok: np.ndarray, key, cap: int, mask=None) -> None:
     """out (t, w) int64 += 1 at [tok, min(key, cap)] of each row (where mask): key (n,) or
     one value for every row; tok (n,) int64."""
+    # Imported here: the driver imports RenderStats from this module and must not import
+    # numba (tests/test_driver_contract.py); only a shard's steps count with the kernels.
+    from nprt.workers.kernels.counts import add_column, add_pairs
+
     tok = np.ascontiguousarray(tok, np.int64)
     for name, a in (("key", key), ("mask", mask)):
         if isinstance(a, np.ndarray) and a.shape != tok.shape:
