@@ -5,9 +5,9 @@ K in exact and proxy mode with each hold setting.
 A step pays a fixed cost (a Ray call per target, the per-step glue) and a cost per ray. A
 shard whose inbox holds few rays can step at once (small steps: more fixed cost per ray) or
 wait a little for more (fewer, bigger steps, but the wait can leave its core idle). Per
-row: render wall and CPU against the reference's, steps, parcels, mean rays per step, Ray's
+row: render wall and CPU against the reference's, steps, parcels, rays per parcel, Ray's
 threads (shard CPU outside the wavefront thread), the busy fraction, and whether the film
-equals the no-hold film (exact mode: it must; films never depend on step grouping).
+equals the first (baseline) hold's film: it must, films never depend on step grouping.
 
 Meaningful on a machine with a core per shard and one for the coordinator: on fewer cores
 the shards wait for CPU anyway, and their steps are big whatever the hold.
