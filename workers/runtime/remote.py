@@ -67,8 +67,6 @@ class ShardActor:
         self._cv = threading.Condition()
         self._step_lock = threading.Lock()  # the Shard is run by one thread at a time
         self._inbox: list[Parcel] = []
-        self._inbox_rays = 0  # rays in the inbox's parcels
-        self._inbox_orders = False  # whether a parcel in the inbox carries orders
         self._hold = (0, 0.0)  # (HOLD_RAYS, HOLD_S) of the run
         self._running = False  # the wavefront thread holds parcels it has not accounted for
         self._epoch: int | None = None
@@ -129,7 +127,7 @@ class ShardActor:
         with self._cv:
             self._epoch, self._peers, self._trace = epoch, peers, trace
             self._hold = hold
-            self._clear_inbox()
+            self._inbox.clear()
             self._error = None
             self._reset_totals()
         with self._step_lock:
@@ -142,7 +140,7 @@ class ShardActor:
             if self._epoch != epoch:
                 return
             self._epoch = None
-            self._clear_inbox()
+            self._inbox.clear()
         if self._shard is not None:  # a restarted actor not loaded again holds nothing
             with self._step_lock:
                 self._shard.reset()
@@ -153,15 +151,7 @@ class ShardActor:
             if parcel.epoch != self._epoch:
                 return  # a parcel of a dropped run
             self._inbox.append(parcel)
-            self._inbox_rays += parcel.n_rays
-            self._inbox_orders = self._inbox_orders or bool(parcel.orders)
             self._cv.notify_all()
-
-    def _clear_inbox(self) -> list[Parcel]:
-        """Empty the inbox (with self._cv held); returns what it held."""
-        parcels, self._inbox = self._inbox, []
-        self._inbox_rays, self._inbox_orders = 0, False
-        return parcels
 
     def poll(self, epoch: int, timeout_s: float, settle: bool = False) -> PollReply:
         """Wait up to timeout_s for weight to hand back; then the totals so far. settle:
@@ -205,8 +195,8 @@ class ShardActor:
     def _held_enough(self, epoch: int | None) -> bool:
         """Whether a holding wavefront thread steps now (with self._cv held): rays enough,
         orders (camera rays come in passes: already a big batch), or the run ended."""
-        return (self._inbox_rays >= self._hold[0] or self._inbox_orders
-                or self._epoch != epoch)
+        return (self._epoch != epoch or any(p.orders for p in self._inbox)
+                or sum(p.n_rays for p in self._inbox) >= self._hold[0])
 
     def _loop(self) -> None:
         while True:
@@ -215,7 +205,7 @@ class ShardActor:
                 if self._hold[1] > 0:
                     self._cv.wait_for(functools.partial(self._held_enough, self._epoch),
                                       timeout=self._hold[1])
-                parcels = self._clear_inbox()
+                parcels, self._inbox = self._inbox, []
                 if not parcels:  # the run ended while this thread held
                     continue
                 epoch, peers, trace = self._epoch, self._peers, self._trace
