@@ -1,6 +1,7 @@
 """How long a shard waits to merge parcels into one step (nprt.workers.runtime.remote,
-HOLD_RAYS and HOLD_S), side by side in one run: the 1-core reference, then each scene at one
-K in exact and proxy mode with each hold setting.
+HOLD_RAYS and HOLD_S), and how long a small parcel waits for more before it leaves
+(SEND_RAYS and SEND_S, nprt.workers.runtime.outbox), side by side in one run: the 1-core
+reference, then each scene at one K in exact and proxy mode with each pair of settings.
 
 A step pays a fixed cost (a Ray call per target, the per-step glue) and a cost per ray. A
 shard whose inbox holds few rays can step at once (small steps: more fixed cost per ray) or
@@ -14,6 +15,7 @@ the shards wait for CPU anyway, and their steps are big whatever the hold.
 
     python -m bench.render.bench_step_hold --scenes city forest --k 8
     python -m bench.render.bench_step_hold --scenes city --k 4 --holds 0:0 16384:8 --rounds 2
+    python -m bench.render.bench_step_hold --scenes city --holds 16384:8 --sends 0:0 1024:20
     python -m bench.render.bench_step_hold --smoke
 """
 
@@ -32,6 +34,7 @@ from nprt.workers.runtime import remote
 from nprt.workers.settings import RenderSettings
 
 HOLDS = ["0:0", "8192:2", "8192:4", "16384:8"]  # rays:milliseconds; the first is the baseline
+SENDS = [f"{remote.SEND_RAYS}:{remote.SEND_S * 1e3:g}"]  # the default only
 
 
 def parse_hold(text: str) -> tuple[int, float]:
@@ -72,7 +75,8 @@ def bench(args) -> dict:
     from nprt.workers.render import make_renderer
 
     rows = []
-    saved = remote.HOLD_RAYS, remote.HOLD_S
+    saved = remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S
+    settings = [(h, x) for h in args.holds for x in args.sends]  # the first is the baseline
     try:
         for name in args.scenes:
             scene = open_scene(name if args.size == "default" else f"{name}:{args.size}")
@@ -88,11 +92,13 @@ def bench(args) -> dict:
                     _render(coord, scene, s)  # the pool's first render: caches warm
                     first = None
                     for _ in range(args.rounds):
-                        for hold in args.holds:
+                        for hold, send in settings:
                             remote.HOLD_RAYS, remote.HOLD_S = hold
+                            remote.SEND_RAYS, remote.SEND_S = send
                             row, img = _render(coord, scene, s)
                             first = img if first is None else first
                             row |= {"scene": name, "hold_rays": hold[0], "hold_ms": hold[1] * 1e3,
+                                    "send_rays": send[0], "send_ms": send[1] * 1e3,
                                     "wall_ratio": round(row["render_s"] / ref["render_s"], 3),
                                     "cpu_ratio": round(row["cpu_s"] / ref["cpu_s"], 3),
                                     "rays_per_parcel": round(row["transfers"]
@@ -103,25 +109,29 @@ def bench(args) -> dict:
                 finally:
                     coord.close()
     finally:
-        remote.HOLD_RAYS, remote.HOLD_S = saved
+        remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S = saved
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count()},
             "settings": vars(args) | {"out": str(args.out)}, "rows": rows}
 
 
 def _line(r: dict) -> str:
     return (f"{r['scene']} {r['mode']} K={r['k']} hold {r['hold_rays']:6d} rays "
-            f"{r['hold_ms']:4.1f} ms: wall {r['render_s']:6.2f} s ({r['wall_ratio']:.2f}x) cpu "
+            f"{r['hold_ms']:4.1f} ms, send {r.get('send_rays', 0):5d} rays "
+            f"{r.get('send_ms', 0.0):4.1f} ms: wall {r['render_s']:6.2f} s "
+            f"({r['wall_ratio']:.2f}x) cpu "
             f"{r['cpu_s']:6.1f} s ({r['cpu_ratio']:.2f}x) steps {r['steps']:5d} parcels "
             f"{r['parcels']:5d} Ray threads {r['ray_threads_s']:5.1f} s same film "
             f"{r['same_film_as_no_hold']}")
 
 
 def markdown(res: dict) -> str:
-    head = ("| scene | mode | K | hold rays | hold ms | render s | vs reference | CPU s | CPU vs "
-            "ref | steps | parcels | rays / parcel | Ray threads s | same film |\n"
-            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n")
+    head = ("| scene | mode | K | hold rays | hold ms | send rays | send ms | render s | "
+            "vs reference | CPU s | CPU vs ref | steps | parcels | rays / parcel | "
+            "Ray threads s | same film |\n"
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n")
     return head + "".join(
         f"| {r['scene']} | {r['mode']} | {r['k']} | {r['hold_rays']} | {r['hold_ms']:g} | "
+        f"{r.get('send_rays', 0)} | {r.get('send_ms', 0.0):g} | "
         f"{r['render_s']:.2f} | {r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x"
         f" | {r['steps']} | {r['parcels']} | {r['rays_per_parcel']:.0f} | "
         f"{r['ray_threads_s']:.1f} | {'yes' if r['same_film_as_no_hold'] else 'NO'} |\n"
@@ -137,13 +147,17 @@ def main():
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--k", type=int, default=8)
-    ap.add_argument("--rounds", type=int, default=1, help="times through the hold settings")
+    ap.add_argument("--rounds", type=int, default=1, help="times through the settings")
     ap.add_argument("--holds", nargs="+", type=parse_hold, default=[parse_hold(h) for h in HOLDS],
                     help="RAYS:MS settings to compare, the first the baseline (default: "
                          + " ".join(HOLDS) + ")")
+    ap.add_argument("--sends", nargs="+", type=parse_hold, default=[parse_hold(x) for x in SENDS],
+                    help="RAYS:MS small-parcel waits, each tried with every hold (default: "
+                         "the shipped one, " + " ".join(SENDS) + ")")
     add_output_flags(ap)
     args = smoke(ap.parse_args(), scenes=["forest"], size="tiny", width=32, height=24, spp=2,
-                 modes=["exact"], k=2, holds=[(0, 0.0), (1 << 30, 0.002)])
+                 modes=["exact"], k=2, holds=[(0, 0.0), (1 << 30, 0.002)],
+                 sends=[(0, 0.0), (1 << 30, 1.0)])
     res = bench(args)
     finish(res, args.out / "bench_step_hold.json", markdown=markdown, update_readme=False)
 

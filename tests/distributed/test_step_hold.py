@@ -1,6 +1,7 @@
 """A shard that holds its wavefront thread for more rays (nprt.workers.runtime.remote,
-HOLD_RAYS / HOLD_S) only groups rays into fewer steps: exact mode still equals the
-reference bit for bit, whether no step waits or every step with rays does."""
+HOLD_RAYS / HOLD_S), or holds small parcels back for company (SEND_RAYS / SEND_S,
+nprt.workers.runtime.outbox), only groups rays into fewer steps and parcels: exact mode
+still equals the reference bit for bit, whether nothing waits or everything does."""
 
 from __future__ import annotations
 
@@ -11,11 +12,18 @@ from nprt.workers.runtime import remote
 from tests.distributed.helpers import assert_identical, settings
 
 
-@pytest.mark.parametrize("hold", [(0, 0.0), (1 << 30, 0.02)], ids=["no_hold", "always_hold"])
-def test_holding_for_rays_keeps_exact_equal_to_reference(ray_local, scenes, references,
-                                                         tmp_path, monkeypatch, hold):
-    # (1 << 30) rays never arrive: every step with rays waits the whole 20 ms first.
-    monkeypatch.setattr(remote, "HOLD_RAYS", hold[0])
-    monkeypatch.setattr(remote, "HOLD_S", hold[1])
+# (1 << 30) rays never arrive: with HOLD, every step with rays waits the whole 20 ms first;
+# with SEND, every parcel waits (a minute) until its shard has nothing left to do, and the
+# passes complete only if such a shard always lets them go.
+@pytest.mark.parametrize("knobs", [
+    {"HOLD_RAYS": 0, "HOLD_S": 0.0, "SEND_RAYS": 0, "SEND_S": 0.0},
+    {"HOLD_RAYS": 1 << 30, "HOLD_S": 0.02},
+    {"SEND_RAYS": 1 << 30, "SEND_S": 60.0},
+], ids=["nothing_waits", "steps_wait", "parcels_wait_until_idle"])
+def test_holding_rays_or_parcels_keeps_exact_equal_to_reference(ray_local, scenes, references,
+                                                                tmp_path, monkeypatch, knobs):
+    for name, value in knobs.items():
+        monkeypatch.setattr(remote, name, value)
     result = render(scenes["forest"], settings(3))
-    assert_identical(tmp_path, f"forest_hold{hold[0]}", result, references["forest"])
+    assert_identical(tmp_path, f"forest_{'_'.join(map(str, knobs.values()))}", result,
+                     references["forest"])

@@ -374,7 +374,9 @@ class Coordinator:
             try:
                 self.pool.resync()  # a restarted shard holds its start-up frame
                 hold = (remote.HOLD_RAYS, remote.HOLD_S)
-                refs = [a.begin.remote(epoch, self.s, self.actors, self.trace is not None, hold)
+                send = (remote.SEND_RAYS, remote.SEND_S)
+                refs = [a.begin.remote(epoch, self.s, self.actors, self.trace is not None, hold,
+                                       send)
                         for a in self.actors]
                 self._incarnations = ray.get(refs, timeout=BEGIN_TIMEOUT_S)
                 self.totals = [None] * self.k

@@ -9,7 +9,8 @@ process, and runs the shard as a mailbox:
 - one wavefront thread takes *everything* in the inbox, runs it as one `Shard.step` (any
   passes, any senders), and sends at most one parcel per target straight to that shard's
   actor (`deliver.remote`: the batch travels through the object store as a call
-  argument); the coordinator is not on the ray path;
+  argument); the coordinator is not on the ray path. A small parcel may wait in the
+  shard's `Outbox` to leave with the next step's parcel for the same target;
 - the weight of passes whose rays ended here waits in an outbox that `poll` (a long poll
   the coordinator keeps outstanding) hands back with the shard's CPU and phase totals.
 
@@ -39,6 +40,7 @@ import uuid
 
 import ray
 
+from nprt.workers.runtime.outbox import Outbox
 from nprt.workers.runtime.protocol import Parcel, PollReply
 
 MAX_CONCURRENCY = 8  # Ray threads per actor: deliver, poll and collect never wait on a step
@@ -51,6 +53,14 @@ SETTLE_S = 30.0  # a settling poll waits at most this long for the step in progr
 # CPU against none (32-41 % fewer steps) at a wall within -0/+8 %, one run each.
 HOLD_RAYS = 16384
 HOLD_S = 0.008
+# A parcel of fewer than SEND_RAYS rays waits, merged with the next steps' parcels for the same
+# target, until they carry SEND_RAYS together, the oldest has waited SEND_S, or this shard's
+# inbox is empty after a step (nprt.workers.runtime.outbox; the coordinator hands both to
+# `begin`): a Ray call costs about the same CPU for 10 rays as for 1,000. On 2 cores at K = 8
+# (city exact and proxy, forest exact; bench_step_hold, bench/README.md) it took 26-35 % of
+# the parcels and 5-10 % of the CPU; a held parcel leaves up to a step later.
+SEND_RAYS = 1024
+SEND_S = 0.02
 
 
 class ShardActor:
@@ -68,6 +78,7 @@ class ShardActor:
         self._step_lock = threading.Lock()  # the Shard is run by one thread at a time
         self._inbox: list[Parcel] = []
         self._hold = (0, 0.0)  # (HOLD_RAYS, HOLD_S) of the run
+        self._outbox = Outbox(0)  # the run's small parcels held back (`_run` only)
         self._running = False  # the wavefront thread holds parcels it has not accounted for
         self._epoch: int | None = None
         self._peers: list | None = None
@@ -120,13 +131,16 @@ class ShardActor:
     # -- a job --------------------------------------------------------------------------
 
     def begin(self, epoch: int, settings, peers: list, trace: bool = False,
-              hold: tuple[int, float] = (0, 0.0)) -> str:
+              hold: tuple[int, float] = (0, 0.0), send: tuple[int, float] = (0, 0.0)) -> str:
         """Start job run `epoch`: its settings, the K actor handles to send to (this one
         included), no pass state; hold: (rays, seconds), how long a step may wait for more
-        rays (HOLD_RAYS, HOLD_S). Returns the incarnation."""
+        rays (HOLD_RAYS, HOLD_S); send: (rays, seconds), how long a small parcel may wait
+        for more (SEND_RAYS, SEND_S). Returns the incarnation."""
         with self._cv:
             self._epoch, self._peers, self._trace = epoch, peers, trace
             self._hold = hold
+            # A new object: a step of the last run still in flight keeps the old one.
+            self._outbox = Outbox(len(peers), *send)
             self._inbox.clear()
             self._error = None
             self._reset_totals()
@@ -209,9 +223,10 @@ class ShardActor:
                 if not parcels:  # the run ended while this thread held
                     continue
                 epoch, peers, trace = self._epoch, self._peers, self._trace
+                outbox = self._outbox
                 self._running = True
             try:
-                self._run(epoch, peers, trace, parcels)
+                self._run(epoch, peers, trace, outbox, parcels)
             except BaseException as e:  # handed to the coordinator by the next poll
                 with self._cv:
                     self._error = e
@@ -220,7 +235,8 @@ class ShardActor:
                     self._running = False
                     self._cv.notify_all()
 
-    def _run(self, epoch: int, peers: list, trace: bool, parcels: list[Parcel]) -> None:
+    def _run(self, epoch: int, peers: list, trace: bool, outbox: Outbox,
+             parcels: list[Parcel]) -> None:
         t0, c0 = time.perf_counter(), time.thread_time()
         start = time.time()
         orders, credits, rays = [], {}, []
@@ -234,11 +250,11 @@ class ShardActor:
             res = self._shard.step(orders, rays, credits)
         end = time.time()  # before any parcel leaves: a consumer never starts earlier
         with res.times.phase("send"):
+            with self._cv:  # nothing left to do: held parcels leave too (outbox.py)
+                flush = not self._inbox
             step_id = self._steps
             sent = []
-            for target, out in enumerate(res.parcels):
-                if out is None:
-                    continue
+            for target, out in outbox.put(res.parcels, time.monotonic(), flush):
                 out.epoch, out.source = epoch, (self.id, step_id)
                 peers[target].deliver.remote(out)
                 sent.append((target, out.n_rays, out.nbytes))
