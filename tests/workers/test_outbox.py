@@ -74,7 +74,7 @@ def test_a_held_parcel_leaves_after_wait_s_or_on_flush():
     assert box.put([None, _parcel(rng, 2)], now=5.01, flush=False) == []
     left = box.put([None, None], now=5.025, flush=False)  # target 0's has waited 25 ms
     assert [(t, p.n_rays) for t, p in left] == [(0, 3)]
-    left = box.put([_parcel(rng, 1), None], now=5.021, flush=True)
+    left = box.put([_parcel(rng, 1), None], now=5.03, flush=True)
     assert sorted((t, p.n_rays) for t, p in left) == [(0, 1), (1, 2)] and box.held_rays == 0
 
 

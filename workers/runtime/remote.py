@@ -11,8 +11,8 @@ process, and runs the shard as a mailbox:
   actor (`deliver.remote`: the batch travels through the object store as a call
   argument); the coordinator is not on the ray path. A small parcel may wait in the
   shard's `Outbox` to leave with the next step's parcel for the same target;
-- the weight of passes whose rays ended here waits in an outbox that `poll` (a long poll
-  the coordinator keeps outstanding) hands back with the shard's CPU and phase totals.
+- the weight of passes whose rays ended here waits until `poll` (a long poll the
+  coordinator keeps outstanding) hands it back with the shard's CPU and phase totals.
 
 A job run is an epoch (`begin`): parcels of any other epoch are dropped on arrival, so
 after a fault the coordinator starts a new epoch and stale parcels in flight are harmless.
@@ -57,8 +57,9 @@ HOLD_S = 0.008
 # target, until they carry SEND_RAYS together, the oldest has waited SEND_S, or this shard's
 # inbox is empty after a step (nprt.workers.runtime.outbox; the coordinator hands both to
 # `begin`): a Ray call costs about the same CPU for 10 rays as for 1,000. On 2 cores at K = 8
-# (city exact and proxy, forest exact; bench_step_hold, bench/README.md) it took 26-35 % of
-# the parcels and 5-10 % of the CPU; a held parcel leaves up to a step later.
+# (city and forest, exact and proxy; bench_step_hold --sends, bench/README.md) it took 28-39 %
+# of the parcels and -11 to +1 % of the CPU (medians of 3 rounds); a held parcel leaves up
+# to a step later, and its effect on the wall on dedicated cores is not measured yet.
 SEND_RAYS = 1024
 SEND_S = 0.02
 
