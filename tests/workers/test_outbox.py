@@ -85,6 +85,9 @@ def test_without_min_rays_every_parcel_leaves_at_once():
     assert box.put(parcels, now=0.0, flush=False) == list(enumerate(parcels))
 
 
-def test_negative_settings_are_refused():
+def test_negative_settings_and_orders_are_refused():
     with pytest.raises(ValueError, match="negative"):
         Outbox(2, min_rays=-1)
+    order = Parcel(-1, {0: Fraction(1)}, orders=(object(),))
+    with pytest.raises(ValueError, match="orders"):
+        merge([order, _parcel(np.random.default_rng(5), 2)])

@@ -76,6 +76,8 @@ def merge(parcels: list[Parcel]) -> Parcel:
     """One parcel holding the rays, shadow rays, camera rays and credits of `parcels` (made
     by one shard for one target). Rays to be shaded there (FLAG_SHADE) come first, as in
     each parcel (`Shard._by_target`), so the receiver still slices them off."""
+    if any(p.orders for p in parcels):  # the coordinator's alone: a merge would drop them
+        raise ValueError("a parcel with camera-ray orders cannot be merged")
     if len(parcels) == 1:
         return parcels[0]
     from nprt.workers.wavefront.batch import FLAG_SHADE  # shard-side only: not the driver's
