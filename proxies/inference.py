@@ -146,9 +146,7 @@ class Proxy:
         differed in the last bits, so an odd batch gets one zero row more."""
         if len(x) == 0:
             return np.zeros(0, np.float32)
-        call = self._calls.get(net)
-        if call is None:
-            call = self._calls[net] = self._caller(net)
+        call = self._call(net)
         chunk = self.chunk_rows  # even: only the last call can be odd
         if len(x) <= chunk:
             return _even_call(call, x)
@@ -162,9 +160,7 @@ class Proxy:
         n = len(x)
         if n % 2:
             raise ValueError(f"run_even needs an even number of rows, got {n}")
-        call = self._calls.get(net)
-        if call is None:
-            call = self._calls[net] = self._caller(net)
+        call = self._call(net)
         chunk = self.chunk_rows
         if n <= chunk:
             return call(x).reshape(-1)
@@ -178,6 +174,13 @@ class Proxy:
     def calls(self, n: int) -> int:
         """onnxruntime calls `run` makes for n rows."""
         return -(-n // self.chunk_rows)
+
+    def _call(self, net: str):
+        """The net's caller (`_caller`), made on first use and kept."""
+        call = self._calls.get(net)
+        if call is None:
+            call = self._calls[net] = self._caller(net)
+        return call
 
     def _caller(self, net: str):
         """x -> the net's first output. The session's own binding where there is one: the

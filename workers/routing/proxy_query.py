@@ -269,12 +269,12 @@ def _ask_nets(bank: _Bank, p: int, grouped: np.ndarray, start: np.ndarray, point
     not asked or below the threshold), and the onnxruntime calls made. The "line" encoding
     of every mesh's pairs is compiled passes around the nets (`net_rows`: the bits of
     Proxy.query, mesh by mesh)."""
-    vis = np.zeros(p, np.float32)
-    tp = np.full(p, np.inf, np.float32)
     rows = grouped
     if not len(rows):
-        return vis, tp, 0
+        return np.zeros(p, np.float32), np.full(p, np.inf, np.float32), 0
     if not bank.line:
+        vis = np.zeros(p, np.float32)
+        tp = np.full(p, np.inf, np.float32)
         thr = np.concatenate([thr_q[j, mesh[cut[j]:cut[j + 1]]] for j in range(len(thr_q))])
         calls = 0
         for m in np.flatnonzero(np.diff(start)):
