@@ -118,9 +118,10 @@ def estimate_memory(s: RenderSettings) -> MemoryEstimate:
     k = max(s.shards, 1)
     window = 1
     if s.shards:  # the coordinator imports Ray, and Ray gRPC: not for a reference render
-        from nprt.workers.runtime.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
+        from nprt.workers.passes import count_tiles
+        from nprt.workers.runtime.coordinator import live_window
 
-        window = max(MIN_WINDOW, WINDOW_PER_SHARD * k)
+        window = live_window(k, count_tiles(s))
     inflight = window * k * tile_pixels * 3 * ACCUM_DTYPE().itemsize  # one part per shard
     return MemoryEstimate(film, pixels * OUTPUT_BYTES_PER_PIXEL, inflight,
                           tile_pixels * s.spp_per_pass * PATH_WORK_BYTES)

@@ -1,6 +1,6 @@
 """The cost of a shard visit, without Ray: K Shards in this one process, stepped in turn, each
 step's parcels handed straight to their target, passes admitted as the coordinator admits
-them (one live pass per tile, a window of WINDOW_PER_SHARD x K) and completed by weight
+them (one live pass per tile, the coordinator's window) and completed by weight
 throwing. Everything is one thread, so process CPU is exact and nothing waits.
 
 It splits the distributed renderer's extra CPU in two: what the wavefront itself costs for
@@ -39,7 +39,7 @@ from bench.render.raycalls import parcel_cost, with_ray_cost
 from nprt.scene.store import open_scene
 from nprt.workers.filmsum import FilmSums
 from nprt.workers.passes import count_tiles, iter_passes, pass_at
-from nprt.workers.runtime.coordinator import MIN_WINDOW, WINDOW_PER_SHARD
+from nprt.workers.runtime.coordinator import live_window
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats
 from nprt.workers.wavefront.inprocess import shards_in_process
@@ -49,7 +49,7 @@ from nprt.workers.wavefront.shard import Shard
 def run(shards: list[Shard], s: RenderSettings) -> dict:
     """Render every pass of `s` on `shards`; returns CPU, visits, phases and the film."""
     k, tiles = len(shards), count_tiles(s)
-    window = max(MIN_WINDOW, WINDOW_PER_SHARD * k)
+    window = live_window(k, tiles)
     inbox: list[list] = [[] for _ in range(k)]  # per shard: (orders, parcel or None, credits)
     waiting = list(iter_passes(s))
     live: dict[int, Fraction] = {}  # pass index -> weight back so far

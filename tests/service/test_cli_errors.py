@@ -131,6 +131,18 @@ def test_memory_estimate_counts_the_film_exactly():
     assert est.total_bytes > est.film_bytes
 
 
+def test_memory_estimate_of_a_distributed_render_counts_live_passes_once_a_tile():
+    from nprt.workers.runtime.coordinator import WINDOW_PER_SHARD
+
+    # 5 x 4 tiles: K = 2 shards would keep more passes live, but one a tile is the limit.
+    est = estimate_memory(RenderSettings(width=300, height=200, spp=8, tile_size=64, shards=2))
+    assert est.inflight_bytes == 20 * 2 * 64 * 64 * 3 * 8  # a part per shard per live pass
+    wide = estimate_memory(RenderSettings(width=3000, height=2000, spp=8, tile_size=64,
+                                          shards=2))
+    # 1,504 tiles: the window binds
+    assert wide.inflight_bytes == WINDOW_PER_SHARD * 2 * 2 * 64 * 64 * 3 * 8
+
+
 def test_render_that_does_not_fit_is_refused_with_the_estimate():
     s = RenderSettings(width=16384, height=16384)
     with pytest.raises(CliError) as info:

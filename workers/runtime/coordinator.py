@@ -68,10 +68,21 @@ from nprt.workers.stats.counters import RenderStats
 log = logging.getLogger(__name__)
 
 MAX_PASS_ATTEMPTS = 4
-# Live passes per shard: at 3, shards of a 16-core machine were idle a third of the time at
-# K = 2 (busy 0.65-0.68, bench/README.md "Strong scaling"); a live pass costs a few kB.
-WINDOW_PER_SHARD = 6
+# Live passes per shard. More passes in flight make each step bigger (its fixed costs shared
+# by more rays) and leave a shard idle less often waiting for its peers' parcels. At 3,
+# shards of a 16-core machine were idle a third of the time at K = 2; at 6 (the default
+# until session 11), on 2 cores, K = 2 shards were busy 0.67-0.78 of the wall and at 24 (capped
+# by the 60 tiles) 0.81-0.96, with 10-15 % less CPU at K = 2 and 4 (bench/README.md, "A
+# wider window"). A live pass holds a tile-sized film slot on each shard it visits (tile_size^2
+# x 48 bytes: 192 kB at 64-pixel tiles).
+WINDOW_PER_SHARD = 24
 MIN_WINDOW = 4
+
+
+def live_window(k: int, tiles: int) -> int:
+    """Passes live at once for K shards on an image of `tiles` tiles: WINDOW_PER_SHARD a
+    shard, at least MIN_WINDOW, and never more than one a tile (the admission rule)."""
+    return max(1, min(tiles, max(MIN_WINDOW, WINDOW_PER_SHARD * k)))
 POLL_S = 0.25  # a shard's long poll; also how often a cancel is noticed
 BEGIN_TIMEOUT_S = 60.0  # every shard answering `begin` (a restarted one included)
 BEGIN_RETRY_S = 0.5
@@ -150,7 +161,7 @@ class Coordinator:
         self.pool.jobs += 1
         self.pool.show(scene)  # a warm pool may still show another frame of its scene
         self.warm = self.pool.jobs > 1  # the pool was started for an earlier job
-        self.window = max(MIN_WINDOW, WINDOW_PER_SHARD * self.k)
+        self.window = live_window(self.k, count_tiles(settings))
         self.totals: list[PollReply | None] = [None] * self.k  # shards' totals, last run
         self._done_totals = [dict() for _ in range(self.k)]  # summed over earlier runs
         self.wall_s = self.wait_s = self.cpu_s = 0.0
