@@ -1,7 +1,8 @@
 """How long a shard waits to merge parcels into one step (nprt.workers.runtime.remote,
-HOLD_RAYS and HOLD_S), and how long a small parcel waits for more before it leaves
-(SEND_RAYS and SEND_S, nprt.workers.runtime.outbox), side by side in one run: the 1-core
-reference, then each scene at one K in exact and proxy mode with each pair of settings.
+HOLD_RAYS and HOLD_S), how long a small parcel waits for more before it leaves (SEND_RAYS
+and SEND_S, nprt.workers.runtime.outbox), and how many passes are live at once (the
+coordinator's window), side by side in one run: the 1-core reference, then each scene at
+one K in exact and proxy mode with each combination of settings.
 
 A step pays a fixed cost (a Ray call per target, the per-step glue) and a cost per ray. A
 shard whose inbox holds few rays can step at once (small steps: more fixed cost per ray) or
@@ -16,6 +17,7 @@ the shards wait for CPU anyway, and their steps are big whatever the hold.
     python -m bench.render.bench_step_hold --scenes city forest --k 8
     python -m bench.render.bench_step_hold --scenes city --k 4 --holds 0:0 16384:8 --rounds 2
     python -m bench.render.bench_step_hold --scenes city --holds 16384:8 --sends 0:0 1024:20
+    python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --windows 12 48 --rounds 2
     python -m bench.render.bench_step_hold --smoke
 """
 
@@ -50,6 +52,16 @@ def parse_hold(text: str) -> tuple[int, float]:
     return hold
 
 
+def _window(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"a window is a number of passes, 1 or more: {text!r}")
+    return n
+
+
 def _render(coord, scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
     """One render on a started pool: its wall, CPU (shards and coordinator) and counts."""
     from nprt.workers.render import render
@@ -76,7 +88,8 @@ def bench(args) -> dict:
 
     rows = []
     saved = remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S
-    settings = [(h, x) for h in args.holds for x in args.sends]  # the first is the baseline
+    # (window or None: the coordinator's, hold, send); the first is the baseline
+    settings = [(w, h, x) for w in args.windows for h in args.holds for x in args.sends]
     try:
         for name in args.scenes:
             scene = open_scene(name if args.size == "default" else f"{name}:{args.size}")
@@ -90,15 +103,17 @@ def bench(args) -> dict:
                 coord = make_renderer(scene, s)
                 try:
                     _render(coord, scene, s)  # the pool's first render: caches warm
-                    first = None
+                    first, default_window = None, coord.window
                     for _ in range(args.rounds):
-                        for hold, send in settings:
+                        for window, hold, send in settings:
+                            coord.window = default_window if window is None else window
                             remote.HOLD_RAYS, remote.HOLD_S = hold
                             remote.SEND_RAYS, remote.SEND_S = send
                             row, img = _render(coord, scene, s)
                             first = img if first is None else first
                             row |= {"scene": name, "hold_rays": hold[0], "hold_ms": hold[1] * 1e3,
                                     "send_rays": send[0], "send_ms": send[1] * 1e3,
+                                    "window": coord.window,
                                     "wall_ratio": round(row["render_s"] / ref["render_s"], 3),
                                     "cpu_ratio": round(row["cpu_s"] / ref["cpu_s"], 3),
                                     "rays_per_parcel": round(row["transfers"]
@@ -115,7 +130,8 @@ def bench(args) -> dict:
 
 
 def _line(r: dict) -> str:
-    return (f"{r['scene']} {r['mode']} K={r['k']} hold {r['hold_rays']:6d} rays "
+    return (f"{r['scene']} {r['mode']} K={r['k']} window {r.get('window', 0):3d}, "
+            f"hold {r['hold_rays']:6d} rays "
             f"{r['hold_ms']:4.1f} ms, send {r.get('send_rays', 0):5d} rays "
             f"{r.get('send_ms', 0.0):4.1f} ms: wall {r['render_s']:6.2f} s "
             f"({r['wall_ratio']:.2f}x) cpu "
@@ -125,16 +141,18 @@ def _line(r: dict) -> str:
 
 
 def markdown(res: dict) -> str:
-    head = ("| scene | mode | K | hold rays | hold ms | send rays | send ms | render s | "
-            "vs reference | CPU s | CPU vs ref | steps | parcels | rays / parcel | "
-            "Ray threads s | same film |\n"
-            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|\n")
+    head = ("| scene | mode | K | window | hold rays | hold ms | send rays | send ms | "
+            "render s | vs reference | CPU s | CPU vs ref | steps | parcels | rays / parcel | "
+            "busy | Ray threads s | same film |\n"
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"
+            "---|\n")
     return head + "".join(
-        f"| {r['scene']} | {r['mode']} | {r['k']} | {r['hold_rays']} | {r['hold_ms']:g} | "
+        f"| {r['scene']} | {r['mode']} | {r['k']} | {r.get('window', '')} | {r['hold_rays']} | "
+        f"{r['hold_ms']:g} | "
         f"{r.get('send_rays', 0)} | {r.get('send_ms', 0.0):g} | "
         f"{r['render_s']:.2f} | {r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x"
         f" | {r['steps']} | {r['parcels']} | {r['rays_per_parcel']:.0f} | "
-        f"{r['ray_threads_s']:.1f} | {'yes' if r['same_film_as_no_hold'] else 'NO'} |\n"
+        f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | {r['ray_threads_s']:.1f} | {'yes' if r['same_film_as_no_hold'] else 'NO'} |\n"
         for r in res["rows"] if r["k"])
 
 
@@ -154,10 +172,13 @@ def main():
     ap.add_argument("--sends", nargs="+", type=parse_hold, default=[parse_hold(x) for x in SENDS],
                     help="RAYS:MS small-parcel waits, each tried with every hold (default: "
                          "the shipped one, " + " ".join(SENDS) + ")")
+    ap.add_argument("--windows", nargs="+", type=_window, default=[None],
+                    help="live passes to compare, each with every hold and send (default: "
+                         "the coordinator's own, nprt.workers.runtime.coordinator.live_window)")
     add_output_flags(ap)
     args = smoke(ap.parse_args(), scenes=["forest"], size="tiny", width=32, height=24, spp=2,
                  modes=["exact"], k=2, holds=[(0, 0.0), (1 << 30, 0.002)],
-                 sends=[(0, 0.0), (1 << 30, 1.0)])
+                 sends=[(0, 0.0), (1 << 30, 1.0)], windows=[None, 1])
     res = bench(args)
     finish(res, args.out / "bench_step_hold.json", markdown=markdown, update_readme=False)
 

@@ -258,6 +258,7 @@ def main(argv=None) -> None:
            section=f"bench_strong_scaling_{tag}", update_readme=not args.no_readme,
            intro=f"`python -m bench.render.bench_strong_scaling` on {tag} "
                  "(`{json}`):\n\n![]({png})\n\n")
+    (args.out / "strong_scaling_partial.json").unlink(missing_ok=True)  # the whole run is saved
 
 
 if __name__ == "__main__":

@@ -70,11 +70,11 @@ log = logging.getLogger(__name__)
 MAX_PASS_ATTEMPTS = 4
 # Live passes per shard. More passes in flight make each step bigger (its fixed costs shared
 # by more rays) and leave a shard idle less often waiting for its peers' parcels. At 3,
-# shards of a 16-core machine were idle a third of the time at K = 2; at 6 (the default
-# until session 11), on 2 cores, K = 2 shards were busy 0.67-0.78 of the wall and at 24 (capped
-# by the 60 tiles) 0.81-0.96, with 10-15 % less CPU at K = 2 and 4 (bench/README.md, "A
-# wider window"). A live pass holds a tile-sized film slot on each shard it visits (tile_size^2
-# x 48 bytes: 192 kB at 64-pixel tiles).
+# shards of a 16-core machine were idle a third of the time at K = 2. At 6 (until session
+# 11), on 2 cores at 640x360, K = 2 shards were busy 0.66-0.79 of the wall; at 24 (48 live)
+# 0.79-0.94, with 10-15 % less CPU at K = 2 and 4 (bench/README.md, "A wider window"). A
+# live pass holds a film slot on each shard it visits: tile_size^2 x 48 bytes, 192 KiB at
+# 64-pixel tiles.
 WINDOW_PER_SHARD = 24
 MIN_WINDOW = 4
 
