@@ -152,7 +152,8 @@ def markdown(res: dict) -> str:
         f"{r.get('send_rays', 0)} | {r.get('send_ms', 0.0):g} | "
         f"{r['render_s']:.2f} | {r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x"
         f" | {r['steps']} | {r['parcels']} | {r['rays_per_parcel']:.0f} | "
-        f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | {r['ray_threads_s']:.1f} | {'yes' if r['same_film_as_no_hold'] else 'NO'} |\n"
+        f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | {r['ray_threads_s']:.1f} | "
+        f"{'yes' if r['same_film_as_no_hold'] else 'NO'} |\n"
         for r in res["rows"] if r["k"])
 
 

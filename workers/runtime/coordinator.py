@@ -77,12 +77,6 @@ MAX_PASS_ATTEMPTS = 4
 # 64-pixel tiles.
 WINDOW_PER_SHARD = 24
 MIN_WINDOW = 4
-
-
-def live_window(k: int, tiles: int) -> int:
-    """Passes live at once for K shards on an image of `tiles` tiles: WINDOW_PER_SHARD a
-    shard, at least MIN_WINDOW, and never more than one a tile (the admission rule)."""
-    return max(1, min(tiles, max(MIN_WINDOW, WINDOW_PER_SHARD * k)))
 POLL_S = 0.25  # a shard's long poll; also how often a cancel is noticed
 BEGIN_TIMEOUT_S = 60.0  # every shard answering `begin` (a restarted one included)
 BEGIN_RETRY_S = 0.5
@@ -91,6 +85,12 @@ SHARD_LOST = (RayActorError, ActorUnavailableError)
 # waits for weight: the weight can never come back (a lost parcel or a bug), and without
 # this the job would wait for ever. Parcels in flight reach their shard in milliseconds.
 STALL_S = 20.0
+
+
+def live_window(k: int, tiles: int) -> int:
+    """Passes live at once for K shards on an image of `tiles` tiles: WINDOW_PER_SHARD a
+    shard, at least MIN_WINDOW, and never more than one a tile (the admission rule)."""
+    return max(1, min(tiles, max(MIN_WINDOW, WINDOW_PER_SHARD * k)))
 
 
 class _Restarted(RuntimeError):
