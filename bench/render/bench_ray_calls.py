@@ -34,6 +34,7 @@ import time
 import numpy as np
 import ray
 
+from bench.common import proc_cpu
 from nprt.workers.runtime.raysession import RAY_SYSTEM_CONFIG
 
 # name -> (ray.init _system_config, actor options, deliver's num_returns): the candidates
@@ -59,14 +60,6 @@ VARIANTS = {
     "nprt_one_delivery_thread": (RAY_SYSTEM_CONFIG, {"enable_task_events": False,
                                                      "concurrency_groups": {"deliver": 1}}, 0),
 }
-_TICK = os.sysconf("SC_CLK_TCK")
-
-
-def proc_cpu(pid: int) -> float:
-    """User + system CPU seconds of every thread of process pid, so far."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / _TICK
 
 
 def _batch(rows: int):

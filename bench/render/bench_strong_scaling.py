@@ -5,8 +5,10 @@ side in one run, on whatever cores this machine has.
 Per row: render wall (the pool already started; its start is `prepare_s`), CPU seconds per
 shard and in total (process CPU of every shard plus the coordinator's), coordinator CPU,
 busy fraction, the share of shard CPU in named phases and outside the wavefront thread
-(Ray's own threads), wavefront steps, parcels, ray bytes, and PSNR of proxy against exact
-at the same K.
+(Ray's own threads), the local raylet's CPU during the render (the object store's work for
+parcels above the inline limit: not in the total, which is the issue's "all shards plus
+the coordinator"), wavefront steps, parcels, ray bytes, and PSNR of proxy against exact at
+the same K.
 
 Where the machine has fewer cores than K + 1, the walls measure oversubscription. So every
 distributed run also records its step trace, and bench/network/netmodel.py replays it on K
@@ -75,7 +77,8 @@ def run_one(scene, s: RenderSettings) -> tuple[dict, np.ndarray, dict | None]:
            "busy_fraction": [x["busy_fraction"] for x in shards],
            "named_cpu_fraction": [x["cpu_named_fraction"] for x in shards],
            "steps": sum(x["steps"] for x in shards), "parcels": sum(x["calls"] for x in shards),
-           "ray_bytes": base["total_bytes"], "transfers": base["total_transfers"]}
+           "ray_bytes": base["total_bytes"], "transfers": base["total_transfers"],
+           "raylet_cpu_s": base["raylet_cpu_s"]}
     run = ({"trace": info["trace"], "window": info["window"], "film_bytes": film_bytes(s),
             "wall_s": row["render_s"]} if "trace" in info else None)
     return row, image, run
@@ -162,10 +165,10 @@ def markdown(res: dict) -> str:
            + (f", {tpc:g} hardware threads per physical core" if tpc else "")
            + f"), Ray {m['ray']}.", "",
            "| scene | renderer | K | render s | vs reference | CPU s (all) | CPU vs ref | "
-           "coordinator CPU s (share) | shard CPU s | busy | named CPU | Ray threads | steps | "
-           "parcels | ray MB | PSNR dB | model s, K cores | model vs ref |",
+           "coordinator CPU s (share) | shard CPU s | busy | named CPU | Ray threads | "
+           "raylet CPU s | steps | parcels | ray MB | PSNR dB | model s, K cores | model vs ref |",
            "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"
-           "---:|"]
+           "---:|---:|"]
     for r in res["rows"]:
         named = [x for x in r["named_cpu_fraction"] if x is not None]
         psnr = r.get("psnr_vs_exact_db", r.get("psnr_vs_reference_db", ""))
@@ -175,7 +178,8 @@ def markdown(res: dict) -> str:
             f"{r['coordinator_cpu_s']:.2f} ({100 * r.get('coordinator_share', 0):.1f} %) | "
             f"{', '.join(f'{c:.1f}' for c in r['shard_cpu_s'])} | "
             f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | "
-            f"{min(named) if named else 1.0:.3f} | {_ray_threads(r)} | {r['steps']} | "
+            f"{min(named) if named else 1.0:.3f} | {_ray_threads(r)} | "
+            f"{_fmt(r.get('raylet_cpu_s'), '.2f')} | {r['steps']} | "
             f"{r['parcels']} | "
             f"{r['ray_bytes'] / 1e6:.1f} | {psnr if psnr != '' else ''} | "
             f"{_fmt(r.get('model_render_s'), '.2f')} | {_fmt(r.get('model_ratio'), '.2f', 'x')} |")
