@@ -192,6 +192,16 @@ def finish(res: dict, path: Path, *, plot=None, markdown=None, section: str | No
     return table
 
 
+def window_arg(text: str) -> int:
+    """argparse type of a coordinator window (passes live at once): 1 or more."""
+    import argparse
+
+    n = int(text) if text.isdigit() else 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"a window is a number of passes, 1 or more: {text!r}")
+    return n
+
+
 def add_render_flags(ap, results: Path) -> None:
     """Image, sampling and output flags every render benchmark takes."""
     ap.add_argument("--width", type=int, default=160)

@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from bench.common import add_output_flags, finish, machine, raylet_cpu_s, smoke
+from bench.common import add_output_flags, finish, machine, raylet_cpu_s, smoke, window_arg
 from bench.render.bench_strong_scaling import run_one
 from nprt.scene.store import open_scene
 from nprt.workers.runtime import remote
@@ -50,16 +50,6 @@ def parse_hold(text: str) -> tuple[int, float]:
     if hold[0] < 0 or hold[1] < 0:
         raise argparse.ArgumentTypeError(f"a hold cannot be negative: {text!r}")
     return hold
-
-
-def _window(text: str) -> int:
-    try:
-        n = int(text)
-    except ValueError:
-        n = 0
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"a window is a number of passes, 1 or more: {text!r}")
-    return n
 
 
 def _render(coord, scene, s: RenderSettings) -> tuple[dict, np.ndarray]:
@@ -180,7 +170,7 @@ def main():
     ap.add_argument("--sends", nargs="+", type=parse_hold, default=[parse_hold(x) for x in SENDS],
                     help="RAYS:MS small-parcel waits, each tried with every hold (default: "
                          "the shipped one, " + " ".join(SENDS) + ")")
-    ap.add_argument("--windows", nargs="+", type=_window, default=[None],
+    ap.add_argument("--windows", nargs="+", type=window_arg, default=[None],
                     help="live passes to compare, each with every hold and send (default: "
                          "the coordinator's own, nprt.workers.runtime.coordinator.live_window)")
     add_output_flags(ap)
