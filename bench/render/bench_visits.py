@@ -40,6 +40,7 @@ from nprt.scene.store import open_scene
 from nprt.workers.filmsum import FilmSums
 from nprt.workers.passes import count_tiles, iter_passes, pass_at
 from nprt.workers.runtime.coordinator import live_window
+from nprt.workers.runtime.protocol import sum_credits
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats
 from nprt.workers.wavefront.inprocess import shards_in_process
@@ -78,10 +79,7 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
             if not arrived[sid]:
                 continue
             work = arrived[sid]
-            credits: dict[int, Fraction] = {}
-            for _, _, c in work:
-                for i, w in c.items():
-                    credits[i] = credits.get(i, 0) + w
+            credits = sum_credits(c for _, _, c in work)
             parcels = [x for _, x, _ in work if x is not None]
             orders = [o for os_, _, _ in work for o in os_]
             t0 = time.process_time()

@@ -29,11 +29,10 @@ to one target, a few a step, would wait for the shard to run dry)."""
 from __future__ import annotations
 
 import time
-from fractions import Fraction
 
 import numpy as np
 
-from nprt.workers.runtime.protocol import Parcel
+from nprt.workers.runtime.protocol import Parcel, sum_credits
 
 
 class Outbox:
@@ -82,10 +81,7 @@ def merge(parcels: list[Parcel]) -> Parcel:
         return parcels[0]
     from nprt.workers.wavefront.batch import FLAG_SHADE  # shard-side only: not the driver's
 
-    credits: dict[int, Fraction] = {}
-    for p in parcels:
-        for i, w in p.credits.items():
-            credits[i] = credits.get(i, 0) + w
+    credits = sum_credits(p.credits for p in parcels)
     rays = [p.rays for p in parcels if p.rays is not None and len(p.rays)]
     merged_rays = None
     if rays:

@@ -90,6 +90,16 @@ class Parcel:
 _ALIGN = 8  # bytes: every column starts aligned for its dtype (at most 8 bytes wide)
 
 
+def sum_credits(credit_maps) -> dict[int, Fraction]:
+    """Pass index -> the sum of its weights over credit maps (Parcel.credits): what the
+    parcels merged into one step, or into one parcel, carry together."""
+    out: dict[int, Fraction] = {}
+    for credits in credit_maps:
+        for i, w in credits.items():
+            out[i] = out.get(i, 0) + w
+    return out
+
+
 def _pack(batch):
     """(class, rows, offsets, (nbytes,) uint8 buffer) of a RayBatch / ShadowRayBatch (any
     class with `_SPEC`, `_trusted`), or None. Columns are copied once, back to back."""

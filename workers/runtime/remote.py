@@ -41,7 +41,7 @@ import uuid
 import ray
 
 from nprt.workers.runtime.outbox import Outbox
-from nprt.workers.runtime.protocol import Parcel, PollReply
+from nprt.workers.runtime.protocol import Parcel, PollReply, sum_credits
 
 MAX_CONCURRENCY = 8  # Ray threads per actor: deliver, poll and collect never wait on a step
 SETTLE_S = 30.0  # a settling poll waits at most this long for the step in progress
@@ -240,13 +240,9 @@ class ShardActor:
              parcels: list[Parcel]) -> None:
         t0, c0 = time.perf_counter(), time.thread_time()
         start = time.time()
-        orders, credits, rays = [], {}, []
-        for p in parcels:
-            orders += p.orders
-            for i, w in p.credits.items():
-                credits[i] = credits.get(i, 0) + w
-            if p.n_rays:
-                rays.append(p)
+        orders = [o for p in parcels for o in p.orders]
+        credits = sum_credits(p.credits for p in parcels)
+        rays = [p for p in parcels if p.n_rays]
         with self._step_lock:
             res = self._shard.step(orders, rays, credits)
         end = time.time()  # before any parcel leaves: a consumer never starts earlier
