@@ -621,31 +621,32 @@ class Shard:
         """The rows leaving in pending [(batch, rows (m,) int64, targets (m,) int32 sorted,
         their pass tokens (m,) int64)] (`_send`) as (k,) batches or None per target shard,
         one hop more, each target's rows in the order they were sent (rays to be shaded
-        there first, FLAG_SHADE). All of a step's rows
-        for other shards are gathered with one take per column, each target's batch a view
-        of it (small parts made a take per part and a concat per target cost a numpy call
+        there first, FLAG_SHADE). All of a step's rows for other shards are gathered once
+        per column (not the whole batches they leave from: at K = 2 half their rows stay),
+        taken again only where they must be reordered, and each target's batch is a view
+        of that (small parts made a take per part and a concat per target cost a numpy call
         per column each). Counts their transfers and marks seen[target, pass]; kind: the
         ray kind of a shadow batch (None: the batch's kind column)."""
         if not pending:
             return [None] * self.k
         if len(pending) == 1:
             batch, rows, targets, tok = pending[0]
-        else:  # rows of the concatenated batches, grouped by target (stable)
-            sizes = np.array([len(b) for b, _, _, _ in pending])
-            offset = np.cumsum(sizes) - sizes
-            rows = np.concatenate([r + o for (_, r, _, _), o in zip(pending, offset,
-                                                                    strict=True)])
+        else:  # the leaving rows alone, copied once, then grouped by target (stable)
+            batch = cls.gather([(b, r) for b, r, _, _ in pending])
             targets = np.concatenate([x for _, _, x, _ in pending])
-            order, _ = group_rows(targets, self.k)
-            rows, targets = rows[order], targets[order]
-            tok = np.concatenate([x for _, _, _, x in pending])[order]
-            batch = cls.concat([b for b, _, _, _ in pending])
+            tok = np.concatenate([x for _, _, _, x in pending])
+            rows = None  # every row of batch, in order
+            if (targets[1:] < targets[:-1]).any():  # else grouped already (one target: K = 2)
+                rows, _ = group_rows(targets, self.k)
+                targets, tok = targets[rows], tok[rows]
         if kind is None:  # a target's rays to be shaded there first: `_split_settled` slices
-            settled = (np.take(batch.flags, rows) & FLAG_SHADE) != 0
+            flags = batch.flags if rows is None else np.take(batch.flags, rows)
+            settled = (flags & FLAG_SHADE) != 0
             if settled.any():
                 order, _ = group_rows((targets * 2 + ~settled).astype(np.int32), 2 * self.k)
-                rows, targets, tok = rows[order], targets[order], tok[order]
-        moving = batch.take(rows)
+                rows = order if rows is None else rows[order]
+                targets, tok = targets[order], tok[order]
+        moving = batch if rows is None else batch.take(rows)
         if kind is None:
             moving = moving.replace(hops=moving.hops + np.uint8(1))
         else:  # shadow rays carry this shard's visited bit from here on (`_route_shadow_all`)
