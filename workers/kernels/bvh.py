@@ -53,6 +53,32 @@ def _slab_planes_finite(lo0, lo1, lo2, hi0, hi1, hi2, o0, o1, o2, i0, i1, i2, tm
 
 
 @njit(inline="always", **JIT)
+def _flat_slabs(flat, plain, o0, o1, o2, i0, i1, i2, tmax, te, ok):
+    """The slab tests of every box in flat against the ray, in one branch-free loop (it
+    vectorises): ok[j] box j is crossed before tmax, te[j] its entry (scratch (k,)).
+    With no NaN plane in flat (plain, a bool) and a ray of finite origin and finite,
+    nonzero 1 / direction, no product of the slab can be NaN, so it runs without NaN
+    handling (`_slab_planes_finite`: the same values, and a cheaper loop: the NaN-aware
+    one's masks were most of the walk's own time)."""
+    if plain and _finite(o0, o1, o2, i0, i1, i2) and i0 != 0.0 and i1 != 0.0 and i2 != 0.0:
+        for j in range(flat.shape[1]):
+            ok[j], te[j], _ = _slab_planes_finite(flat[0, j], flat[1, j], flat[2, j],
+                                                  flat[3, j], flat[4, j], flat[5, j], o0, o1,
+                                                  o2, i0, i1, i2, tmax)
+    else:
+        for j in range(flat.shape[1]):
+            ok[j], te[j], _ = _slab_planes(flat[0, j], flat[1, j], flat[2, j], flat[3, j],
+                                           flat[4, j], flat[5, j], o0, o1, o2, i0, i1, i2,
+                                           tmax)
+
+
+@njit(inline="always", **JIT)
+def _finite(o0, o1, o2, d0, d1, d2):
+    return (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2) and np.isfinite(d0)
+            and np.isfinite(d1) and np.isfinite(d2))
+
+
+@njit(inline="always", **JIT)
 def _min(a, b):
     return a if a < b else b
 

@@ -13,12 +13,12 @@ from numba import njit, types
 from numba.extending import intrinsic
 
 from nprt.workers.kernels.bvh import (
+    _finite,
+    _flat_slabs,
     _next_leaf,
     _push_near,
     _push_pair,
     _slab,
-    _slab_planes,
-    _slab_planes_finite,
 )
 from nprt.workers.kernels.nearest import near_search
 from nprt.workers.kernels.pairs import to_local_ray
@@ -204,26 +204,6 @@ def _flat_queue(flat, plain, members, o0, o1, o2, i0, i1, i2, tmax, te, ok, q_t,
 
 
 @njit(inline="always", **JIT)
-def _flat_slabs(flat, plain, o0, o1, o2, i0, i1, i2, tmax, te, ok):
-    """The slab tests of every box in flat against the ray, in one branch-free loop (it
-    vectorises): ok[j] box j is crossed before tmax, te[j] its entry (scratch (k,)).
-    With no NaN plane in flat (plain, a bool) and a ray of finite origin and finite,
-    nonzero 1 / direction, no product of the slab can be NaN, so it runs without NaN
-    handling (`_slab_planes_finite`: the same values, and a cheaper loop: the NaN-aware
-    one's masks were most of the walk's own time)."""
-    if plain and _finite(o0, o1, o2, i0, i1, i2) and i0 != 0.0 and i1 != 0.0 and i2 != 0.0:
-        for j in range(flat.shape[1]):
-            ok[j], te[j], _ = _slab_planes_finite(flat[0, j], flat[1, j], flat[2, j],
-                                                  flat[3, j], flat[4, j], flat[5, j], o0, o1,
-                                                  o2, i0, i1, i2, tmax)
-    else:
-        for j in range(flat.shape[1]):
-            ok[j], te[j], _ = _slab_planes(flat[0, j], flat[1, j], flat[2, j], flat[3, j],
-                                           flat[4, j], flat[5, j], o0, o1, o2, i0, i1, i2,
-                                           tmax)
-
-
-@njit(inline="always", **JIT)
 def _closest_box(fn, b, r, cut, far, tmax, mesh_of, scene_of_mesh, planes, world_to_local,
                  origin, direction, ptr, rh, ri, best_t, best_inst, best_prim, best_u, best_v):
     """Trace ray r in instance b and fold its hit into best_*. Returns the new cut (the
@@ -362,12 +342,6 @@ def _leaves_plane(planes, m, o0, o1, o2, d0, d1, d2):
         oa, da = o2, d2
     gap = planes[m, 1] - np.float64(oa)  # c - O_a
     return (gap < -GAP_MIN and da > DIR_MIN) or (gap > GAP_MIN and da < -DIR_MIN)
-
-
-@njit(inline="always", **JIT)
-def _finite(o0, o1, o2, d0, d1, d2):
-    return (np.isfinite(o0) and np.isfinite(o1) and np.isfinite(o2) and np.isfinite(d0)
-            and np.isfinite(d1) and np.isfinite(d2))
 
 
 @njit(inline="always", **JIT)

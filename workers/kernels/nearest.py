@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from nprt.workers.kernels.bvh import JIT, _next_leaf, _slab, _slab_planes
+from nprt.workers.kernels.bvh import JIT, _flat_slabs, _next_leaf, _slab
 
 NONE = -1  # no unvisited box before tmax
 
@@ -44,12 +44,18 @@ def near_search(origin, direction, lim, active, boxes, bvh, cand_owner, cands, c
     Through bvh (`bvh_build`'s arrays over boxes) when cand_bvh, culled at lim and just
     beyond the best so far (rays with a non-finite component take the flat loop: the
     node test does not mirror the slab test's NaN cases); else the slabs of every
-    candidate, cands (c,) int64 with boxes cand_flat (6, c) float64, in one flat loop.
+    candidate, cands (c,) int64 with boxes cand_flat (6, c) float64, in one flat loop
+    (`_flat_slabs`: without NaN handling where no NaN can arise), folded over the crossed
+    ones only.
     One loop over the rays, written out here: a helper inlined per ray cost a third more
     (numba counts references on its array arguments at every call)."""
     node_box, node_child, node_start, node_count, prim = bvh
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     te, ok = np.empty(cand_flat.shape[1]), np.empty(cand_flat.shape[1], np.bool_)
+    plain = not np.isnan(cand_flat).any()  # `_flat_slabs` may skip NaN handling
+    own = np.empty(cands.shape[0], np.int32)  # each candidate's owner, looked up once
+    for j in range(cands.shape[0]):
+        own[j] = cand_owner[cands[j]]
     for r in range(origin.shape[0]):
         if not active[r]:
             continue
@@ -71,15 +77,10 @@ def near_search(origin, direction, lim, active, boxes, bvh, cand_owner, cands, c
                 top, lo, hi = _next_leaf(bvh, stack, top, line,
                                          min(tm, np.nextafter(nt, np.inf)))
         else:
+            _flat_slabs(cand_flat, plain, o0, o1, o2, i0, i1, i2, tm, te, ok)
             for j in range(cand_flat.shape[1]):
-                ok[j], te[j], _ = _slab_planes(cand_flat[0, j], cand_flat[1, j],
-                                               cand_flat[2, j], cand_flat[3, j],
-                                               cand_flat[4, j], cand_flat[5, j], o0, o1, o2,
-                                               i0, i1, i2, tm)
-            for j in range(cand_flat.shape[1]):
-                owner = cand_owner[cands[j]]
-                if _unvisited(owner, seen):
-                    nt, no = _near_fold(ok[j], te[j], owner, nt, no)
+                if ok[j] and _unvisited(own[j], seen):
+                    nt, no = _near_fold(True, te[j], own[j], nt, no)
         if no != NONE:
             near_t[r], near_owner[r] = nt, no
 
