@@ -24,11 +24,11 @@ BVH_MIN_INSTANCES = 8
 FLAT_WALK_MAX = 72
 # The routing search (the nearest box on an unvisited shard, culled at the best so far)
 # takes every candidate's slab in one flat loop up to this many candidates, else walks
-# the BVH nearer child first. The search alone on the rays of a K = 2 render's closest
-# walks (320x180, 8 spp), s over 3 rounds, BVH against flat: city (28 candidates) 0.438
-# against 0.194, forest (49) 0.477 / 0.218; every box a candidate: city (65) 0.522 /
-# 0.355, forest (85) 0.572 / 0.525 (was 8, when the flat loop handled NaN on every box).
-ROUTE_FLAT_MAX = 72
+# the BVH nearer child first. `bench_route_search` (the search alone on an exact render's
+# rays, flat / BVH CPU): 0.67-0.69x with 28-49 candidates (K = 2), 0.92-0.97x with 45-71
+# (K = 4), 0.91-1.10x with city's 65 boxes all candidates, 1.34x with forest's 85 (was 8,
+# when the flat loop handled NaN on every box).
+ROUTE_FLAT_MAX = 64
 
 
 class InstanceTable:
