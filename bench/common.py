@@ -213,6 +213,16 @@ def add_render_flags(ap, results: Path) -> None:
     add_output_flags(ap, results)
 
 
+def add_image_flags(ap, width: int = 640, height: int = 360, spp: int = 16) -> None:
+    """--scenes (demo names; forest and city), --size and the image: the flags of the
+    scaling benchmarks, which render the issue's image by default."""
+    ap.add_argument("--scenes", nargs="+", default=["forest", "city"])
+    ap.add_argument("--size", default="default")
+    ap.add_argument("--width", type=int, default=width)
+    ap.add_argument("--height", type=int, default=height)
+    ap.add_argument("--spp", type=int, default=spp)
+
+
 def add_output_flags(ap, out: Path = RESULTS) -> None:
     """--out, --no-readme and --smoke (the smallest input; never writes a README)."""
     ap.add_argument("--out", type=Path, default=out)

@@ -25,7 +25,7 @@ import time
 
 import numpy as np
 
-from bench.common import add_output_flags, finish, machine, smoke
+from bench.common import add_image_flags, add_output_flags, finish, machine, smoke
 from bench.render.bench_visits import run
 from nprt.scene.store import open_scene
 from nprt.workers.kernels import crossings
@@ -177,11 +177,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench.render.bench_route_search",
                                  description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", nargs="+", default=["forest", "city"])
-    ap.add_argument("--size", default="default")
-    ap.add_argument("--width", type=int, default=320)
-    ap.add_argument("--height", type=int, default=180)
-    ap.add_argument("--spp", type=int, default=8)
+    add_image_flags(ap, 320, 180, 8)
     ap.add_argument("--ks", type=int, nargs="+", default=[2])
     add_output_flags(ap)
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=24, height=16,

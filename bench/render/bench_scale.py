@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 import ray
 
-from bench.common import RESULTS, finish, machine, quality, smoke, timed_render
+from bench.common import RESULTS, add_image_flags, finish, machine, quality, smoke, timed_render
 from nprt.scene.io import load_any
 from nprt.workers.runtime.pool import ShardPool
 from nprt.workers.settings import RenderSettings
@@ -202,11 +202,7 @@ def plot(res: dict, path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", nargs="+", default=["forest", "city"])
-    ap.add_argument("--size", default="default")
-    ap.add_argument("--width", type=int, default=640)
-    ap.add_argument("--height", type=int, default=360)
-    ap.add_argument("--spp", type=int, default=16)
+    add_image_flags(ap)
     ap.add_argument("--extra-k", type=int, nargs="*", default=[4, 8],
                     help="exact renders at these K too, for the busy fraction")
     ap.add_argument("--instances", type=int, default=100_000)

@@ -31,7 +31,15 @@ import platform
 
 import numpy as np
 
-from bench.common import add_output_flags, finish, machine, quality, smoke, timed_render
+from bench.common import (
+    add_image_flags,
+    add_output_flags,
+    finish,
+    machine,
+    quality,
+    smoke,
+    timed_render,
+)
 from bench.network.netmodel import film_bytes, fit_rpc_s, replay, step_cpu
 from nprt.scene.store import open_scene
 from nprt.workers.settings import RenderSettings
@@ -242,11 +250,7 @@ def plot(res: dict, png) -> None:
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench.render.bench_strong_scaling",
                                  description=__doc__)
-    ap.add_argument("--scenes", nargs="+", default=["forest", "city"])
-    ap.add_argument("--size", default="default")
-    ap.add_argument("--width", type=int, default=640)
-    ap.add_argument("--height", type=int, default=360)
-    ap.add_argument("--spp", type=int, default=16)
+    add_image_flags(ap)
     ap.add_argument("--spp-per-pass", type=int, default=4)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     cores = os.cpu_count() or 2

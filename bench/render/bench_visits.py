@@ -32,7 +32,7 @@ from fractions import Fraction
 
 import numpy as np
 
-from bench.common import add_output_flags, finish, machine, smoke
+from bench.common import add_image_flags, add_output_flags, finish, machine, smoke
 from bench.network.netmodel import film_bytes, replay
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost, with_ray_cost
@@ -250,11 +250,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench.render.bench_visits",
                                  description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", nargs="+", default=["forest", "city"])
-    ap.add_argument("--size", default="default")
-    ap.add_argument("--width", type=int, default=320)
-    ap.add_argument("--height", type=int, default=180)
-    ap.add_argument("--spp", type=int, default=8)
+    add_image_flags(ap, 320, 180, 8)
     ap.add_argument("--spp-per-pass", type=int, default=4)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8, 16])
