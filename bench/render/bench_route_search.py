@@ -131,6 +131,9 @@ def bench(args) -> dict:
             s = RenderSettings(width=args.width, height=args.height, spp=args.spp, seed=0,
                                shards=k, mode="exact")
             calls, shards = record(scene, s)
+            if not calls["closest"] or not len(calls["closest"][0][15]):  # prim: no BVH
+                raise SystemExit(f"{name}: no routed walk over an instance BVH to compare "
+                                 "(too few instances, or K = 1)")
             row = {"scene": name, "k": k,
                    "search": time_search(calls["closest"], every=False),
                    "search_every_box": time_search(calls["closest"], every=True),
