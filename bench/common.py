@@ -192,6 +192,11 @@ def finish(res: dict, path: Path, *, plot=None, markdown=None, section: str | No
     return table
 
 
+def fmt_or_blank(x, spec: str, unit: str = "") -> str:
+    """x formatted with spec (and unit) for a table cell; blank where x is None."""
+    return "" if x is None else f"{x:{spec}}{unit}"
+
+
 def window_arg(text: str) -> int:
     """argparse type of a coordinator window (passes live at once): 1 or more."""
     import argparse

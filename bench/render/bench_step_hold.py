@@ -29,7 +29,15 @@ import time
 
 import numpy as np
 
-from bench.common import add_output_flags, finish, machine, raylet_cpu_s, smoke, window_arg
+from bench.common import (
+    add_output_flags,
+    finish,
+    fmt_or_blank,
+    machine,
+    raylet_cpu_s,
+    smoke,
+    window_arg,
+)
 from bench.render.bench_strong_scaling import run_one
 from nprt.scene.store import open_scene
 from nprt.workers.runtime import remote
@@ -129,11 +137,7 @@ def _line(r: dict) -> str:
             f"({r['wall_ratio']:.2f}x) cpu "
             f"{r['cpu_s']:6.1f} s ({r['cpu_ratio']:.2f}x) steps {r['steps']:5d} parcels "
             f"{r['parcels']:5d} Ray threads {r['ray_threads_s']:5.1f} s raylet "
-            f"{_fmt(r.get('raylet_cpu_s'))} s same film {r['same_film_as_no_hold']}")
-
-
-def _fmt(x: float | None) -> str:
-    return "" if x is None else f"{x:.2f}"
+            f"{fmt_or_blank(r.get('raylet_cpu_s'), '.2f')} s same film {r['same_film_as_no_hold']}")
 
 
 def markdown(res: dict) -> str:
@@ -149,7 +153,7 @@ def markdown(res: dict) -> str:
         f"{r['render_s']:.2f} | {r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x"
         f" | {r['steps']} | {r['parcels']} | {r['rays_per_parcel']:.0f} | "
         f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | {r['ray_threads_s']:.1f} | "
-        f"{_fmt(r.get('raylet_cpu_s'))} | "
+        f"{fmt_or_blank(r.get('raylet_cpu_s'), '.2f')} | "
         f"{'yes' if r['same_film_as_no_hold'] else 'NO'} |\n"
         for r in res["rows"] if r["k"])
 

@@ -35,6 +35,7 @@ from bench.common import (
     add_image_flags,
     add_output_flags,
     finish,
+    fmt_or_blank,
     machine,
     quality,
     smoke,
@@ -187,10 +188,11 @@ def markdown(res: dict) -> str:
             f"{', '.join(f'{c:.1f}' for c in r['shard_cpu_s'])} | "
             f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | "
             f"{min(named) if named else 1.0:.3f} | {_ray_threads(r)} | "
-            f"{_fmt(r.get('raylet_cpu_s'), '.2f')} | {r['steps']} | "
+            f"{fmt_or_blank(r.get('raylet_cpu_s'), '.2f')} | {r['steps']} | "
             f"{r['parcels']} | "
             f"{r['ray_bytes'] / 1e6:.1f} | {psnr if psnr != '' else ''} | "
-            f"{_fmt(r.get('model_render_s'), '.2f')} | {_fmt(r.get('model_ratio'), '.2f', 'x')} |")
+            f"{fmt_or_blank(r.get('model_render_s'), '.2f')} | "
+            f"{fmt_or_blank(r.get('model_ratio'), '.2f', 'x')} |")
     for name, m in res.get("model", {}).items():
         checks = ", ".join(f"{c['mode']} K={c['k']} {c['measured_s']:.2f} s measured, "
                            f"{c['model_s']:.2f} s model ({100 * c['error']:+.0f} %"
@@ -208,10 +210,6 @@ def _ray_threads(r: dict) -> str:
     deliveries, polls, object transfers); blank for the reference and older results."""
     wave, cpu = r.get("wavefront_cpu_s"), sum(r["shard_cpu_s"])
     return "" if not wave or not cpu else f"{1 - sum(wave) / cpu:.2f}"
-
-
-def _fmt(x, spec: str, unit: str = "") -> str:
-    return "" if x is None else f"{x:{spec}}{unit}"
 
 
 def plot(res: dict, png) -> None:
