@@ -7,9 +7,11 @@ What it models, following workers/runtime/coordinator.py and remote.py:
 - Shard s runs on node s; its steps run one at a time, in the recorded order. A step starts
   once the shard is free, every parcel it consumed has arrived, and every camera-ray order
   it ran has arrived.
-- A parcel leaves when its producing step ends and goes straight to its consumer's node
-  (shard to shard; no coordinator hop). Every node has an uplink and a downlink of B; flows
-  share them max-min fairly (TCP-like).
+- A parcel leaves when its producing step ends, or as far into it as it was recorded to
+  leave (a step sends what is leaving before it ends, `remote.EMIT_RAYS`: the fraction of
+  the recorded step is kept, scaled to the step's modelled compute time), and goes straight
+  to its consumer's node (shard to shard; no coordinator hop). Every node has an uplink
+  and a downlink of B; flows share them max-min fairly (TCP-like).
 - The coordinator admits passes in the recorded order, at most `window` live; an order
   reaches its shard `rpc_s` after admission. A pass is complete once every step that ran
   it has ended; the weight reaches the coordinator `rpc_s` later, the collect another
@@ -129,14 +131,26 @@ def replay(trace: dict, bandwidth_bps: float, rpc_s: float, window: int,
     index = {(s["shard"], s["step"]): i for i, s in enumerate(steps)}
     by_shard = [[i for i, s in enumerate(steps) if s["shard"] == sh] for sh in range(k)]
     waiting = np.zeros(n, np.int64)  # parcels and orders a step still waits for
-    consumers: dict[int, list[tuple[int, int]]] = {}  # producer step -> (consumer, bytes)
+    # producer step -> [(consumer, bytes)] of the parcels that left at its end, and
+    # [(fraction of the step, consumer, bytes)] of those that left before it ended
+    consumers: dict[int, list[tuple[int, int]]] = {}
+    early: dict[int, list[tuple[float, int, int]]] = {}
     order_step: dict[int, list[int]] = {}  # pass -> steps that generated it
     steps_of: dict[int, int] = {}  # pass -> steps that ran it, not yet ended
     for i, s in enumerate(steps):
-        for src, src_step, _rays, nbytes in s["inputs"]:
-            if (src, src_step) in index:
-                consumers.setdefault(index[(src, src_step)], []).append((i, int(nbytes)))
-                waiting[i] += 1
+        # (src, src_step, rays, bytes[, seconds into the producing step when it left, None
+        # or absent: at its end])
+        for src, src_step, _rays, nbytes, *left in s["inputs"]:
+            j = index.get((src, src_step))
+            if j is None:
+                continue
+            waiting[i] += 1
+            busy_j = float(steps[j]["busy_s"])
+            if left and left[0] is not None and busy_j > 0:
+                frac = min(1.0, float(left[0]) / busy_j)
+                early.setdefault(j, []).append((frac, i, int(nbytes)))
+            else:
+                consumers.setdefault(j, []).append((i, int(nbytes)))
         for p in s["orders"]:
             order_step.setdefault(p, []).append(i)
             waiting[i] += 1
@@ -175,6 +189,8 @@ def replay(trace: dict, bandwidth_bps: float, rpc_s: float, window: int,
         pos[sh] += 1
         running[sh] = True
         start[i] = now
+        for frac, j, nbytes in early.get(i, []):
+            at(now + frac * float(cpu[i]), "send", i, j, nbytes)
         at(now + float(cpu[i]), "end", i)
 
     def arrived(i: int):
@@ -182,6 +198,14 @@ def replay(trace: dict, bandwidth_bps: float, rpc_s: float, window: int,
             waiting[i] -= 1
             try_run(steps[i]["shard"], now)
         return done
+
+    def send(sh: int, j: int, nbytes: int, now: float) -> None:
+        """A parcel from shard sh to step j leaves now."""
+        if steps[j]["shard"] == sh or nbytes == 0:
+            arrived(j)(now)
+            return
+        moved[0] += nbytes
+        net.add(_Flow(sh, steps[j]["shard"], float(nbytes), arrived(j)))
 
     def film_done(p: int):
         def done(now: float) -> None:
@@ -213,16 +237,15 @@ def replay(trace: dict, bandwidth_bps: float, rpc_s: float, window: int,
             end[i] = now
             busy[sh] += float(cpu[i])
             for j, nbytes in consumers.get(i, []):
-                if steps[j]["shard"] == sh or nbytes == 0:
-                    arrived(j)(now)
-                    continue
-                moved[0] += nbytes
-                net.add(_Flow(sh, steps[j]["shard"], float(nbytes), arrived(j)))
+                send(sh, j, nbytes, now)
             for p in steps[i]["passes"]:
                 steps_of[p] -= 1
                 if steps_of[p] == 0:  # weight back, then the collect, then K films
                     at(now + 2 * rpc_s, "collect", p)
             try_run(sh, now)
+        elif what == "send":
+            i, j, nbytes = args
+            send(steps[i]["shard"], j, nbytes, now)
         elif what == "collect":
             p = args[0]
             films_left[p] = k

@@ -1,7 +1,8 @@
 """How long a shard waits to merge parcels into one step (nprt.workers.runtime.remote,
 HOLD_RAYS and HOLD_S), how long a small parcel waits for more before it leaves (SEND_RAYS
-and SEND_S, nprt.workers.runtime.outbox), and how many passes are live at once (the
-coordinator's window), side by side in one run: the 1-core reference, then each scene at
+and SEND_S, nprt.workers.runtime.outbox), how many rays leaving make a step send before it
+ends (EMIT_RAYS), and how many passes are live at once (the coordinator's window), side by
+side in one run: the 1-core reference, then each scene at
 one K in exact and proxy mode with each combination of settings.
 
 A step pays a fixed cost (a Ray call per target, the per-step glue) and a cost per ray. A
@@ -18,6 +19,7 @@ the shards wait for CPU anyway, and their steps are big whatever the hold.
     python -m bench.render.bench_step_hold --scenes city --k 4 --holds 0:0 16384:8 --rounds 2
     python -m bench.render.bench_step_hold --scenes city --holds 16384:8 --sends 0:0 1024:20
     python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --windows 12 48 --rounds 2
+    python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --emits 0 8192 --rounds 2
     python -m bench.render.bench_step_hold --smoke
 """
 
@@ -87,9 +89,10 @@ def bench(args) -> dict:
     from nprt.workers.render import make_renderer
 
     rows = []
-    saved = remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S
-    # (window or None: the coordinator's, hold, send); the first is the baseline
-    settings = [(w, h, x) for w in args.windows for h in args.holds for x in args.sends]
+    saved = remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S, remote.EMIT_RAYS
+    # (window or None: the coordinator's, hold, send, emit); the first is the baseline
+    settings = [(w, h, x, e) for w in args.windows for h in args.holds for x in args.sends
+                for e in args.emits]
     try:
         for name in args.scenes:
             scene = open_scene(name if args.size == "default" else f"{name}:{args.size}")
@@ -105,14 +108,16 @@ def bench(args) -> dict:
                     _render(coord, scene, s)  # the pool's first render: caches warm
                     first, default_window = None, coord.window
                     for _ in range(args.rounds):
-                        for window, hold, send in settings:
+                        for window, hold, send, emit in settings:
                             coord.window = default_window if window is None else window
                             remote.HOLD_RAYS, remote.HOLD_S = hold
                             remote.SEND_RAYS, remote.SEND_S = send
+                            remote.EMIT_RAYS = emit
                             row, img = _render(coord, scene, s)
                             first = img if first is None else first
                             row |= {"scene": name, "hold_rays": hold[0], "hold_ms": hold[1] * 1e3,
                                     "send_rays": send[0], "send_ms": send[1] * 1e3,
+                                    "emit_rays": emit,
                                     "window": coord.window,
                                     "wall_ratio": round(row["render_s"] / ref["render_s"], 3),
                                     "cpu_ratio": round(row["cpu_s"] / ref["cpu_s"], 3),
@@ -124,7 +129,8 @@ def bench(args) -> dict:
                 finally:
                     coord.close()
     finally:
-        remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S = saved
+        (remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S,
+         remote.EMIT_RAYS) = saved
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count()},
             "settings": vars(args) | {"out": str(args.out)}, "rows": rows}
 
@@ -133,7 +139,8 @@ def _line(r: dict) -> str:
     return (f"{r['scene']} {r['mode']} K={r['k']} window {r.get('window', 0):3d}, "
             f"hold {r['hold_rays']:6d} rays "
             f"{r['hold_ms']:4.1f} ms, send {r.get('send_rays', 0):5d} rays "
-            f"{r.get('send_ms', 0.0):4.1f} ms: wall {r['render_s']:6.2f} s "
+            f"{r.get('send_ms', 0.0):4.1f} ms, emit {r.get('emit_rays', 0):5d} rays: "
+            f"wall {r['render_s']:6.2f} s "
             f"({r['wall_ratio']:.2f}x) cpu "
             f"{r['cpu_s']:6.1f} s ({r['cpu_ratio']:.2f}x) steps {r['steps']:5d} parcels "
             f"{r['parcels']:5d} Ray threads {r['ray_threads_s']:5.1f} s raylet "
@@ -142,15 +149,16 @@ def _line(r: dict) -> str:
 
 def markdown(res: dict) -> str:
     head = ("| scene | mode | K | window | hold rays | hold ms | send rays | send ms | "
-            "render s | vs reference | CPU s | CPU vs ref | steps | parcels | rays / parcel | "
-            "busy | Ray threads s | raylet CPU s | same film |\n"
-            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|"
-            "---:|---|\n")
+            "emit rays | render s | vs reference | CPU s | CPU vs ref | steps | parcels | "
+            "rays / parcel | busy | Ray threads s | raylet CPU s | same film |\n"
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+            "---:|---:|---|\n")
     return head + "".join(
         f"| {r['scene']} | {r['mode']} | {r['k']} | {r.get('window', '')} | {r['hold_rays']} | "
         f"{r['hold_ms']:g} | "
         f"{r.get('send_rays', 0)} | {r.get('send_ms', 0.0):g} | "
-        f"{r['render_s']:.2f} | {r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x"
+        f"{fmt_or_blank(r.get('emit_rays'), 'd')} | {r['render_s']:.2f} | "
+        f"{r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x"
         f" | {r['steps']} | {r['parcels']} | {r['rays_per_parcel']:.0f} | "
         f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | {r['ray_threads_s']:.1f} | "
         f"{fmt_or_blank(r.get('raylet_cpu_s'), '.2f')} | "
@@ -174,13 +182,17 @@ def main():
     ap.add_argument("--sends", nargs="+", type=parse_hold, default=[parse_hold(x) for x in SENDS],
                     help="RAYS:MS small-parcel waits, each tried with every hold (default: "
                          "the shipped one, " + " ".join(SENDS) + ")")
+    ap.add_argument("--emits", nargs="+", type=int, default=[remote.EMIT_RAYS],
+                    help="rays leaving that make a step send before it ends (0: at its end "
+                         f"only), each tried with every other setting (default: "
+                         f"{remote.EMIT_RAYS})")
     ap.add_argument("--windows", nargs="+", type=window_arg, default=[None],
                     help="live passes to compare, each with every hold and send (default: "
                          "the coordinator's own, nprt.workers.runtime.coordinator.live_window)")
     add_output_flags(ap)
     args = smoke(ap.parse_args(), scenes=["forest"], size="tiny", width=32, height=24, spp=2,
                  modes=["exact"], k=2, holds=[(0, 0.0), (1 << 30, 0.002)],
-                 sends=[(0, 0.0), (1 << 30, 1.0)], windows=[None, 1])
+                 sends=[(0, 0.0), (1 << 30, 1.0)], emits=[0, 1], windows=[None, 1])
     res = bench(args)
     finish(res, args.out / "bench_step_hold.json", markdown=markdown, update_readme=False)
 

@@ -90,14 +90,15 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
             times.merge(res.times)
             sent = []
             for target, out in enumerate(res.parcels):
-                if out is not None:
-                    out.source = (sid, step_of[sid])
+                if out is not None:  # every parcel leaves at the step's end (no emit)
+                    out.source = (sid, step_of[sid], None)
                     inbox[target].append(((), out, out.credits))
-                    sent.append((target, out.n_rays, out.nbytes))
+                    sent.append((target, out.n_rays, out.nbytes, None))
             trace["steps"].append({
                 "shard": sid, "step": step_of[sid], "cpu_s": dt, "busy_s": dt,
                 "orders": [o.index for o in orders], "passes": sorted(credits),
-                "inputs": [(*x.source, x.n_rays, x.nbytes) for x in parcels], "outputs": sent})
+                "inputs": [(*x.source[:2], x.n_rays, x.nbytes, x.source[2]) for x in parcels],
+                "outputs": sent})
             step_of[sid] += 1
             for i, w in res.returned.items():
                 live[i] += w

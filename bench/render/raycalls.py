@@ -79,8 +79,8 @@ def with_ray_cost(trace: dict, cost: dict) -> np.ndarray:
     for each parcel it sent and received."""
     out = []
     for st in trace["steps"]:
-        send = sum(cost["send_s"] + cost["send_s_per_byte"] * b for _, _, b in st["outputs"])
-        recv = sum(cost["receive_s"] + cost["receive_s_per_byte"] * b
-                   for _, _, _, b in st["inputs"])
+        send = sum(cost["send_s"] + cost["send_s_per_byte"] * out[2] for out in st["outputs"])
+        recv = sum(cost["receive_s"] + cost["receive_s_per_byte"] * inp[3]
+                   for inp in st["inputs"])
         out.append(st["cpu_s"] + send + recv)
     return np.array(out)

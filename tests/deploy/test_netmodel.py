@@ -37,6 +37,20 @@ def test_a_parcel_goes_shard_to_shard_at_the_links_bandwidth(nbytes):
     assert r.step_start_s[1] == pytest.approx(1.0 + RPC + wire, abs=1e-6)
 
 
+def test_a_parcel_sent_before_its_step_ends_leaves_at_its_recorded_fraction():
+    """remote.EMIT_RAYS: a parcel recorded 0.25 s into a 1 s step leaves a quarter into
+    the step as modelled, scaled with the step's compute time; None leaves at the end."""
+    trace = {"k": 2, "admitted": [0], "steps": [
+        step(0, 0, 1.0, [0], orders=[0], outputs=[(1, 10, 0, 0.25), (1, 10, 0, None)]),
+        step(1, 0, 0.5, [0], inputs=[(0, 0, 10, 0, 0.25)]),
+        step(1, 1, 0.5, [0], inputs=[(0, 0, 10, 0, None)])]}
+    r = replay(trace, GBIT, RPC, window=4)
+    assert r.step_start_s[1] == pytest.approx(RPC + 0.25, abs=1e-6)
+    assert r.step_start_s[2] == pytest.approx(RPC + 1.0, abs=1e-6)
+    slow = replay(trace, GBIT, RPC, window=4, cpu_s=[2.0, 0.5, 0.5])
+    assert slow.step_start_s[1] == pytest.approx(RPC + 0.5, abs=1e-6)
+
+
 def test_two_senders_share_one_receivers_downlink():
     nbytes = 12_500_000  # 0.1 s alone at 1 Gbit/s
     trace = {"k": 3, "admitted": [0, 1], "steps": [

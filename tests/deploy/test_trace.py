@@ -7,6 +7,7 @@ import pytest
 
 from nprt.scene.demos import make_demo
 from nprt.workers.render import render
+from nprt.workers.runtime import remote
 from nprt.workers.runtime.coordinator import Coordinator
 from nprt.workers.settings import RenderSettings
 
@@ -18,12 +19,22 @@ def traced(ray_local):
     scene = make_demo("sculpture", "small")
     s = RenderSettings(width=48, height=32, spp=2, spp_per_pass=1, tile_size=32, bounces=3,
                        shards=K, seed=3)
-    coord = Coordinator(scene, s, trace=True)
-    try:
-        result = render(scene, s, renderer=coord)
-        return coord.trace.to_dict(), result.stats.to_dict(), coord
-    finally:
-        coord.close()
+    with pytest.MonkeyPatch.context() as mp:
+        # parcels leave during steps too (a small image), none held back for company
+        mp.setattr(remote, "EMIT_RAYS", 16)
+        mp.setattr(remote, "SEND_RAYS", 0)
+        coord = Coordinator(scene, s, trace=True)
+        try:
+            result = render(scene, s, renderer=coord)
+            return coord.trace.to_dict(), result.stats.to_dict(), coord
+        finally:
+            coord.close()
+
+
+def test_some_parcels_leave_before_their_step_ends(traced):
+    outputs = [out for s in traced[0]["steps"] for out in s["outputs"]]
+    assert any(at is not None for *_, at in outputs)
+    assert any(at is None for *_, at in outputs)
 
 
 def test_every_consumed_parcel_comes_from_an_earlier_step(traced):
@@ -33,9 +44,12 @@ def test_every_consumed_parcel_comes_from_an_earlier_step(traced):
     consumed = 0
     for s in trace["steps"]:
         assert s["end"] >= s["start"], s
-        for src, src_step, rays, nbytes in s["inputs"]:
+        for src, src_step, rays, nbytes, at in s["inputs"]:
             p = steps[(src, src_step)]
-            assert src != s["shard"] and p["end"] <= s["start"] + 1e-3, (p, s)
+            # sent at the producer's end, or `at` seconds into it (remote.EMIT_RAYS)
+            left = p["end"] if at is None else p["start"] + at
+            assert src != s["shard"] and left <= s["start"] + 1e-3, (p, s)
+            assert at is None or 0 <= at <= p["busy_s"], (p, s)
             assert rays > 0 and nbytes > 0, s
             consumed += 1
     assert consumed > 0, "no step consumed a parcel: nothing crossed shards"
@@ -46,11 +60,12 @@ def test_every_parcel_sent_is_consumed_exactly_once(traced):
     steps = traced[0]["steps"]
     taken = {}
     for s in steps:
-        for src, src_step, rays, nbytes in s["inputs"]:
-            key = (src, src_step, s["shard"])
+        for src, src_step, rays, nbytes, at in s["inputs"]:
+            key = (src, src_step, s["shard"], at)
             assert key not in taken, key
             taken[key] = (rays, nbytes)
-    sent = {(s["shard"], s["step"], t): (r, b) for s in steps for t, r, b in s["outputs"]}
+    sent = {(s["shard"], s["step"], t, at): (r, b) for s in steps
+            for t, r, b, at in s["outputs"]}
     assert taken == sent
 
 
@@ -58,8 +73,8 @@ def test_bytes_and_steps_add_up_to_the_render_statistics(traced):
     trace, stats, coord = traced
     steps = trace["steps"]
     assert stats["total_bytes"] > 0
-    assert sum(b for s in steps for _, _, b in s["outputs"]) == stats["total_bytes"]
-    assert sum(b for s in steps for *_, b in s["inputs"]) == stats["total_bytes"]
+    assert sum(b for s in steps for _, _, b, _ in s["outputs"]) == stats["total_bytes"]
+    assert sum(b for s in steps for _, _, _, b, _ in s["inputs"]) == stats["total_bytes"]
     info = coord.info()["shard_stats"]
     for sid in range(K):
         mine = [s for s in steps if s["shard"] == sid]

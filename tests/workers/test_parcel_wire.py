@@ -31,7 +31,7 @@ def _roundtrip(parcel: Parcel) -> tuple[Parcel, list]:
 def test_a_parcel_comes_back_bit_for_bit_from_one_buffer_per_batch(n):
     rng = np.random.default_rng(n)
     sent = Parcel(5, {3: 1}, _random(RayBatch, n, rng), _random(ShadowRayBatch, n + 2, rng),
-                  source=(1, 9))
+                  source=(1, 9, 0.25))
     got, buffers = _roundtrip(sent)
     assert len(buffers) == 2  # one per batch, not one per column
     for a, b in ((sent.rays, got.rays), (sent.shadow, got.shadow)):

@@ -10,10 +10,10 @@ from fractions import Fraction
 import pytest
 
 from nprt.scene.store import open_scene
-from nprt.workers.filmsum import FilmSums
 from nprt.workers.passes import iter_passes
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
+from tests.workers.pass_totals import pass_totals
 
 NET_CALLS = "proxy_net_calls"
 
@@ -37,17 +37,8 @@ def _render(shards, s: RenderSettings) -> tuple[list[bytes], list[dict]]:
                         for i, w in out.credits.items():
                             owed[i] = owed.get(i, Fraction(0)) + w
         assert back == 1  # every ray of the pass ended
-        total, summed = FilmSums.zeros(p.n_pixels), {}
-        for sh in shards:
-            for _, sums, st in sh.collect([p.index]):
-                if sums is not None:
-                    total += sums
-                for part in ("rays", "transfers", "bytes", "counters"):
-                    for name, v in (st or {}).get(part, {}).items():
-                        summed[(part, name)] = summed.get((part, name), 0) + v
-                for h, v in enumerate((st or {}).get("hops_histogram", [])):
-                    summed[("hops", h)] = summed.get(("hops", h), 0) + v
-        films.append(total.to_float().tobytes())
+        film, summed = pass_totals(shards, p)
+        films.append(film)
         stats.append(summed)
     return films, stats
 

@@ -14,7 +14,9 @@ Design:
   counted, no message is ordered, and no shard waits for an acknowledgement.
 - Pipelining: up to `window` passes are live, at most one per tile (a ray's pixel then
   names its pass on every shard, without a column on the wire). Shards merge whatever has
-  arrived into one wavefront, so steps grow with load instead of calls with K.
+  arrived into one wavefront, so steps grow with load instead of calls with K; a long step
+  sends what is leaving as it goes (`remote.EMIT_RAYS`), so its peers need not wait for
+  its end.
 - Films are collected from every shard once a pass is done as exact integers
   (nprt.workers.filmsum), summed, converted once and handed on (so exact mode equals the
   reference bit for bit at any K); `nprt.workers.render` adds them to the image per tile
@@ -387,7 +389,7 @@ class Coordinator:
                 hold = (remote.HOLD_RAYS, remote.HOLD_S)
                 send = (remote.SEND_RAYS, remote.SEND_S)
                 refs = [a.begin.remote(epoch, self.s, self.actors, self.trace is not None, hold,
-                                       send)
+                                       send, remote.EMIT_RAYS)
                         for a in self.actors]
                 self._incarnations = ray.get(refs, timeout=BEGIN_TIMEOUT_S)
                 self.totals = [None] * self.k

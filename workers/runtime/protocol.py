@@ -53,7 +53,8 @@ class Parcel:
     when the coordinator has all of its weight back (weight-throwing termination).
 
     epoch: the job run it belongs to (a parcel of an older run is dropped on arrival);
-    source: (shard, step) that made it, for the call trace; None for an order."""
+    source: (shard, step, seconds into that step when it left, None: at its end) that made
+    it, for the call trace; None for an order."""
 
     epoch: int
     credits: dict[int, Fraction]
@@ -63,7 +64,7 @@ class Parcel:
     # Camera rays by name: (pixel (n,) uint32, sample (n,) uint32), 8 bytes a ray instead
     # of a RayBatch row's 92; the receiver makes the rays (a function of pixel, sample, seed).
     camera: tuple | None = None
-    source: tuple[int, int] | None = None
+    source: tuple[int, int, float | None] | None = None
     sent_at: float = field(default_factory=time.time)  # wall clock, for transfer wait
 
     def _parts(self):

@@ -7,10 +7,12 @@ process, and runs the shard as a mailbox:
 - `deliver` (called by other shards, and by the coordinator for camera-ray orders) only
   appends a parcel to the inbox: a few microseconds, on a Ray thread;
 - one wavefront thread takes *everything* in the inbox, runs it as one `Shard.step` (any
-  passes, any senders), and sends at most one parcel per target straight to that shard's
-  actor (`deliver.remote`: the batch travels through the object store as a call
-  argument); the coordinator is not on the ray path. A small parcel may wait in the
-  shard's `Outbox` to leave with the next step's parcel for the same target;
+  passes, any senders), and sends its parcels straight to the target shards' actors
+  (`deliver.remote`: the batch travels through the object store as a call argument);
+  the coordinator is not on the ray path. A step sends at its end, and also during it
+  whenever EMIT_RAYS rays or more are leaving (a peer waiting for them starts at once).
+  A small parcel may wait in the shard's `Outbox` to leave with a later parcel for the
+  same target;
 - the weight of passes whose rays ended here waits until `poll` (a long poll the
   coordinator keeps outstanding) hands it back with the shard's CPU and phase totals.
 
@@ -62,6 +64,10 @@ HOLD_S = 0.008
 # to a step later, and its effect on the wall on dedicated cores is not measured yet.
 SEND_RAYS = 1024
 SEND_S = 0.02
+# A step sends what is leaving before it ends, once that is EMIT_RAYS rays or more
+# (`Shard.step`, emit; 0: only at the step's end), so that a peer waiting for those rays
+# starts on them during the step rather than after it. The coordinator hands it to `begin`.
+EMIT_RAYS = 8192
 
 
 class ShardActor:
@@ -79,6 +85,7 @@ class ShardActor:
         self._step_lock = threading.Lock()  # the Shard is run by one thread at a time
         self._inbox: list[Parcel] = []
         self._hold = (0, 0.0)  # (HOLD_RAYS, HOLD_S) of the run
+        self._emit_rays = 0  # EMIT_RAYS of the run
         self._outbox = Outbox(0)  # the run's small parcels held back (`_run` only)
         self._running = False  # the wavefront thread holds parcels it has not accounted for
         self._epoch: int | None = None
@@ -132,14 +139,16 @@ class ShardActor:
     # -- a job --------------------------------------------------------------------------
 
     def begin(self, epoch: int, settings, peers: list, trace: bool = False,
-              hold: tuple[int, float] = (0, 0.0), send: tuple[int, float] = (0, 0.0)) -> str:
+              hold: tuple[int, float] = (0, 0.0), send: tuple[int, float] = (0, 0.0),
+              emit_rays: int = 0) -> str:
         """Start job run `epoch`: its settings, the K actor handles to send to (this one
         included), no pass state; hold: (rays, seconds), how long a step may wait for more
         rays (HOLD_RAYS, HOLD_S); send: (rays, seconds), how long a small parcel may wait
-        for more (SEND_RAYS, SEND_S). Returns the incarnation."""
+        for more (SEND_RAYS, SEND_S); emit_rays: rays leaving that a step sends before it
+        ends (EMIT_RAYS; 0: none). Returns the incarnation."""
         with self._cv:
             self._epoch, self._peers, self._trace = epoch, peers, trace
-            self._hold = hold
+            self._hold, self._emit_rays = hold, int(emit_rays)
             # A new object: a step of the last run still in flight keeps the old one.
             self._outbox = Outbox(len(peers), *send)
             self._inbox.clear()
@@ -224,10 +233,10 @@ class ShardActor:
                 if not parcels:  # the run ended while this thread held
                     continue
                 epoch, peers, trace = self._epoch, self._peers, self._trace
-                outbox = self._outbox
+                outbox, emit_rays = self._outbox, self._emit_rays
                 self._running = True
             try:
-                self._run(epoch, peers, trace, outbox, parcels)
+                self._run(epoch, peers, trace, outbox, emit_rays, parcels)
             except BaseException as e:  # handed to the coordinator by the next poll
                 with self._cv:
                     self._error = e
@@ -236,25 +245,32 @@ class ShardActor:
                     self._running = False
                     self._cv.notify_all()
 
-    def _run(self, epoch: int, peers: list, trace: bool, outbox: Outbox,
+    def _run(self, epoch: int, peers: list, trace: bool, outbox: Outbox, emit_rays: int,
              parcels: list[Parcel]) -> None:
         t0, c0 = time.perf_counter(), time.thread_time()
         start = time.time()
         orders = [o for p in parcels for o in p.orders]
         credits = sum_credits(p.credits for p in parcels)
         rays = [p for p in parcels if p.n_rays]
+        step_id = self._steps
+        # (target, rays, bytes, seconds into the step when it left; None: at its end)
+        sent = []
+
+        def send(out_parcels: list, flush: bool, early: bool) -> None:
+            at = time.perf_counter() - t0 if early else None
+            for target, out in outbox.put(out_parcels, time.monotonic(), flush):
+                out.epoch, out.source = epoch, (self.id, step_id, at)
+                peers[target].deliver.remote(out)
+                sent.append((target, out.n_rays, out.nbytes, at))
+
+        emit = functools.partial(send, flush=False, early=True) if emit_rays else None
         with self._step_lock:
-            res = self._shard.step(orders, rays, credits)
-        end = time.time()  # before any parcel leaves: a consumer never starts earlier
+            res = self._shard.step(orders, rays, credits, emit, emit_rays)
+        end = time.time()  # before the step's last parcels leave
         with res.times.phase("send"):
             with self._cv:  # nothing left to do: held parcels leave too (outbox.py)
                 flush = not self._inbox
-            step_id = self._steps
-            sent = []
-            for target, out in outbox.put(res.parcels, time.monotonic(), flush):
-                out.epoch, out.source = epoch, (self.id, step_id)
-                peers[target].deliver.remote(out)
-                sent.append((target, out.n_rays, out.nbytes))
+            send(res.parcels, flush, False)
         with self._cv:
             if self._epoch != epoch:
                 return  # dropped while this step ran: its weight is stale
@@ -263,7 +279,7 @@ class ShardActor:
             self._busy_s += time.perf_counter() - t0
             self._wavefront_cpu_s += time.thread_time() - c0
             self._bytes_in += res.bytes_in
-            self._bytes_out += sum(b for _, _, b in sent)
+            self._bytes_out += sum(b for _, _, b, _ in sent)
             self._parcels_in += len(parcels)
             self._parcels_out += len(sent)
             for name, v in res.times.phase_s.items():
@@ -276,7 +292,7 @@ class ShardActor:
                     "cpu_s": sum(res.times.phase_cpu_s.values()),
                     "busy_s": time.perf_counter() - t0,
                     "orders": [p.index for p in orders], "passes": sorted(credits),
-                    "inputs": [(*p.source, p.n_rays, p.nbytes) for p in rays
+                    "inputs": [(*p.source[:2], p.n_rays, p.nbytes, p.source[2]) for p in rays
                                if p.source is not None],
                     "outputs": sent})
             if res.returned:

@@ -5,7 +5,9 @@ drives it inside a Ray actor (mailbox, direct sends), so the driver never import
 
 `step` is the unit of work: whatever has arrived (rays of any pass, from any sender, and
 orders to generate the camera rays of passes) runs as one wavefront as far as it goes
-here, and comes out as at most one parcel per target shard. Film contributions and
+here, and comes out as at most one parcel per target shard; a caller that asks for it
+(`emit`) gets parcels during the step as well, once enough rays are leaving, so that the
+other shards need not wait for the step's end (see `Shard.step`). Film contributions and
 statistics are kept per pass until `collect`; a pass's contributions are summed as exact
 integers (nprt.workers.filmsum), so its film depends neither on how its rays were grouped
 into steps (timing) nor on how they were split over shards: any run, faulted or not, at
@@ -111,6 +113,12 @@ class _Step:
         # pass over a batch adds each row to its pass's film, whatever the passes
         slots = np.array([st.slot[0] for st in states] + [-1], np.int64)
         self.slot_of_tile = slots[lookup]
+        # Set by `Shard.step`: the weight the step still holds (pass index -> Fraction), and
+        # where parcels go before the step ends (`Shard._emit`; None: only at its end).
+        self.credits: dict[int, Fraction] = {}
+        self.emit = None
+        self.emit_rays = 0
+        self.out_camera: list = []  # per target: camera rays by name leaving (`_generate`)
 
     def tok(self, pixel: np.ndarray, of: np.ndarray | None = None, rows=None) -> np.ndarray:
         """pixel (n,) uint32 -> (n,) int64 index of its pass in this step. The last few
@@ -329,12 +337,22 @@ class Shard:
 
     # -- the wavefront ---------------------------------------------------------------
 
-    def step(self, orders: list[Pass], parcels: list, credits: dict[int, Fraction]
-             ) -> StepResult:
+    def step(self, orders: list[Pass], parcels: list, credits: dict[int, Fraction],
+             emit=None, emit_rays: int = 0) -> StepResult:
         """Run the camera rays of `orders` and the rays of `parcels` (Parcel) as one
         wavefront. credits: pass index -> the weight that came with them. Returns the
         parcels for other shards (weights shared out) and the weight of passes whose
-        rays all ended here."""
+        rays all ended here.
+
+        emit: None, or a callable given (k,) parcels (Parcel or None per target) that leave
+        before the step ends: at the start of each iteration of the wavefront, what the
+        camera rays and the iterations before sent on, once it adds up to emit_rays rays
+        (camera rays by name count). A step of 100,000 rays runs for a tenth of a second,
+        and a peer with nothing else to do would wait all of it for the rays the first
+        iteration sent it.
+        Each such parcel carries a share of its passes' weight: a pass with rays for t
+        targets gives each 1 / (t + 1) of what the step holds and keeps the rest, so the
+        weight still adds up exactly (`_pack`)."""
         times = RenderStats()
         # "bookkeeping" is the batch glue between the named stages (take, concat, replace,
         # counters): every second of a step is in some phase.
@@ -347,8 +365,10 @@ class Shard:
                     times.phase_s["transfer_wait"] += max(
                         0.0, time.time() - min(p.sent_at for p in parcels))
                 step = self._open(sorted(credits), times)
+            step.credits = dict(credits)  # the weight still held here (`_emit` gives some)
+            step.emit, step.emit_rays = emit, emit_rays
             out_rays, out_shadow = [], []  # (batch, rows, targets, tokens) leaving (`_send`)
-            out_camera = [[] for _ in range(self.k)]
+            out_camera = step.out_camera = [[] for _ in range(self.k)]
             made = []  # the camera rays that start here
             with times.phase("generate"):
                 if orders:
@@ -362,7 +382,7 @@ class Shard:
             self._wavefront(step, arrived, rays, shadow, out_rays, out_shadow)
             with times.phase("send"):
                 parcels_out, returned = self._pack(step, out_rays, out_shadow, out_camera,
-                                                   credits)
+                                                   step.credits)
         step.stats.finish()  # after the bookkeeping phase closes: its time is shared too
         return StepResult(parcels_out, returned, times, n_in, bytes_in)
 
@@ -428,6 +448,7 @@ class Shard:
         fused = self._fused_routing()
         waiting = shadow  # shadow batches to trace, joined once (received ones too)
         while len(arrived) or len(rays) or any(len(b) for b in waiting):
+            self._emit(step, out_rays, out_shadow)  # what the last iteration sent on
             if len(arrived) or len(rays):
                 rays, near = self._intersect(step, rays, alone, fused)
                 done = None  # every row of rays ends here
@@ -473,6 +494,7 @@ class Shard:
         contributions (`_PassState`): the same film and counts."""
         stats = step.stats
         while len(arrived) or len(rays) or len(shadow):
+            self._emit(step, out_rays, out_shadow)  # what the last iteration sent on
             given = len(arrived) + len(rays) > 0
             if given:
                 rays, _ = self._intersect(step, rays, False, None)
@@ -580,11 +602,33 @@ class Shard:
         done = self._send(step, rays, target, out_rays)
         return rays, (None if len(done) == len(rays) else done)
 
+    def _emit(self, step: _Step, out_rays: list, out_shadow: list) -> None:
+        """Hand the parcels of the rows leaving so far to `step.emit` once they carry
+        `step.emit_rays` rays or more (camera rays by name count), with their shares of
+        the weight (`_pack`, keep); the lists are emptied. No-op without `emit`."""
+        if step.emit is None:
+            return
+        cams = step.out_camera
+        leaving = (sum(len(rows) for _, rows, _, _ in out_rays)
+                   + sum(len(rows) for _, rows, _, _ in out_shadow)
+                   + sum(len(c[0]) for sent in cams for c in sent))
+        if leaving == 0 or leaving < step.emit_rays:
+            return
+        with step.stats.phase("send"):
+            parcels, _ = self._pack(step, out_rays, out_shadow, cams, step.credits, keep=True)
+            out_rays.clear()
+            out_shadow.clear()
+            for sent in cams:
+                sent.clear()
+            step.emit(parcels)
+
     def _pack(self, step: _Step, out_rays: list, out_shadow: list, out_camera: list,
-              credits: dict[int, Fraction]) -> tuple[list, dict]:
+              credits: dict[int, Fraction], keep: bool = False) -> tuple[list, dict]:
         """One parcel per target holding every pass's rays for it. A pass's weight is
         shared equally by the parcels that carry its rays; a pass with no ray leaving
-        returns its whole weight."""
+        returns its whole weight. keep (a parcel sent before the step ends, `_emit`): the
+        step keeps an equal share too, credits is updated to what it keeps, and no weight
+        is returned."""
         npass = len(step.states)
         seen = np.zeros((self.k, npass), bool)  # target, pass: the pass has rays for it
         rays = self._by_target(RayBatch, step, out_rays, seen, None)
@@ -607,9 +651,12 @@ class Shard:
         for st, targets in zip(step.states, by_pass, strict=True):
             i, w = st.pass_.index, credits[st.pass_.index]
             if not targets:
-                returned[i] = w
+                if not keep:
+                    returned[i] = w
                 continue
-            part = w / len(targets)
+            part = w / (len(targets) + int(keep))
+            if keep:
+                credits[i] = part
             for t in targets:
                 shares[t][i] = part
         for t in range(self.k):
