@@ -1,9 +1,10 @@
 """Small parcels wait for company before they leave a shard.
 
-A wavefront step makes at most one parcel per target (`Shard.step`), and Ray charges each
-parcel a CPU cost that hardly depends on what it carries: in city exact at K = 8 (320x180,
-8 spp, 2 cores) about 0.36 ms in the sending thread and 1.4 ms in the Ray threads of both
-processes (bench/render/raycalls.py measures it per run). Yet most parcels are small: in
+A wavefront step makes one parcel per target at its end, and a few more during it when
+many rays are leaving (`Shard.step`, `remote.EMIT_RAYS`). Ray charges each parcel a CPU
+cost that hardly depends on what it carries: in city exact at K = 8 (320x180, 8 spp, 2
+cores) about 0.36 ms in the sending thread and 1.4 ms in the Ray threads of both processes
+(bench/render/raycalls.py measures it per run). Yet most parcels are small: in
 that render 66 % of them carried fewer than 100 rays (5 % of the rays), 29 % fewer than 10.
 
 So a parcel for a target waits in the `Outbox` while the shard has more work, merged with
