@@ -10,7 +10,8 @@ process, and runs the shard as a mailbox:
   passes, any senders), and sends its parcels straight to the target shards' actors
   (`deliver.remote`: the batch travels through the object store as a call argument);
   the coordinator is not on the ray path. A step sends at its end, and also during it
-  whenever EMIT_RAYS rays or more are leaving (a peer waiting for them starts at once).
+  whenever EMIT_RAYS rays or more are leaving for one shard (which starts on them at once
+  if it is waiting).
   A small parcel may wait in the shard's `Outbox` to leave with a later parcel for the
   same target;
 - the weight of passes whose rays ended here waits until `poll` (a long poll the
@@ -64,8 +65,8 @@ HOLD_S = 0.008
 # to a step later, and its effect on the wall on dedicated cores is not measured yet.
 SEND_RAYS = 1024
 SEND_S = 0.02
-# A step sends what is leaving before it ends, once that is EMIT_RAYS rays or more
-# (`Shard.step`, emit; 0: only at the step's end), so that a peer waiting for those rays
+# A step sends what is leaving for a shard before it ends, once that is EMIT_RAYS rays or
+# more (`Shard.step`, emit; 0: only at the step's end), so that a peer waiting for those rays
 # starts on them during the step rather than after it. The coordinator hands it to `begin`.
 EMIT_RAYS = 8192
 

@@ -346,10 +346,10 @@ class Shard:
 
         emit: None, or a callable given (k,) parcels (Parcel or None per target) that leave
         before the step ends: at the start of each iteration of the wavefront, what the
-        camera rays and the iterations before sent on, once it adds up to emit_rays rays
-        (camera rays by name count). A step of 100,000 rays runs for a tenth of a second,
-        and a peer with nothing else to do would wait all of it for the rays the first
-        iteration sent it.
+        camera rays and the iterations before sent on to each target that has emit_rays
+        rays or more waiting (camera rays by name count). A step of 100,000 rays runs for
+        a tenth of a second, and a peer with nothing else to do would wait all of it for
+        the rays the first iteration sent it.
         Each such parcel carries a share of its passes' weight: a pass with rays for t
         targets gives each 1 / (t + 1) of what the step holds and keeps the rest, so the
         weight still adds up exactly (`_pack`)."""
@@ -381,8 +381,8 @@ class Shard:
             n_in = len(arrived) + len(rays) + sum(len(b) for b in shadow)
             self._wavefront(step, arrived, rays, shadow, out_rays, out_shadow)
             with times.phase("send"):
-                parcels_out, returned = self._pack(step, out_rays, out_shadow, out_camera,
-                                                   step.credits)
+                parcels_out, returned = self._pack(step, out_rays, out_shadow,
+                                                   step.out_camera, step.credits)
         step.stats.finish()  # after the bookkeeping phase closes: its time is shared too
         return StepResult(parcels_out, returned, times, n_in, bytes_in)
 
@@ -603,23 +603,29 @@ class Shard:
         return rays, (None if len(done) == len(rays) else done)
 
     def _emit(self, step: _Step, out_rays: list, out_shadow: list) -> None:
-        """Hand the parcels of the rows leaving so far to `step.emit` once they carry
-        `step.emit_rays` rays or more (camera rays by name count), with their shares of
-        the weight (`_pack`, keep); the lists are emptied. No-op without `emit`."""
+        """Hand `step.emit` the parcels for the targets whose rows leaving so far add up
+        to `step.emit_rays` or more (camera rays by name count), with their shares of the
+        weight (`_pack`, keep); those rows leave the lists, the others stay for later.
+        Per target, not in all: a parcel costs a Ray call whatever it holds, and at large
+        K, where a step's rows are spread over many targets, the shards are kept busy by
+        one another anyway (bench/README.md, "Sending during a step"). No-op without
+        `emit`."""
         if step.emit is None:
             return
         cams = step.out_camera
-        leaving = (sum(len(rows) for _, rows, _, _ in out_rays)
-                   + sum(len(rows) for _, rows, _, _ in out_shadow)
-                   + sum(len(c[0]) for sent in cams for c in sent))
-        if leaving == 0 or leaving < step.emit_rays:
+        count = np.zeros(self.k, np.int64)
+        for _, _, targets, _ in (*out_rays, *out_shadow):
+            count += np.bincount(targets, minlength=self.k)
+        for t, sent in enumerate(cams):
+            count[t] += sum(len(c[0]) for c in sent)
+        chosen = count >= max(step.emit_rays, 1)
+        if not chosen.any():
             return
         with step.stats.phase("send"):
-            parcels, _ = self._pack(step, out_rays, out_shadow, cams, step.credits, keep=True)
-            out_rays.clear()
-            out_shadow.clear()
-            for sent in cams:
-                sent.clear()
+            go_rays, go_shadow = _split_out(out_rays, chosen), _split_out(out_shadow, chosen)
+            go_cams = [sent if chosen[t] else [] for t, sent in enumerate(cams)]
+            parcels, _ = self._pack(step, go_rays, go_shadow, go_cams, step.credits, keep=True)
+            step.out_camera = [[] if chosen[t] else sent for t, sent in enumerate(cams)]
             step.emit(parcels)
 
     def _pack(self, step: _Step, out_rays: list, out_shadow: list, out_camera: list,
@@ -716,6 +722,23 @@ class Shard:
             out.append((batch, away, target[away].astype(np.int32),
                         step.tok(batch.pixel)[away]))
         return order[:starts[1]]
+
+
+def _split_out(out: list, chosen: np.ndarray) -> list:
+    """The entries of out [(batch, rows, targets, tokens)] (`Shard._send`) for the targets
+    chosen ((k,) bool), returned; out keeps the rest, in place."""
+    go, stay = [], []
+    for batch, rows, targets, tok in out:
+        sel = chosen[targets]
+        if sel.all():
+            go.append((batch, rows, targets, tok))
+        elif sel.any():
+            go.append((batch, rows[sel], targets[sel], tok[sel]))
+            stay.append((batch, rows[~sel], targets[~sel], tok[~sel]))
+        else:
+            stay.append((batch, rows, targets, tok))
+    out[:] = stay
+    return go
 
 
 def _split_settled(received: list, made: list) -> tuple[RayBatch, RayBatch]:

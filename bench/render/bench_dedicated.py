@@ -1,0 +1,112 @@
+"""The render wall on K dedicated cores, simulated (bench/render/vtime.py): K in-process
+Shards stepped in virtual time, each step lasting its own process CPU plus Ray's CPU for its
+parcels (measured at the start of the run), rays regrouped into steps as they would arrive
+on K cores. Each K runs twice: parcels only at a step's end, and also during a long step
+(`remote.EMIT_RAYS`). What it answers on a machine with few cores: how the wall falls with
+K, and what sending during a step does where no core waits for another's CPU.
+
+Per row: the simulated wall against the one-shard run's (its CPU on one core: the
+reference's wavefront), each shard's busy share, steps, parcels (and how many left during
+a step), and whether the film equals the one-shard film bit for bit (exact mode).
+
+    python -m bench.render.bench_dedicated                       # forest, city; K 1 2 4 8
+    python -m bench.render.bench_dedicated --scenes windy --ks 1 8 --modes proxy
+    python -m bench.render.bench_dedicated --smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+
+from bench.common import add_image_flags, add_output_flags, finish, machine, smoke
+from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
+from bench.render.raycalls import parcel_cost
+from bench.render.vtime import simulate
+from nprt.scene.store import open_scene
+from nprt.workers.runtime import remote
+from nprt.workers.settings import RenderSettings
+from nprt.workers.wavefront.inprocess import shards_in_process
+
+
+def bench(args) -> dict:
+    cost = parcel_cost(calls=20 if args.smoke else 300, repeats=1 if args.smoke else 3)
+    rows = []
+    for name in args.scenes:
+        scene = open_scene(name if args.size == "default" else f"{name}:{args.size}").load()
+        for mode in args.modes:
+            one = None
+            for k in args.ks:
+                s = RenderSettings(width=args.width, height=args.height, spp=args.spp, seed=0,
+                                   shards=k, mode=mode)
+                shards = shards_in_process(scene, s)
+                for emit in ([0] if k == 1 else args.emits):
+                    r = simulate(shards, s, cost, FALLBACK_RPC_S, MODEL_LINK_BPS, emit)
+                    one = r if k == 1 else one
+                    row = {"scene": name, "mode": mode, "k": k, "emit_rays": emit,
+                           "wall_s": round(r["wall_s"], 3),
+                           "busy": [round(float(b / r["wall_s"]), 3) for b in r["busy_s"]],
+                           "steps": r["steps"], "parcels": r["parcels"],
+                           "early_parcels": r["early_parcels"]}
+                    if one is not None:
+                        row["vs_one_shard"] = round(r["wall_s"] / one["wall_s"], 3)
+                        if mode == "exact":
+                            row["same_film_as_one_shard"] = bool(
+                                np.array_equal(r["film"], one["film"]))
+                    rows.append(row)
+                    print(_line(row), flush=True)
+    return {"machine": machine(os.cpu_count()), "settings": vars(args) | {"out": str(args.out)},
+            "ray_parcel_cost": cost, "rpc_s": FALLBACK_RPC_S, "link_bps": MODEL_LINK_BPS,
+            "rows": rows}
+
+
+def _line(r: dict) -> str:
+    return (f"{r['scene']} {r['mode']:6s} K={r['k']:2d} emit {r['emit_rays']:5d}: wall "
+            f"{r['wall_s']:7.3f} s = x{r.get('vs_one_shard', 1.0):.3f} of one shard, busy "
+            f"{np.mean(r['busy']):.2f}, steps {r['steps']}, parcels {r['parcels']} "
+            f"({r['early_parcels']} during a step)")
+
+
+def markdown(res: dict) -> str:
+    c = res["ray_parcel_cost"]
+    out = [f"Ray per parcel (this run): send {1e3 * c['send_s']:.2f} ms + "
+           f"{1e9 * c['send_s_per_byte']:.2f} ms/MB, receive {1e3 * c['receive_s']:.2f} ms + "
+           f"{1e9 * c['receive_s_per_byte']:.2f} ms/MB; latency {1e3 * res['rpc_s']:.1f} ms, "
+           f"links {res['link_bps'] / 1e9:g} Gbit/s. *wall* is simulated on K dedicated "
+           "cores; *vs 1 shard* divides it by the one-shard wall (its CPU).",
+           "",
+           "| scene | mode | K | emit rays | wall s | vs 1 shard | busy (mean, min) | steps | "
+           "parcels | of which during a step | same film |",
+           "|---|---|---:|---:|---:|---:|---|---:|---:|---:|---|"]
+    for r in res["rows"]:
+        same = r.get("same_film_as_one_shard")
+        out.append(f"| {r['scene']} | {r['mode']} | {r['k']} | {r['emit_rays']} | "
+                   f"{r['wall_s']:.2f} | {r.get('vs_one_shard', 1.0):.3f}x | "
+                   f"{np.mean(r['busy']):.2f}, {min(r['busy']):.2f} | {r['steps']} | "
+                   f"{r['parcels']} | {r['early_parcels']} | "
+                   f"{'' if same is None else ('yes' if same else 'NO')} |")
+    return "\n".join(out) + "\n"
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench.render.bench_dedicated",
+                                 description=__doc__.splitlines()[0])
+    add_image_flags(ap)
+    ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
+    ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8],
+                    help="shard counts; the first should be 1 (the baseline)")
+    ap.add_argument("--emits", type=int, nargs="+", default=[0, remote.EMIT_RAYS],
+                    help="EMIT_RAYS settings to compare at each K > 1 (0: at a step's end)")
+    add_output_flags(ap)
+    args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
+                 spp=2, modes=["exact"], ks=[1, 2], emits=[0, 1])
+    if args.ks[0] != 1:
+        raise SystemExit("--ks must start with 1: every wall is compared with one shard's")
+    res = bench(args)
+    finish(res, args.out / "bench_dedicated.json", markdown=markdown, update_readme=False)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,144 @@
+"""K in-process Shards run as if each had a dedicated core: a discrete-event simulation in
+virtual time whose steps are real `Shard.step` calls, each lasting the process CPU it took
+here plus Ray's CPU for the parcels it sent and received (bench/render/raycalls.py).
+
+Unlike a replay of recorded steps (bench/network/netmodel.py), which keeps the grouping of
+rays into steps that the recording happened to have, this regroups them as they would
+arrive on dedicated cores: a shard that is free steps on everything that has reached it by
+then, in virtual time. The rules, following workers/runtime/coordinator.py and remote.py:
+- the coordinator orders up to `window` passes at once (one live pass a tile), each from
+  shard `index % K`; an order reaches its shard `rpc_s` after it is made;
+- a shard runs one step at a time, starting when it is free and something has arrived;
+- a parcel leaves at the step's end, or, with `emit_rays`, where it left during the step
+  (its CPU offset into the step), and arrives `rpc_s` plus its bytes over `link_bps`
+  later;
+- a pass is done once its weight is back (`rpc_s` after the step that returns the last of
+  it ends); the next pass is ordered then (films are collected at once, outside the
+  clock).
+
+What it leaves out: Ray's threads run beside the step on the same core (their CPU is added
+to it), the coordinator has a core of its own, and a step holds for no rays
+(`remote.HOLD_S`). Every step runs in this one thread, so its CPU is exact.
+"""
+
+from __future__ import annotations
+
+import heapq
+import time
+from fractions import Fraction
+
+import numpy as np
+
+from nprt.workers.filmsum import FilmSums
+from nprt.workers.passes import count_tiles, iter_passes, pass_at
+from nprt.workers.runtime.coordinator import live_window
+from nprt.workers.runtime.protocol import sum_credits
+from nprt.workers.settings import RenderSettings
+
+
+def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps: float,
+             emit_rays: int = 0) -> dict:
+    """Render every pass of s on the in-process shards in virtual time. cost: Ray's CPU per
+    parcel (`raycalls.parcel_cost`). Returns {"wall_s": virtual render wall, "busy_s": (K,)
+    virtual seconds each shard stepped, "steps", "parcels", "early_parcels", "film":
+    (h * w, 3) float64}."""
+    k, tiles = len(shards), count_tiles(s)
+    window = live_window(k, tiles)
+    for sh in shards:
+        sh.begin(s)
+    waiting = list(iter_passes(s))
+    live: dict[int, Fraction] = {}
+    # per shard: heap of (arrival time, sequence, orders, parcel or None, credits)
+    inbox: list[list] = [[] for _ in range(k)]
+    free_at = np.zeros(k)
+    busy = np.zeros(k)
+    film = np.zeros((s.height * s.width, 3))
+    seq = [0]
+    counts = {"steps": 0, "parcels": 0, "early_parcels": 0}
+    done_at = 0.0
+
+    def arrive(target: int, t: float, orders=(), parcel=None, credits=None) -> None:
+        seq[0] += 1
+        heapq.heappush(inbox[target], (t, seq[0], tuple(orders), parcel, credits or {}))
+
+    def admit(t: float) -> None:
+        live_tiles = {i % tiles for i in live}
+        for p in list(waiting):
+            if len(live) >= window:
+                break
+            if p.index % tiles in live_tiles:
+                continue
+            waiting.remove(p)
+            live_tiles.add(p.index % tiles)
+            live[p.index] = Fraction(0)
+            arrive(p.index % k, t + rpc_s, (p,), None, {p.index: Fraction(1)})
+
+    def wire(nbytes: int) -> float:
+        return rpc_s + 8.0 * nbytes / link_bps
+
+    def send_cost(nbytes: int) -> float:
+        return cost["send_s"] + cost["send_s_per_byte"] * nbytes
+
+    admit(0.0)
+    while live or waiting:
+        ready = [(max(free_at[i], inbox[i][0][0]), i) for i in range(k) if inbox[i]]
+        if not ready:
+            raise RuntimeError("simulation stalled: passes live and nothing in flight")
+        start, sid = min(ready)
+        items = []
+        while inbox[sid] and inbox[sid][0][0] <= start:
+            items.append(heapq.heappop(inbox[sid]))
+        orders = [o for it in items for o in it[2]]
+        parcels = [it[3] for it in items if it[3] is not None]
+        credits = sum_credits(it[4] for it in items)
+        recv = sum(cost["receive_s"] + cost["receive_s_per_byte"] * p.nbytes for p in parcels)
+        early: list = []  # (CPU offset into the step, (k,) parcels)
+        c0 = time.process_time()
+
+        def emitted(out, c0=c0, early=early):
+            early.append((time.process_time() - c0, out))
+
+        res = shards[sid].step(orders, parcels, credits, emitted if emit_rays else None,
+                               emit_rays)
+        cpu = time.process_time() - c0
+        sent_cpu = 0.0
+        for offset, out in early:  # each leaves where it was made, after earlier sends
+            for target, p in enumerate(out):
+                if p is not None:
+                    sent_cpu += send_cost(p.nbytes)
+                    arrive(target, start + recv + offset + sent_cpu + wire(p.nbytes),
+                           parcel=p, credits=p.credits)
+                    counts["early_parcels"] += 1
+                    counts["parcels"] += 1
+        end = start + recv + cpu + sent_cpu
+        for target, p in enumerate(res.parcels):
+            if p is not None:
+                end += send_cost(p.nbytes)
+                arrive(target, end + wire(p.nbytes), parcel=p, credits=p.credits)
+                counts["parcels"] += 1
+        counts["steps"] += 1
+        busy[sid] += end - start
+        free_at[sid] = end
+        back = end + rpc_s
+        finished = False
+        for i, w in res.returned.items():
+            live[i] += w
+            if live[i] == 1:
+                del live[i]
+                _collect(shards, s, i, film)
+                finished = True
+                done_at = max(done_at, back)
+        if finished:
+            admit(back)
+    return {"wall_s": done_at, "busy_s": busy, "film": film, **counts}
+
+
+def _collect(shards: list, s: RenderSettings, index: int, film: np.ndarray) -> None:
+    """Pass `index`'s film from every shard, added to film (h * w, 3) float64."""
+    p = pass_at(s, index)
+    total = FilmSums.zeros(p.n_pixels)
+    for sh in shards:
+        for _, sums, _ in sh.collect([index]):
+            if sums is not None:
+                total += sums
+    film[p.pixels(s.width)] += total.to_float()
