@@ -36,9 +36,9 @@ from bench.common import add_image_flags, add_output_flags, finish, machine, smo
 from bench.network.netmodel import film_bytes, replay
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost, with_ray_cost
+from bench.render.vtime import collect_pass
 from nprt.scene.store import open_scene
-from nprt.workers.filmsum import FilmSums
-from nprt.workers.passes import count_tiles, iter_passes, pass_at
+from nprt.workers.passes import count_tiles, iter_passes
 from nprt.workers.runtime.coordinator import live_window
 from nprt.workers.runtime.protocol import sum_credits
 from nprt.workers.settings import RenderSettings
@@ -104,15 +104,7 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
                 live[i] += w
         for i in [i for i, w in live.items() if w == 1]:
             del live[i]
-            p = pass_at(s, i)
-            total = FilmSums.zeros(p.n_pixels)
-            for sh in shards:
-                for _, sums, st in sh.collect([i]):
-                    if sums is not None:
-                        total += sums
-                    for name, v in (st or {}).get("counters", {}).items():
-                        counters[name] = counters.get(name, 0) + v
-            film[p.pixels(s.width)] += total.to_float()
+            collect_pass(shards, s, i, film, counters)
     cpu = time.process_time() - c0
     per_shard = np.zeros(k)
     for st in trace["steps"]:

@@ -125,7 +125,7 @@ def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps
             live[i] += w
             if live[i] == 1:
                 del live[i]
-                _collect(shards, s, i, film)
+                collect_pass(shards, s, i, film)
                 finished = True
                 done_at = max(done_at, back)
         if finished:
@@ -133,12 +133,17 @@ def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps
     return {"wall_s": done_at, "busy_s": busy, "film": film, **counts}
 
 
-def _collect(shards: list, s: RenderSettings, index: int, film: np.ndarray) -> None:
-    """Pass `index`'s film from every shard, added to film (h * w, 3) float64."""
+def collect_pass(shards: list, s: RenderSettings, index: int, film: np.ndarray,
+                 counters: dict | None = None) -> None:
+    """Pass `index`'s film from every in-process shard, added to film (h * w, 3) float64;
+    its statistics counters added to counters (name -> count) where given."""
     p = pass_at(s, index)
     total = FilmSums.zeros(p.n_pixels)
     for sh in shards:
-        for _, sums, _ in sh.collect([index]):
+        for _, sums, st in sh.collect([index]):
             if sums is not None:
                 total += sums
+            if counters is not None:
+                for name, v in (st or {}).get("counters", {}).items():
+                    counters[name] = counters.get(name, 0) + v
     film[p.pixels(s.width)] += total.to_float()
