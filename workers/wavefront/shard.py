@@ -5,9 +5,9 @@ drives it inside a Ray actor (mailbox, direct sends), so the driver never import
 
 `step` is the unit of work: whatever has arrived (rays of any pass, from any sender, and
 orders to generate the camera rays of passes) runs as one wavefront as far as it goes
-here, and comes out as at most one parcel per target shard; a caller that asks for it
-(`emit`) gets parcels during the step as well, once enough rays are leaving, so that the
-other shards need not wait for the step's end (see `Shard.step`). Film contributions and
+here, and comes out as one parcel per target shard at its end; a caller that asks for it
+(`emit`) gets parcels during the step as well, once enough rays are leaving for a shard,
+so that the other shards need not wait for the step's end (see `Shard.step`). Film contributions and
 statistics are kept per pass until `collect`; a pass's contributions are summed as exact
 integers (nprt.workers.filmsum), so its film depends neither on how its rays were grouped
 into steps (timing) nor on how they were split over shards: any run, faulted or not, at
@@ -608,8 +608,8 @@ class Shard:
         weight (`_pack`, keep); those rows leave the lists, the others stay for later.
         Per target, not in all: a parcel costs a Ray call whatever it holds, and at large
         K, where a step's rows are spread over many targets, the shards are kept busy by
-        one another anyway (bench/README.md, "Sending during a step"). No-op without
-        `emit`."""
+        one another anyway (bench/README.md, "The wall on K dedicated cores, simulated").
+        No-op without `emit`."""
         if step.emit is None:
             return
         cams = step.out_camera
