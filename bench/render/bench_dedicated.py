@@ -1,9 +1,11 @@
 """The render wall on K dedicated cores, simulated (bench/render/vtime.py): K in-process
 Shards stepped in virtual time, each step lasting its own process CPU plus Ray's CPU for its
 parcels (measured at the start of the run), rays regrouped into steps as they would arrive
-on K cores. Each K runs twice: parcels only at a step's end, and also during a long step
-(`remote.EMIT_RAYS`). What it answers on a machine with few cores: how the wall falls with
-K, and what sending during a step does where no core waits for another's CPU.
+on K cores, each shard holding for more rays as the runtime does (`remote.HOLD_RAYS`,
+`HOLD_S`; `--hold 0:0` for none). Each K runs twice: parcels only at a step's end, and
+also during a long step (`remote.EMIT_RAYS`). What it answers on a machine with few cores:
+how the wall falls with K, and what sending during a step does where no core waits for
+another's CPU.
 
 Per row: the simulated wall against the one-shard run's (its CPU on one core: the
 reference's wavefront), each shard's busy share, steps, parcels (and how many left during
@@ -22,6 +24,7 @@ import os
 import numpy as np
 
 from bench.common import add_image_flags, add_output_flags, finish, machine, smoke
+from bench.render.bench_step_hold import parse_hold
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost
 from bench.render.vtime import simulate
@@ -43,7 +46,8 @@ def bench(args) -> dict:
                                    shards=k, mode=mode)
                 shards = shards_in_process(scene, s)
                 for emit in ([0] if k == 1 else args.emits):
-                    r = simulate(shards, s, cost, FALLBACK_RPC_S, MODEL_LINK_BPS, emit)
+                    r = simulate(shards, s, cost, FALLBACK_RPC_S, MODEL_LINK_BPS, emit,
+                                 args.hold)
                     one = r if k == 1 else one
                     row = {"scene": name, "mode": mode, "k": k, "emit_rays": emit,
                            "wall_s": round(r["wall_s"], 3),
@@ -74,8 +78,8 @@ def markdown(res: dict) -> str:
     out = [f"Ray per parcel (this run): send {1e3 * c['send_s']:.2f} ms + "
            f"{1e9 * c['send_s_per_byte']:.2f} ms/MB, receive {1e3 * c['receive_s']:.2f} ms + "
            f"{1e9 * c['receive_s_per_byte']:.2f} ms/MB; latency {1e3 * res['rpc_s']:.1f} ms, "
-           f"links {res['link_bps'] / 1e9:g} Gbit/s. *wall* is simulated on K dedicated "
-           "cores; *vs 1 shard* divides it by the one-shard wall (its CPU).",
+           f"links {res['link_bps'] / 1e9:g} Gbit/s; hold {_hold(res)}. *wall* is simulated "
+           "on K dedicated cores; *vs 1 shard* divides it by the one-shard wall (its CPU).",
            "",
            "| scene | mode | K | emit rays | wall s | vs 1 shard | busy (mean, min) | steps | "
            "parcels | of which during a step | same film |",
@@ -90,6 +94,11 @@ def markdown(res: dict) -> str:
     return "\n".join(out) + "\n"
 
 
+def _hold(res: dict) -> str:
+    rays, seconds = res["settings"].get("hold", (0, 0.0))
+    return f"{rays} rays / {seconds * 1e3:g} ms" if seconds > 0 else "none"
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench.render.bench_dedicated",
                                  description=__doc__.splitlines()[0])
@@ -97,6 +106,9 @@ def main(argv=None) -> None:
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8],
                     help="shard counts; the first should be 1 (the baseline)")
+    ap.add_argument("--hold", type=parse_hold, default=(remote.HOLD_RAYS, remote.HOLD_S),
+                    help="RAYS:MS a shard holds for more rays (default: the runtime's, "
+                         f"{remote.HOLD_RAYS}:{remote.HOLD_S * 1e3:g}; 0:0 for none)")
     ap.add_argument("--emits", type=int, nargs="+", default=[0, remote.EMIT_RAYS],
                     help="EMIT_RAYS settings to compare at each K > 1 (0: at a step's end)")
     add_output_flags(ap)

@@ -9,6 +9,8 @@ then, in virtual time. The rules, following workers/runtime/coordinator.py and r
 - the coordinator orders up to `window` passes at once (one live pass a tile), each from
   shard `index % K`; an order reaches its shard `rpc_s` after it is made;
 - a shard runs one step at a time, starting when it is free and something has arrived;
+  holding (`hold`: `remote.HOLD_RAYS`, `HOLD_S`), it waits for rays enough or an order,
+  at most HOLD_S;
 - a parcel leaves at the step's end, or, with `emit_rays`, where it left during the step
   (its CPU offset into the step), and arrives `rpc_s` plus its bytes over `link_bps`
   later;
@@ -17,8 +19,8 @@ then, in virtual time. The rules, following workers/runtime/coordinator.py and r
   clock).
 
 What it leaves out: Ray's threads run beside the step on the same core (their CPU is added
-to it), the coordinator has a core of its own, and a step holds for no rays
-(`remote.HOLD_S`). Every step runs in this one thread, so its CPU is exact.
+to it), and the coordinator has a core of its own. Every step runs in this one thread, so
+its CPU is exact.
 """
 
 from __future__ import annotations
@@ -37,11 +39,12 @@ from nprt.workers.settings import RenderSettings
 
 
 def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps: float,
-             emit_rays: int = 0) -> dict:
+             emit_rays: int = 0, hold: tuple[int, float] = (0, 0.0)) -> dict:
     """Render every pass of s on the in-process shards in virtual time. cost: Ray's CPU per
-    parcel (`raycalls.parcel_cost`). Returns {"wall_s": virtual render wall, "busy_s": (K,)
-    virtual seconds each shard stepped, "steps", "parcels", "early_parcels", "film":
-    (h * w, 3) float64}."""
+    parcel (`raycalls.parcel_cost`); emit_rays: `remote.EMIT_RAYS`; hold: (rays, seconds),
+    `remote.HOLD_RAYS` and `HOLD_S` (0 seconds: no hold). Returns {"wall_s": virtual
+    render wall, "busy_s": (K,) virtual seconds each shard stepped, "steps", "parcels",
+    "early_parcels", "film": (h * w, 3) float64}."""
     k, tiles = len(shards), count_tiles(s)
     window = live_window(k, tiles)
     for sh in shards:
@@ -79,9 +82,24 @@ def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps
     def send_cost(nbytes: int) -> float:
         return cost["send_s"] + cost["send_s_per_byte"] * nbytes
 
+    def start_of(i: int) -> float:
+        """When shard i steps next on what is known to reach it. Every other shard starts
+        no earlier (the loop takes the earliest), so nothing sent later arrives before."""
+        t0 = max(free_at[i], inbox[i][0][0])
+        if hold[1] <= 0:
+            return t0
+        rays = 0
+        for t, _, orders, parcel, _ in sorted(inbox[i]):
+            if t > t0 + hold[1]:
+                break
+            rays += 0 if parcel is None else parcel.n_rays
+            if orders or rays >= hold[0]:
+                return max(t0, t)
+        return t0 + hold[1]
+
     admit(0.0)
     while live or waiting:
-        ready = [(max(free_at[i], inbox[i][0][0]), i) for i in range(k) if inbox[i]]
+        ready = [(start_of(i), i) for i in range(k) if inbox[i]]
         if not ready:
             raise RuntimeError("simulation stalled: passes live and nothing in flight")
         start, sid = min(ready)
