@@ -94,6 +94,38 @@ def markdown(res: dict) -> str:
     return "\n".join(out) + "\n"
 
 
+def plot(res: dict, png) -> None:
+    """Wall on K dedicated cores against one shard's, per scene: exact and proxy, parcels at
+    a step's end (dashed) and during it (solid), with the issue's K = 8 targets."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(dict.fromkeys(r["scene"] for r in res["rows"]))
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5 * len(scenes), 4), squeeze=False)
+    for ax, name in zip(axes[0], scenes, strict=True):
+        rows = [r for r in res["rows"] if r["scene"] == name and "vs_one_shard" in r]
+        for mode, marker in (("exact", "o"), ("proxy", "s")):
+            for emit in sorted({r["emit_rays"] for r in rows if r["k"] > 1}):
+                rs = [r for r in rows if r["mode"] == mode and (r["k"] == 1 or
+                                                                r["emit_rays"] == emit)]
+                if len(rs) > 1:
+                    ax.plot([r["k"] for r in rs], [r["vs_one_shard"] for r in rs],
+                            marker + ("-" if emit else "--"),
+                            label=f"{mode}, {'sends during a step' if emit else 'end only'}")
+        ax.axhline(0.5, color="gray", lw=1, ls=":", label="exact target at K = 8")
+        ax.axhline(0.3, color="black", lw=1, ls=":", label="proxy target at K = 8")
+        ax.set_xscale("log", base=2)
+        ax.set_xlabel("shards K, a core each (simulated)")
+        ax.set_ylabel("render wall / one shard's")
+        ax.set_title(name)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+
+
 def _hold(res: dict) -> str:
     rays, seconds = res["settings"].get("hold", (0, 0.0))
     return f"{rays} rays / {seconds * 1e3:g} ms" if seconds > 0 else "none"
@@ -117,7 +149,8 @@ def main(argv=None) -> None:
     if args.ks[0] != 1:
         raise SystemExit("--ks must start with 1: every wall is compared with one shard's")
     res = bench(args)
-    finish(res, args.out / "bench_dedicated.json", markdown=markdown, update_readme=False)
+    finish(res, args.out / "bench_dedicated.json", plot=plot, markdown=markdown,
+           update_readme=False)
 
 
 if __name__ == "__main__":
