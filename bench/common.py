@@ -228,6 +228,14 @@ def add_image_flags(ap, width: int = 640, height: int = 360, spp: int = 16) -> N
     ap.add_argument("--spp", type=int, default=spp)
 
 
+def stored_scene(name: str, size: str):
+    """The demo scene `name` at `size` ("default": the demo's own) from the scene store,
+    as add_image_flags' --scenes and --size name it (call .load() for its geometry)."""
+    from nprt.scene.store import open_scene
+
+    return open_scene(name if size == "default" else f"{name}:{size}")
+
+
 def add_output_flags(ap, out: Path = RESULTS) -> None:
     """--out, --no-readme and --smoke (the smallest input; never writes a README)."""
     ap.add_argument("--out", type=Path, default=out)

@@ -19,8 +19,7 @@ import time
 
 import numpy as np
 
-from bench.common import add_output_flags, finish, machine, smoke, window_arg
-from nprt.scene.store import open_scene
+from bench.common import add_output_flags, finish, machine, smoke, stored_scene, window_arg
 from nprt.workers.settings import RenderSettings
 
 
@@ -39,7 +38,7 @@ def busy_bins(steps: list[dict], k: int, t0: float, wall: float, bin_s: float) -
 def bench(args) -> dict:
     from nprt.workers.render import make_renderer, render
 
-    scene = open_scene(args.scene if args.size == "default" else f"{args.scene}:{args.size}")
+    scene = stored_scene(args.scene, args.size)
     s = RenderSettings(width=args.width, height=args.height, spp=args.spp, seed=0,
                        shards=args.k, mode=args.mode)
     coord = make_renderer(scene, s, trace=True)

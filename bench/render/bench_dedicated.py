@@ -23,12 +23,11 @@ import os
 
 import numpy as np
 
-from bench.common import add_image_flags, add_output_flags, finish, machine, smoke
+from bench.common import add_image_flags, add_output_flags, finish, machine, smoke, stored_scene
 from bench.render.bench_step_hold import parse_hold
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost
 from bench.render.vtime import simulate
-from nprt.scene.store import open_scene
 from nprt.workers.runtime import remote
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
@@ -38,7 +37,7 @@ def bench(args) -> dict:
     cost = parcel_cost(calls=20 if args.smoke else 300, repeats=1 if args.smoke else 3)
     rows = []
     for name in args.scenes:
-        scene = open_scene(name if args.size == "default" else f"{name}:{args.size}").load()
+        scene = stored_scene(name, args.size).load()
         for mode in args.modes:
             one = None
             for k in args.ks:

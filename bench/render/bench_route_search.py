@@ -25,9 +25,8 @@ import time
 
 import numpy as np
 
-from bench.common import add_image_flags, add_output_flags, finish, machine, smoke
+from bench.common import add_image_flags, add_output_flags, finish, machine, smoke, stored_scene
 from bench.render.bench_visits import run
-from nprt.scene.store import open_scene
 from nprt.workers.kernels import crossings
 from nprt.workers.kernels.nearest import nearest_owner
 from nprt.workers.settings import RenderSettings
@@ -126,7 +125,7 @@ def time_walks(calls: list, name: str) -> dict:
 def bench(args) -> dict:
     rows = []
     for name in args.scenes:
-        scene = open_scene(name if args.size == "default" else f"{name}:{args.size}").load()
+        scene = stored_scene(name, args.size).load()
         for k in args.ks:
             s = RenderSettings(width=args.width, height=args.height, spp=args.spp, seed=0,
                                shards=k, mode="exact")

@@ -38,10 +38,10 @@ from bench.common import (
     machine,
     raylet_cpu_s,
     smoke,
+    stored_scene,
     window_arg,
 )
 from bench.render.bench_strong_scaling import run_one
-from nprt.scene.store import open_scene
 from nprt.workers.runtime import remote
 from nprt.workers.settings import RenderSettings
 
@@ -95,7 +95,7 @@ def bench(args) -> dict:
                 for e in args.emits]
     try:
         for name in args.scenes:
-            scene = open_scene(name if args.size == "default" else f"{name}:{args.size}")
+            scene = stored_scene(name, args.size)
             base = dict(width=args.width, height=args.height, spp=args.spp, seed=0)
             ref, _, _ = run_one(scene.load(), RenderSettings(**base, shards=0))
             ref.update(scene=name)

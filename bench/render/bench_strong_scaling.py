@@ -39,10 +39,10 @@ from bench.common import (
     machine,
     quality,
     smoke,
+    stored_scene,
     timed_render,
 )
 from bench.network.netmodel import film_bytes, fit_rpc_s, replay, step_cpu
-from nprt.scene.store import open_scene
 from nprt.workers.settings import RenderSettings
 
 TARGETS = {"proxy_k8_wall": 0.3, "exact_k8_wall": 0.5, "proxy_cpu": 2.0, "exact_cpu": 3.0,
@@ -118,7 +118,7 @@ def model_walls(rows: list[dict], runs: list[dict], ref_cpu_s: float, cores: int
 def bench(args) -> dict:
     rows, models = [], {}
     for name in args.scenes:
-        scene = open_scene(name if args.size == "default" else f"{name}:{args.size}")
+        scene = stored_scene(name, args.size)
         base = dict(width=args.width, height=args.height, spp=args.spp, seed=0,
                     spp_per_pass=args.spp_per_pass)
         ref, ref_img, _ = run_one(scene.load(), RenderSettings(**base, shards=0))

@@ -32,12 +32,11 @@ from fractions import Fraction
 
 import numpy as np
 
-from bench.common import add_image_flags, add_output_flags, finish, machine, smoke
+from bench.common import add_image_flags, add_output_flags, finish, machine, smoke, stored_scene
 from bench.network.netmodel import film_bytes, replay
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost, with_ray_cost
 from bench.render.vtime import collect_pass
-from nprt.scene.store import open_scene
 from nprt.workers.passes import count_tiles, iter_passes
 from nprt.workers.runtime.coordinator import live_window
 from nprt.workers.runtime.protocol import sum_credits
@@ -128,7 +127,7 @@ def bench(args) -> dict:
           f"ms + {1e9 * cost['receive_s_per_byte']:.2f} ms/MB", flush=True)
     rows = []
     for name in args.scenes:
-        scene = open_scene(name if args.size == "default" else f"{name}:{args.size}").load()
+        scene = stored_scene(name, args.size).load()
         base = dict(width=args.width, height=args.height, spp=args.spp, seed=0,
                     spp_per_pass=args.spp_per_pass)
         one = None

@@ -381,8 +381,8 @@ class Shard:
             n_in = len(arrived) + len(rays) + sum(len(b) for b in shadow)
             self._wavefront(step, arrived, rays, shadow, out_rays, out_shadow)
             with times.phase("send"):
-                parcels_out, returned = self._pack(step, out_rays, out_shadow,
-                                                   step.out_camera, step.credits)
+                parcels_out, returned = self._pack(step, out_rays, out_shadow, out_camera,
+                                                   step.credits)
         step.stats.finish()  # after the bookkeeping phase closes: its time is shared too
         return StepResult(parcels_out, returned, times, n_in, bytes_in)
 
@@ -624,8 +624,9 @@ class Shard:
         with step.stats.phase("send"):
             go_rays, go_shadow = _split_out(out_rays, chosen), _split_out(out_shadow, chosen)
             go_cams = [sent if chosen[t] else [] for t, sent in enumerate(cams)]
+            for t in np.flatnonzero(chosen).tolist():
+                cams[t] = []  # in place: the step's out_camera stays the one list
             parcels, _ = self._pack(step, go_rays, go_shadow, go_cams, step.credits, keep=True)
-            step.out_camera = [[] if chosen[t] else sent for t, sent in enumerate(cams)]
             step.emit(parcels)
 
     def _pack(self, step: _Step, out_rays: list, out_shadow: list, out_camera: list,
