@@ -25,55 +25,55 @@ _sym_db = _symbol_database.Default()
 from google.protobuf import struct_pb2 as google_dot_protobuf_dot_struct__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\nnprt.proto\x12\x07nprt.v1\x1a\x1cgoogle/protobuf/struct.proto\"\xa5\x03\n\rProxySettings\x12\x16\n\tthreshold\x18\x01 \x01(\x01H\x00\x88\x01\x01\x12\x11\n\x04\x62\x61nd\x18\x02 \x01(\x01H\x01\x88\x01\x01\x12\x1c\n\x0f\x61\x63\x63uracy_target\x18\x03 \x01(\x01H\x02\x88\x01\x01\x12\x18\n\x0bshadow_band\x18\x04 \x01(\x01H\x03\x88\x01\x01\x12\x12\n\x05width\x18\x05 \x01(\x05H\x04\x88\x01\x01\x12\x12\n\x05steps\x18\x07 \x01(\rH\x05\x88\x01\x01\x12\x15\n\x08\x61\x63\x63uracy\x18\x08 \x01(\tH\x06\x88\x01\x01\x12\x12\n\x05\x63heck\x18\t \x01(\x08H\x07\x88\x01\x01\x12\x1c\n\x0finternal_margin\x18\n \x01(\x01H\x08\x88\x01\x01\x12\x1f\n\x12internal_ambiguous\x18\x0b \x01(\tH\t\x88\x01\x01\x42\x0c\n\n_thresholdB\x07\n\x05_bandB\x12\n\x10_accuracy_targetB\x0e\n\x0c_shadow_bandB\x08\n\x06_widthB\x08\n\x06_stepsB\x0b\n\t_accuracyB\x08\n\x06_checkB\x12\n\x10_internal_marginB\x15\n\x13_internal_ambiguousJ\x04\x08\x06\x10\x07R\x08\x62udget_s\"\xb9\x03\n\x0eRenderSettings\x12\x12\n\x05width\x18\x01 \x01(\rH\x00\x88\x01\x01\x12\x13\n\x06height\x18\x02 \x01(\rH\x01\x88\x01\x01\x12\x10\n\x03spp\x18\x03 \x01(\rH\x02\x88\x01\x01\x12\x14\n\x07\x62ounces\x18\x04 \x01(\rH\x03\x88\x01\x01\x12\x18\n\x0bshadow_rays\x18\x05 \x01(\rH\x04\x88\x01\x01\x12\x11\n\x04seed\x18\x06 \x01(\x04H\x05\x88\x01\x01\x12\x1d\n\x10russian_roulette\x18\x07 \x01(\x08H\x06\x88\x01\x01\x12\x11\n\x04mode\x18\x08 \x01(\tH\x07\x88\x01\x01\x12\x13\n\x06shards\x18\t \x01(\rH\x08\x88\x01\x01\x12\x16\n\ttile_size\x18\n \x01(\rH\t\x88\x01\x01\x12\x19\n\x0cspp_per_pass\x18\x0b \x01(\rH\n\x88\x01\x01\x12%\n\x05proxy\x18\x0c \x01(\x0b\x32\x16.nprt.v1.ProxySettingsB\x08\n\x06_widthB\t\n\x07_heightB\x06\n\x04_sppB\n\n\x08_bouncesB\x0e\n\x0c_shadow_raysB\x07\n\x05_seedB\x13\n\x11_russian_rouletteB\x07\n\x05_modeB\t\n\x07_shardsB\x0c\n\n_tile_sizeB\x0f\n\r_spp_per_pass\"\x83\x03\n\x03Job\x12\n\n\x02id\x18\x01 \x01(\t\x12\r\n\x05scene\x18\x02 \x01(\t\x12 \n\x05state\x18\x03 \x01(\x0e\x32\x11.nprt.v1.JobState\x12)\n\x08settings\x18\x04 \x01(\x0b\x32\x17.nprt.v1.RenderSettings\x12\x13\n\x0bpasses_done\x18\x05 \x01(\r\x12\x14\n\x0cpasses_total\x18\x06 \x01(\r\x12\x10\n\x08progress\x18\x07 \x01(\x01\x12\r\n\x05\x65rror\x18\x08 \x01(\t\x12\x19\n\x11\x63reated_at_unix_s\x18\t \x01(\x01\x12\x19\n\x11started_at_unix_s\x18\n \x01(\x01\x12\x1a\n\x12\x66inished_at_unix_s\x18\x0b \x01(\x01\x12&\n\x05stats\x18\x0c \x01(\x0b\x32\x17.google.protobuf.Struct\x12\x18\n\x10\x63\x61ncel_requested\x18\r \x01(\x08\x12\x0f\n\x07retries\x18\x0e \x01(\r\x12#\n\x06\x66rames\x18\x0f \x01(\x0b\x32\x13.nprt.v1.FrameRange\")\n\nFrameRange\x12\r\n\x05\x66irst\x18\x01 \x01(\r\x12\x0c\n\x04last\x18\x02 \x01(\r\"q\n\x10SubmitJobRequest\x12\r\n\x05scene\x18\x01 \x01(\t\x12)\n\x08settings\x18\x02 \x01(\x0b\x32\x17.nprt.v1.RenderSettings\x12#\n\x06\x66rames\x18\x03 \x01(\x0b\x32\x13.nprt.v1.FrameRange\"\x1f\n\rGetJobRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"0\n\x0fListJobsRequest\x12\x0e\n\x06offset\x18\x01 \x01(\r\x12\r\n\x05limit\x18\x02 \x01(\r\"=\n\x10ListJobsResponse\x12\x1a\n\x04jobs\x18\x01 \x03(\x0b\x32\x0c.nprt.v1.Job\x12\r\n\x05total\x18\x02 \x01(\r\"K\n\x0fWatchJobRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12(\n\x0btile_format\x18\x02 \x01(\x0e\x32\x13.nprt.v1.TileFormat\"6\n\x04Rect\x12\n\n\x02x0\x18\x01 \x01(\r\x12\n\n\x02y0\x18\x02 \x01(\r\x12\n\n\x02x1\x18\x03 \x01(\r\x12\n\n\x02y1\x18\x04 \x01(\r\"\xb6\x01\n\x04Tile\x12\x12\n\npass_index\x18\x01 \x01(\r\x12\x14\n\x0cpasses_total\x18\x02 \x01(\r\x12\x1b\n\x04rect\x18\x03 \x01(\x0b\x32\r.nprt.v1.Rect\x12\x0f\n\x07sample0\x18\x04 \x01(\r\x12\x0f\n\x07sample1\x18\x05 \x01(\r\x12\x10\n\x08progress\x18\x06 \x01(\x01\x12#\n\x06\x66ormat\x18\x07 \x01(\x0e\x32\x13.nprt.v1.TileFormat\x12\x0e\n\x06pixels\x18\x08 \x01(\x0c\"O\n\x08JobEvent\x12\x1b\n\x03job\x18\x01 \x01(\x0b\x32\x0c.nprt.v1.JobH\x00\x12\x1d\n\x04tile\x18\x02 \x01(\x0b\x32\r.nprt.v1.TileH\x00\x42\x07\n\x05\x65vent\"\"\n\x10\x43\x61ncelJobRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"G\n\x0fGetImageRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12$\n\x06\x66ormat\x18\x02 \x01(\x0e\x32\x14.nprt.v1.ImageFormat\"V\n\x0fGetFrameRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\r\n\x05\x66rame\x18\x02 \x01(\r\x12$\n\x06\x66ormat\x18\x03 \x01(\x0e\x32\x14.nprt.v1.ImageFormat\"{\n\x05Image\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12$\n\x06\x66ormat\x18\x02 \x01(\x0e\x32\x14.nprt.v1.ImageFormat\x12\x0c\n\x04\x64\x61ta\x18\x03 \x01(\x0c\x12\r\n\x05width\x18\x04 \x01(\r\x12\x0e\n\x06height\x18\x05 \x01(\r\x12\x0f\n\x07partial\x18\x06 \x01(\x08\"E\n\x13StreamJobLogRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x0e\n\x06offset\x18\x02 \x01(\x04\x12\x0e\n\x06\x66ollow\x18\x03 \x01(\x08\"+\n\x07LogLine\x12\x0c\n\x04text\x18\x01 \x01(\t\x12\x12\n\nend_offset\x18\x02 \x01(\x04*\xb2\x01\n\x08JobState\x12\x19\n\x15JOB_STATE_UNSPECIFIED\x10\x00\x12\x14\n\x10JOB_STATE_QUEUED\x10\x01\x12\x17\n\x13JOB_STATE_PREPARING\x10\x02\x12\x15\n\x11JOB_STATE_RUNNING\x10\x03\x12\x17\n\x13JOB_STATE_SUCCEEDED\x10\x04\x12\x14\n\x10JOB_STATE_FAILED\x10\x05\x12\x16\n\x12JOB_STATE_CANCELED\x10\x06*P\n\nTileFormat\x12\x14\n\x10TILE_FORMAT_NONE\x10\x00\x12\x13\n\x0fTILE_FORMAT_PNG\x10\x01\x12\x17\n\x13TILE_FORMAT_RGB_F32\x10\x02*9\n\x0bImageFormat\x12\x14\n\x10IMAGE_FORMAT_PNG\x10\x00\x12\x14\n\x10IMAGE_FORMAT_EXR\x10\x01\x32\xd5\x03\n\rRenderService\x12\x34\n\tSubmitJob\x12\x19.nprt.v1.SubmitJobRequest\x1a\x0c.nprt.v1.Job\x12.\n\x06GetJob\x12\x16.nprt.v1.GetJobRequest\x1a\x0c.nprt.v1.Job\x12?\n\x08ListJobs\x12\x18.nprt.v1.ListJobsRequest\x1a\x19.nprt.v1.ListJobsResponse\x12\x39\n\x08WatchJob\x12\x18.nprt.v1.WatchJobRequest\x1a\x11.nprt.v1.JobEvent0\x01\x12\x34\n\tCancelJob\x12\x19.nprt.v1.CancelJobRequest\x1a\x0c.nprt.v1.Job\x12\x34\n\x08GetImage\x12\x18.nprt.v1.GetImageRequest\x1a\x0e.nprt.v1.Image\x12\x34\n\x08GetFrame\x12\x18.nprt.v1.GetFrameRequest\x1a\x0e.nprt.v1.Image\x12@\n\x0cStreamJobLog\x12\x1c.nprt.v1.StreamJobLogRequest\x1a\x10.nprt.v1.LogLine0\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\nnprt.proto\x12\x07nprt.v1\x1a\x1cgoogle/protobuf/struct.proto\"\xa5\x03\n\rProxySettings\x12\x16\n\tthreshold\x18\x01 \x01(\x01H\x00\x88\x01\x01\x12\x11\n\x04\x62\x61nd\x18\x02 \x01(\x01H\x01\x88\x01\x01\x12\x1c\n\x0f\x61\x63\x63uracy_target\x18\x03 \x01(\x01H\x02\x88\x01\x01\x12\x18\n\x0bshadow_band\x18\x04 \x01(\x01H\x03\x88\x01\x01\x12\x12\n\x05width\x18\x05 \x01(\x05H\x04\x88\x01\x01\x12\x12\n\x05steps\x18\x07 \x01(\rH\x05\x88\x01\x01\x12\x15\n\x08\x61\x63\x63uracy\x18\x08 \x01(\tH\x06\x88\x01\x01\x12\x12\n\x05\x63heck\x18\t \x01(\x08H\x07\x88\x01\x01\x12\x1c\n\x0finternal_margin\x18\n \x01(\x01H\x08\x88\x01\x01\x12\x1f\n\x12internal_ambiguous\x18\x0b \x01(\tH\t\x88\x01\x01\x42\x0c\n\n_thresholdB\x07\n\x05_bandB\x12\n\x10_accuracy_targetB\x0e\n\x0c_shadow_bandB\x08\n\x06_widthB\x08\n\x06_stepsB\x0b\n\t_accuracyB\x08\n\x06_checkB\x12\n\x10_internal_marginB\x15\n\x13_internal_ambiguousJ\x04\x08\x06\x10\x07R\x08\x62udget_s\"\xe1\x03\n\x0eRenderSettings\x12\x12\n\x05width\x18\x01 \x01(\rH\x00\x88\x01\x01\x12\x13\n\x06height\x18\x02 \x01(\rH\x01\x88\x01\x01\x12\x10\n\x03spp\x18\x03 \x01(\rH\x02\x88\x01\x01\x12\x14\n\x07\x62ounces\x18\x04 \x01(\rH\x03\x88\x01\x01\x12\x18\n\x0bshadow_rays\x18\x05 \x01(\rH\x04\x88\x01\x01\x12\x11\n\x04seed\x18\x06 \x01(\x04H\x05\x88\x01\x01\x12\x1d\n\x10russian_roulette\x18\x07 \x01(\x08H\x06\x88\x01\x01\x12\x11\n\x04mode\x18\x08 \x01(\tH\x07\x88\x01\x01\x12\x13\n\x06shards\x18\t \x01(\rH\x08\x88\x01\x01\x12\x16\n\ttile_size\x18\n \x01(\rH\t\x88\x01\x01\x12\x19\n\x0cspp_per_pass\x18\x0b \x01(\rH\n\x88\x01\x01\x12%\n\x05proxy\x18\x0c \x01(\x0b\x32\x16.nprt.v1.ProxySettings\x12\x17\n\nbyte_slack\x18\r \x01(\x01H\x0b\x88\x01\x01\x42\x08\n\x06_widthB\t\n\x07_heightB\x06\n\x04_sppB\n\n\x08_bouncesB\x0e\n\x0c_shadow_raysB\x07\n\x05_seedB\x13\n\x11_russian_rouletteB\x07\n\x05_modeB\t\n\x07_shardsB\x0c\n\n_tile_sizeB\x0f\n\r_spp_per_passB\r\n\x0b_byte_slack\"\x83\x03\n\x03Job\x12\n\n\x02id\x18\x01 \x01(\t\x12\r\n\x05scene\x18\x02 \x01(\t\x12 \n\x05state\x18\x03 \x01(\x0e\x32\x11.nprt.v1.JobState\x12)\n\x08settings\x18\x04 \x01(\x0b\x32\x17.nprt.v1.RenderSettings\x12\x13\n\x0bpasses_done\x18\x05 \x01(\r\x12\x14\n\x0cpasses_total\x18\x06 \x01(\r\x12\x10\n\x08progress\x18\x07 \x01(\x01\x12\r\n\x05\x65rror\x18\x08 \x01(\t\x12\x19\n\x11\x63reated_at_unix_s\x18\t \x01(\x01\x12\x19\n\x11started_at_unix_s\x18\n \x01(\x01\x12\x1a\n\x12\x66inished_at_unix_s\x18\x0b \x01(\x01\x12&\n\x05stats\x18\x0c \x01(\x0b\x32\x17.google.protobuf.Struct\x12\x18\n\x10\x63\x61ncel_requested\x18\r \x01(\x08\x12\x0f\n\x07retries\x18\x0e \x01(\r\x12#\n\x06\x66rames\x18\x0f \x01(\x0b\x32\x13.nprt.v1.FrameRange\")\n\nFrameRange\x12\r\n\x05\x66irst\x18\x01 \x01(\r\x12\x0c\n\x04last\x18\x02 \x01(\r\"q\n\x10SubmitJobRequest\x12\r\n\x05scene\x18\x01 \x01(\t\x12)\n\x08settings\x18\x02 \x01(\x0b\x32\x17.nprt.v1.RenderSettings\x12#\n\x06\x66rames\x18\x03 \x01(\x0b\x32\x13.nprt.v1.FrameRange\"\x1f\n\rGetJobRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"0\n\x0fListJobsRequest\x12\x0e\n\x06offset\x18\x01 \x01(\r\x12\r\n\x05limit\x18\x02 \x01(\r\"=\n\x10ListJobsResponse\x12\x1a\n\x04jobs\x18\x01 \x03(\x0b\x32\x0c.nprt.v1.Job\x12\r\n\x05total\x18\x02 \x01(\r\"K\n\x0fWatchJobRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12(\n\x0btile_format\x18\x02 \x01(\x0e\x32\x13.nprt.v1.TileFormat\"6\n\x04Rect\x12\n\n\x02x0\x18\x01 \x01(\r\x12\n\n\x02y0\x18\x02 \x01(\r\x12\n\n\x02x1\x18\x03 \x01(\r\x12\n\n\x02y1\x18\x04 \x01(\r\"\xb6\x01\n\x04Tile\x12\x12\n\npass_index\x18\x01 \x01(\r\x12\x14\n\x0cpasses_total\x18\x02 \x01(\r\x12\x1b\n\x04rect\x18\x03 \x01(\x0b\x32\r.nprt.v1.Rect\x12\x0f\n\x07sample0\x18\x04 \x01(\r\x12\x0f\n\x07sample1\x18\x05 \x01(\r\x12\x10\n\x08progress\x18\x06 \x01(\x01\x12#\n\x06\x66ormat\x18\x07 \x01(\x0e\x32\x13.nprt.v1.TileFormat\x12\x0e\n\x06pixels\x18\x08 \x01(\x0c\"O\n\x08JobEvent\x12\x1b\n\x03job\x18\x01 \x01(\x0b\x32\x0c.nprt.v1.JobH\x00\x12\x1d\n\x04tile\x18\x02 \x01(\x0b\x32\r.nprt.v1.TileH\x00\x42\x07\n\x05\x65vent\"\"\n\x10\x43\x61ncelJobRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\"G\n\x0fGetImageRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12$\n\x06\x66ormat\x18\x02 \x01(\x0e\x32\x14.nprt.v1.ImageFormat\"V\n\x0fGetFrameRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\r\n\x05\x66rame\x18\x02 \x01(\r\x12$\n\x06\x66ormat\x18\x03 \x01(\x0e\x32\x14.nprt.v1.ImageFormat\"{\n\x05Image\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12$\n\x06\x66ormat\x18\x02 \x01(\x0e\x32\x14.nprt.v1.ImageFormat\x12\x0c\n\x04\x64\x61ta\x18\x03 \x01(\x0c\x12\r\n\x05width\x18\x04 \x01(\r\x12\x0e\n\x06height\x18\x05 \x01(\r\x12\x0f\n\x07partial\x18\x06 \x01(\x08\"E\n\x13StreamJobLogRequest\x12\x0e\n\x06job_id\x18\x01 \x01(\t\x12\x0e\n\x06offset\x18\x02 \x01(\x04\x12\x0e\n\x06\x66ollow\x18\x03 \x01(\x08\"+\n\x07LogLine\x12\x0c\n\x04text\x18\x01 \x01(\t\x12\x12\n\nend_offset\x18\x02 \x01(\x04*\xb2\x01\n\x08JobState\x12\x19\n\x15JOB_STATE_UNSPECIFIED\x10\x00\x12\x14\n\x10JOB_STATE_QUEUED\x10\x01\x12\x17\n\x13JOB_STATE_PREPARING\x10\x02\x12\x15\n\x11JOB_STATE_RUNNING\x10\x03\x12\x17\n\x13JOB_STATE_SUCCEEDED\x10\x04\x12\x14\n\x10JOB_STATE_FAILED\x10\x05\x12\x16\n\x12JOB_STATE_CANCELED\x10\x06*P\n\nTileFormat\x12\x14\n\x10TILE_FORMAT_NONE\x10\x00\x12\x13\n\x0fTILE_FORMAT_PNG\x10\x01\x12\x17\n\x13TILE_FORMAT_RGB_F32\x10\x02*9\n\x0bImageFormat\x12\x14\n\x10IMAGE_FORMAT_PNG\x10\x00\x12\x14\n\x10IMAGE_FORMAT_EXR\x10\x01\x32\xd5\x03\n\rRenderService\x12\x34\n\tSubmitJob\x12\x19.nprt.v1.SubmitJobRequest\x1a\x0c.nprt.v1.Job\x12.\n\x06GetJob\x12\x16.nprt.v1.GetJobRequest\x1a\x0c.nprt.v1.Job\x12?\n\x08ListJobs\x12\x18.nprt.v1.ListJobsRequest\x1a\x19.nprt.v1.ListJobsResponse\x12\x39\n\x08WatchJob\x12\x18.nprt.v1.WatchJobRequest\x1a\x11.nprt.v1.JobEvent0\x01\x12\x34\n\tCancelJob\x12\x19.nprt.v1.CancelJobRequest\x1a\x0c.nprt.v1.Job\x12\x34\n\x08GetImage\x12\x18.nprt.v1.GetImageRequest\x1a\x0e.nprt.v1.Image\x12\x34\n\x08GetFrame\x12\x18.nprt.v1.GetFrameRequest\x1a\x0e.nprt.v1.Image\x12@\n\x0cStreamJobLog\x12\x1c.nprt.v1.StreamJobLogRequest\x1a\x10.nprt.v1.LogLine0\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
 _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'nprt_pb2', _globals)
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
-  _globals['_JOBSTATE']._serialized_start=2453
-  _globals['_JOBSTATE']._serialized_end=2631
-  _globals['_TILEFORMAT']._serialized_start=2633
-  _globals['_TILEFORMAT']._serialized_end=2713
-  _globals['_IMAGEFORMAT']._serialized_start=2715
-  _globals['_IMAGEFORMAT']._serialized_end=2772
+  _globals['_JOBSTATE']._serialized_start=2493
+  _globals['_JOBSTATE']._serialized_end=2671
+  _globals['_TILEFORMAT']._serialized_start=2673
+  _globals['_TILEFORMAT']._serialized_end=2753
+  _globals['_IMAGEFORMAT']._serialized_start=2755
+  _globals['_IMAGEFORMAT']._serialized_end=2812
   _globals['_PROXYSETTINGS']._serialized_start=54
   _globals['_PROXYSETTINGS']._serialized_end=475
   _globals['_RENDERSETTINGS']._serialized_start=478
-  _globals['_RENDERSETTINGS']._serialized_end=919
-  _globals['_JOB']._serialized_start=922
-  _globals['_JOB']._serialized_end=1309
-  _globals['_FRAMERANGE']._serialized_start=1311
-  _globals['_FRAMERANGE']._serialized_end=1352
-  _globals['_SUBMITJOBREQUEST']._serialized_start=1354
-  _globals['_SUBMITJOBREQUEST']._serialized_end=1467
-  _globals['_GETJOBREQUEST']._serialized_start=1469
-  _globals['_GETJOBREQUEST']._serialized_end=1500
-  _globals['_LISTJOBSREQUEST']._serialized_start=1502
-  _globals['_LISTJOBSREQUEST']._serialized_end=1550
-  _globals['_LISTJOBSRESPONSE']._serialized_start=1552
-  _globals['_LISTJOBSRESPONSE']._serialized_end=1613
-  _globals['_WATCHJOBREQUEST']._serialized_start=1615
-  _globals['_WATCHJOBREQUEST']._serialized_end=1690
-  _globals['_RECT']._serialized_start=1692
-  _globals['_RECT']._serialized_end=1746
-  _globals['_TILE']._serialized_start=1749
-  _globals['_TILE']._serialized_end=1931
-  _globals['_JOBEVENT']._serialized_start=1933
-  _globals['_JOBEVENT']._serialized_end=2012
-  _globals['_CANCELJOBREQUEST']._serialized_start=2014
-  _globals['_CANCELJOBREQUEST']._serialized_end=2048
-  _globals['_GETIMAGEREQUEST']._serialized_start=2050
-  _globals['_GETIMAGEREQUEST']._serialized_end=2121
-  _globals['_GETFRAMEREQUEST']._serialized_start=2123
-  _globals['_GETFRAMEREQUEST']._serialized_end=2209
-  _globals['_IMAGE']._serialized_start=2211
-  _globals['_IMAGE']._serialized_end=2334
-  _globals['_STREAMJOBLOGREQUEST']._serialized_start=2336
-  _globals['_STREAMJOBLOGREQUEST']._serialized_end=2405
-  _globals['_LOGLINE']._serialized_start=2407
-  _globals['_LOGLINE']._serialized_end=2450
-  _globals['_RENDERSERVICE']._serialized_start=2775
-  _globals['_RENDERSERVICE']._serialized_end=3244
+  _globals['_RENDERSETTINGS']._serialized_end=959
+  _globals['_JOB']._serialized_start=962
+  _globals['_JOB']._serialized_end=1349
+  _globals['_FRAMERANGE']._serialized_start=1351
+  _globals['_FRAMERANGE']._serialized_end=1392
+  _globals['_SUBMITJOBREQUEST']._serialized_start=1394
+  _globals['_SUBMITJOBREQUEST']._serialized_end=1507
+  _globals['_GETJOBREQUEST']._serialized_start=1509
+  _globals['_GETJOBREQUEST']._serialized_end=1540
+  _globals['_LISTJOBSREQUEST']._serialized_start=1542
+  _globals['_LISTJOBSREQUEST']._serialized_end=1590
+  _globals['_LISTJOBSRESPONSE']._serialized_start=1592
+  _globals['_LISTJOBSRESPONSE']._serialized_end=1653
+  _globals['_WATCHJOBREQUEST']._serialized_start=1655
+  _globals['_WATCHJOBREQUEST']._serialized_end=1730
+  _globals['_RECT']._serialized_start=1732
+  _globals['_RECT']._serialized_end=1786
+  _globals['_TILE']._serialized_start=1789
+  _globals['_TILE']._serialized_end=1971
+  _globals['_JOBEVENT']._serialized_start=1973
+  _globals['_JOBEVENT']._serialized_end=2052
+  _globals['_CANCELJOBREQUEST']._serialized_start=2054
+  _globals['_CANCELJOBREQUEST']._serialized_end=2088
+  _globals['_GETIMAGEREQUEST']._serialized_start=2090
+  _globals['_GETIMAGEREQUEST']._serialized_end=2161
+  _globals['_GETFRAMEREQUEST']._serialized_start=2163
+  _globals['_GETFRAMEREQUEST']._serialized_end=2249
+  _globals['_IMAGE']._serialized_start=2251
+  _globals['_IMAGE']._serialized_end=2374
+  _globals['_STREAMJOBLOGREQUEST']._serialized_start=2376
+  _globals['_STREAMJOBLOGREQUEST']._serialized_end=2445
+  _globals['_LOGLINE']._serialized_start=2447
+  _globals['_LOGLINE']._serialized_end=2490
+  _globals['_RENDERSERVICE']._serialized_start=2815
+  _globals['_RENDERSERVICE']._serialized_end=3284
 # @@protoc_insertion_point(module_scope)

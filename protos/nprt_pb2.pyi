@@ -68,7 +68,7 @@ class ProxySettings(_message.Message):
     def __init__(self, threshold: _Optional[float] = ..., band: _Optional[float] = ..., accuracy_target: _Optional[float] = ..., shadow_band: _Optional[float] = ..., width: _Optional[int] = ..., steps: _Optional[int] = ..., accuracy: _Optional[str] = ..., check: _Optional[bool] = ..., internal_margin: _Optional[float] = ..., internal_ambiguous: _Optional[str] = ...) -> None: ...
 
 class RenderSettings(_message.Message):
-    __slots__ = ("width", "height", "spp", "bounces", "shadow_rays", "seed", "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass", "proxy")
+    __slots__ = ("width", "height", "spp", "bounces", "shadow_rays", "seed", "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass", "proxy", "byte_slack")
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
     SPP_FIELD_NUMBER: _ClassVar[int]
@@ -81,6 +81,7 @@ class RenderSettings(_message.Message):
     TILE_SIZE_FIELD_NUMBER: _ClassVar[int]
     SPP_PER_PASS_FIELD_NUMBER: _ClassVar[int]
     PROXY_FIELD_NUMBER: _ClassVar[int]
+    BYTE_SLACK_FIELD_NUMBER: _ClassVar[int]
     width: int
     height: int
     spp: int
@@ -93,7 +94,8 @@ class RenderSettings(_message.Message):
     tile_size: int
     spp_per_pass: int
     proxy: ProxySettings
-    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., spp: _Optional[int] = ..., bounces: _Optional[int] = ..., shadow_rays: _Optional[int] = ..., seed: _Optional[int] = ..., russian_roulette: _Optional[bool] = ..., mode: _Optional[str] = ..., shards: _Optional[int] = ..., tile_size: _Optional[int] = ..., spp_per_pass: _Optional[int] = ..., proxy: _Optional[_Union[ProxySettings, _Mapping]] = ...) -> None: ...
+    byte_slack: float
+    def __init__(self, width: _Optional[int] = ..., height: _Optional[int] = ..., spp: _Optional[int] = ..., bounces: _Optional[int] = ..., shadow_rays: _Optional[int] = ..., seed: _Optional[int] = ..., russian_roulette: _Optional[bool] = ..., mode: _Optional[str] = ..., shards: _Optional[int] = ..., tile_size: _Optional[int] = ..., spp_per_pass: _Optional[int] = ..., proxy: _Optional[_Union[ProxySettings, _Mapping]] = ..., byte_slack: _Optional[float] = ...) -> None: ...
 
 class Job(_message.Message):
     __slots__ = ("id", "scene", "state", "settings", "passes_done", "passes_total", "progress", "error", "created_at_unix_s", "started_at_unix_s", "finished_at_unix_s", "stats", "cancel_requested", "retries", "frames")

@@ -16,7 +16,10 @@ from nprt.scene.model import Scene, instance_world_bounds
 from nprt.scene.workload import instance_work
 
 SHARD_DTYPE = np.int32
-BYTE_SLACK = 1.25  # a shard may hold this times the bytes-only rule's largest shard
+# The default cap on a shard's bytes, in units of the bytes-only rule's largest shard
+# (`RenderSettings.byte_slack` sets it per job): wider lets placement balance ray work where
+# meshes are few and alike in size (city at K = 8), at the cost of memory.
+BYTE_SLACK = 1.25
 BALANCED = 0.02  # the busiest shard's work within this of the fair share ends the search
 MAX_PIECES_PER_SHARD = 4  # pieces in all, per shard: each is another box boundary to cross
 IMPROVE_STEPS = 8  # local-search moves per shard at most
@@ -31,7 +34,7 @@ class Partition:
     shard_meshes   : per shard, the sorted mesh indices it holds
     shard_bytes    : (k,) int64, geometry bytes per shard (each held mesh counted once)
     shard_work     : (k,) float64, estimated ray work per shard (replicated meshes left out)
-    byte_cap       : the bytes of its own pieces a shard may hold (BYTE_SLACK x the
+    byte_cap       : the bytes of its own pieces a shard may hold (byte_slack x the
                      bytes-only rule's largest shard, at least the largest mesh); no shard
                      holds more, the replicated meshes coming on top
     bytes_only_max : the largest shard's bytes under the bytes-only rule, for comparison
@@ -80,7 +83,8 @@ class Partition:
         }
 
 
-def partition(scene: Scene, k: int, replicated=(), work=None) -> Partition:
+def partition(scene: Scene, k: int, replicated=(), work=None,
+              byte_slack: float = BYTE_SLACK) -> Partition:
     """Assign every instance to one of k shards, balancing estimated ray work under a cap
     on each shard's bytes.
 
@@ -89,7 +93,7 @@ def partition(scene: Scene, k: int, replicated=(), work=None) -> Partition:
        shards the mesh with the most work per piece is cut into one more. A mesh's pieces
        are spatially coherent groups of near-equal work, from recursive weighted-median
        bisection of the instance centres along the longest axis.
-    2. Cap. byte_cap = BYTE_SLACK x the largest shard of the bytes-only rule (the same
+    2. Cap. byte_cap = byte_slack x the largest shard of the bytes-only rule (the same
        pieces, largest mesh first to the shard with the fewest bytes), and at least the
        largest mesh. That packing is the fallback: it always fits.
     3. Pack by work, largest piece first, each to the least-loaded shard it fits in under
@@ -107,7 +111,8 @@ def partition(scene: Scene, k: int, replicated=(), work=None) -> Partition:
     (placement's choice for meshes too light to be worth forwarding rays to): they take no
     piece, every shard holds them, and their instances are recorded on shard 0 (the
     placement owns them everywhere). Ignored where the other meshes have fewer than k
-    instances.
+    instances. byte_slack: the cap of step 2, >= 1 (1: no shard above the bytes-only rule's
+    largest).
     """
     n = len(scene.instances)
     if isinstance(k, bool) or not isinstance(k, int | np.integer) or k < 1:
@@ -117,6 +122,9 @@ def partition(scene: Scene, k: int, replicated=(), work=None) -> Partition:
             f"partition: cannot give {k} shards at least one instance each; "
             f"scene {scene.name!r} has only {n} instances (use k <= {n})"
         )
+    if not np.isfinite(byte_slack) or byte_slack < 1.0:
+        raise SceneError(f"partition: byte_slack must be a finite number >= 1, got "
+                         f"{byte_slack!r}")
     k = int(k)
     inst_mesh = np.asarray(scene.instance_mesh, dtype=np.int64)
     counts = np.bincount(inst_mesh, minlength=len(scene.meshes))
@@ -153,7 +161,7 @@ def partition(scene: Scene, k: int, replicated=(), work=None) -> Partition:
     items = sorted(items_of(pieces), key=lambda it: (-nbytes[it[0]], it[0], it[1]))
     shard_of, load, shard_work = _assign(items, nbytes, k, None)
     bytes_only, bytes_only_work = int(load.max()), shard_work
-    cap = int(max(BYTE_SLACK * bytes_only, nbytes[used].max()))
+    cap = int(max(byte_slack * bytes_only, nbytes[used].max()))
     fair = max(float(work[np.isin(inst_mesh, used)].sum()) / k, 1e-300)
 
     def score(load, shard_work):

@@ -13,6 +13,7 @@ from pydantic import ValidationError
 
 from nprt.proxies.config import ProxyConfig
 from nprt.scene.errors import SceneError
+from nprt.scene.partition import BYTE_SLACK
 from nprt.service.logconfig import add_log_flags
 from nprt.service.preflight import CliError
 from nprt.workers.settings import ProxySettings
@@ -65,6 +66,10 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
     p.add_argument("--tile-size", type=int, default=64, help="tile edge, pixels")
     p.add_argument("--spp-per-pass", type=int, default=defaults.get("spp_per_pass", 4),
                    help="samples per pixel that one pass renders")
+    p.add_argument("--byte-slack", type=float, default=BYTE_SLACK,
+                   help="a shard may hold this times the geometry bytes of the largest shard "
+                        "of a bytes-only placement, to balance ray work (wider: better "
+                        f"balance at K >= 8, more memory; default {BYTE_SLACK:g})")
     p.add_argument("--threshold", type=float, default=None,
                    help="proxy visibility threshold (default: each proxy's calibrated one)")
     p.add_argument("--accuracy", default=None,
@@ -99,6 +104,7 @@ def settings_from_args(a: argparse.Namespace):
         shadow_rays=a.shadow_rays, seed=a.seed, russian_roulette=a.russian_roulette,
         shards=a.shards, mode=a.mode, tile_size=a.tile_size,
         spp_per_pass=min(a.spp_per_pass, max(a.spp, 1)),  # a bad --spp: one error
+        byte_slack=a.byte_slack,
         proxy=ProxySettings(threshold=a.threshold, width=a.proxy_width, steps=a.proxy_steps,
                             check=a.check, **{k: v for k, v in (
                                 ("accuracy", a.accuracy), ("band", a.band),

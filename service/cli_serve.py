@@ -22,7 +22,7 @@ _SETTING_FLAGS = (  # flag, RenderSettings field, type
     ("--width", "width", int), ("--height", "height", int), ("--spp", "spp", int),
     ("--bounces", "bounces", int), ("--shadow-rays", "shadow_rays", int),
     ("--seed", "seed", int), ("--shards", "shards", int), ("--tile-size", "tile_size", int),
-    ("--spp-per-pass", "spp_per_pass", int),
+    ("--spp-per-pass", "spp_per_pass", int), ("--byte-slack", "byte_slack", float),
 )
 
 

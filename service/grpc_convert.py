@@ -16,7 +16,8 @@ STATE_TO_PB = {
     "failed": pb.JOB_STATE_FAILED, "canceled": pb.JOB_STATE_CANCELED,
 }
 _SETTINGS_FIELDS = ("width", "height", "spp", "bounces", "shadow_rays", "seed",
-                    "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass")
+                    "russian_roulette", "mode", "shards", "tile_size", "spp_per_pass",
+                    "byte_slack")
 _PROXY_FIELDS = ("threshold", "band", "accuracy_target", "shadow_band", "width", "steps",
                  "accuracy", "check", "internal_margin", "internal_ambiguous")
 

@@ -8,6 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from nprt.proxies.accuracy import parse_accuracy
 from nprt.proxies.config import ProxyConfig
+from nprt.scene.partition import BYTE_SLACK
 
 Mode = Literal["exact", "proxy", "oracle"]
 
@@ -88,6 +89,12 @@ class RenderSettings(BaseModel):
     shards: int = Field(0, ge=0, le=64, description="K shard actors; 0 = single-process reference")
     tile_size: int = Field(64, ge=8, le=4096, description="tile edge, pixels")
     spp_per_pass: int = Field(4, ge=1, le=1 << 16, description="samples per pixel in one pass")
+    byte_slack: float = Field(
+        BYTE_SLACK, ge=1.0, le=16.0,
+        description="a shard may hold this times the geometry bytes of the largest shard "
+                    "under a bytes-only placement, so that placement can balance ray work; "
+                    "wider balances better where meshes are few and alike in size (K >= 8), "
+                    "at more memory per shard")
     proxy: ProxySettings = Field(default_factory=ProxySettings)
 
     @model_validator(mode="after")

@@ -28,7 +28,7 @@ from bench.render.bench_step_hold import parse_hold
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost
 from bench.render.vtime import simulate
-from nprt.scene import partition
+from nprt.scene.partition import BYTE_SLACK
 from nprt.workers.runtime import remote
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
@@ -43,7 +43,7 @@ def bench(args) -> dict:
             one = None
             for k in args.ks:
                 s = RenderSettings(width=args.width, height=args.height, spp=args.spp, seed=0,
-                                   shards=k, mode=mode)
+                                   shards=k, mode=mode, byte_slack=args.byte_slack)
                 shards = shards_in_process(scene, s)
                 for emit in ([0] if k == 1 else args.emits):
                     r = simulate(shards, s, cost, FALLBACK_RPC_S, MODEL_LINK_BPS, emit,
@@ -79,9 +79,9 @@ def markdown(res: dict) -> str:
            f"{1e9 * c['send_s_per_byte']:.2f} ms/MB, receive {1e3 * c['receive_s']:.2f} ms + "
            f"{1e9 * c['receive_s_per_byte']:.2f} ms/MB; latency {1e3 * res['rpc_s']:.1f} ms, "
            f"links {res['link_bps'] / 1e9:g} Gbit/s; hold {_hold(res)}; shard bytes capped at "
-           f"{res['settings'].get('byte_slack', 1.25):g}x the bytes-only rule's largest shard. "
-           "*wall* is simulated "
-           "on K dedicated cores; *vs 1 shard* divides it by the one-shard wall (its CPU).",
+           f"{res['settings'].get('byte_slack', BYTE_SLACK):g}x the bytes-only rule's "
+           "largest shard. *wall* is simulated on K dedicated cores; *vs 1 shard* divides it "
+           "by the one-shard wall (its CPU).",
            "",
            "| scene | mode | K | emit rays | wall s | vs 1 shard | busy (mean, min) | steps | "
            "parcels | of which during a step | same film |",
@@ -145,18 +145,14 @@ def main(argv=None) -> None:
                          f"{remote.HOLD_RAYS}:{remote.HOLD_S * 1e3:g}; 0:0 for none)")
     ap.add_argument("--emits", type=int, nargs="+", default=[0, remote.EMIT_RAYS],
                     help="EMIT_RAYS settings to compare at each K > 1 (0: at a step's end)")
-    ap.add_argument("--byte-slack", type=float, default=partition.BYTE_SLACK,
-                    help="the placement's cap on a shard's bytes, in units of the bytes-only "
-                         f"rule's largest shard (default {partition.BYTE_SLACK}: the "
-                         "product's; a wider cap balances work better, at more memory)")
+    ap.add_argument("--byte-slack", type=float, default=BYTE_SLACK,
+                    help="RenderSettings.byte_slack: the placement's cap on a shard's bytes, "
+                         f"x the bytes-only rule's largest shard (default {BYTE_SLACK:g})")
     add_output_flags(ap)
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
                  spp=2, modes=["exact"], ks=[1, 2], emits=[0, 1])
     if args.ks[0] != 1:
         raise SystemExit("--ks must start with 1: every wall is compared with one shard's")
-    if args.byte_slack < 1.0:
-        raise SystemExit(f"--byte-slack must be >= 1, got {args.byte_slack}")
-    partition.BYTE_SLACK = args.byte_slack  # the shards are in this process
     res = bench(args)
     finish(res, args.out / "bench_dedicated.json", plot=plot, markdown=markdown,
            update_readme=False)

@@ -53,6 +53,27 @@ def test_a_light_mesh_is_not_split_where_the_cap_forbids_the_copy():
     assert sorted(np.bincount(p.instance_shard).tolist()) == [1, 4]
 
 
+def test_a_wider_byte_slack_lets_the_busy_mesh_split_and_the_cap_follows_it():
+    # The scene above: with twice the bytes-only shard allowed, the shard of the idle mesh
+    # takes a piece of the busy one, and no shard holds more than the wider cap.
+    inst = (Instance(0, translate(0, 0, 0)),) + tuple(
+        Instance(1, translate(10.0 * j, 0, 0)) for j in range(1, 5))
+    scene = Scene((_strip(500, "a"), _strip(500, "b")), inst)
+    work = np.array([1.0, 10.0, 10.0, 10.0, 10.0])
+    tight, wide = partition(scene, 2, work=work), partition(scene, 2, work=work, byte_slack=2.0)
+    assert wide.byte_cap == 2 * wide.bytes_only_max >= wide.max_shard_bytes
+    assert wide.max_shard_bytes == 2 * scene.meshes[0].nbytes > tight.max_shard_bytes
+    assert _imbalance(wide, work) < _imbalance(tight, work)
+    assert sorted(np.bincount(wide.instance_shard).tolist()) == [2, 3]
+
+
+@pytest.mark.parametrize("slack", [0.99, 0.0, -1.0, float("nan"), float("inf")])
+def test_partition_rejects_a_byte_slack_below_one(slack):
+    inst = tuple(Instance(0, translate(float(j), 0, 0)) for j in range(3))
+    with pytest.raises(SceneError, match="byte_slack must be a finite number >= 1"):
+        partition(Scene((_strip(3, "a"),), inst), 2, byte_slack=slack)
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_shards_are_never_empty_and_hold_at_most_the_byte_cap(seed):
     rng = np.random.default_rng(seed)

@@ -71,7 +71,7 @@ def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
     meta = SceneMeta.of(scene)
     k = settings.shards
     tiny = lighter_than_a_proxy(meta, settings) if k > 1 else []
-    part = partition(meta, k, replicated=tiny)
+    part = partition(meta, k, replicated=tiny, byte_slack=settings.byte_slack)
     owner = np.asarray(part.instance_shard, np.int32).copy()
     held = [set(m) for m in part.shard_meshes]
     plan, proxies = None, {}

@@ -71,7 +71,8 @@ def pool_key(scene: Scene | SceneMeta, settings: RenderSettings) -> str:
         if mat.texture is not None:
             h.update(np.ascontiguousarray(mat.texture).tobytes())
     p = settings.proxy
-    placement = (settings.shards, settings.mode, p.accuracy_target, p.width, p.steps)
+    placement = (settings.shards, settings.mode, settings.byte_slack, p.accuracy_target,
+                 p.width, p.steps)
     h.update(repr(placement).encode())
     return h.hexdigest()
 

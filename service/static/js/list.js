@@ -96,6 +96,7 @@ $("#submit-form").addEventListener("submit", async (ev) => {
   for (const k of ["width", "height", "spp", "bounces", "shadow_rays", "shards", "tile_size", "spp_per_pass", "seed"]) {
     body[k] = Number(f.get(k));
   }
+  if (f.get("byte_slack") !== "") body.byte_slack = Number(f.get("byte_slack"));
   if (body.mode === "proxy") {
     // Hand-set bands, where given, replace the accuracy target (workers/settings.py).
     body.proxy = { check: f.get("check") === "on" };

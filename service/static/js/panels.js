@@ -21,6 +21,8 @@ export function showSettings(job) {
     ["seed", s.seed],
     ["mode", s.mode],
     ["shards", s.shards ? s.shards : "0 (single-process reference)"],
+    ...(s.shards > 1 && s.byte_slack !== undefined
+      ? [["shard bytes cap", `${s.byte_slack}× the bytes-only placement's largest shard`]] : []),
     ["tile size", `${s.tile_size} px`],
     ["passes", fmtInt(job.passes_total)],
   ];
