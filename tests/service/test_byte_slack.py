@@ -16,7 +16,7 @@ from nprt.workers.runtime.pool import pool_key
 from nprt.workers.settings import RenderSettings
 
 
-@pytest.mark.parametrize("bad", [0.5, 0.0, -2.0, 17.0])
+@pytest.mark.parametrize("bad", [0.5, 0.0, -2.0, 17.0, float("nan"), float("inf")])
 def test_a_byte_slack_out_of_range_is_refused_naming_the_field(bad):
     with pytest.raises(ValidationError, match="byte_slack"):
         RenderSettings(byte_slack=bad)
