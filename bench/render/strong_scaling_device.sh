@@ -6,7 +6,8 @@
 # Each SCENE:KS runs one `bench_strong_scaling --scenes SCENE --ks KS` (the 1-core reference
 # first, then exact and proxy per K) into $OUT (default bench/results/device), one JSON each;
 # a run cut short by the lease leaves strong_scaling_partial.json. nprt comes from the
-# bundle's wheel, bench/ from this checkout.
+# bundle's wheel, bench/ from this checkout. BYTE_SLACK=1.5 (say) runs them at that
+# RenderSettings.byte_slack, its value in the results' tag.
 set -u
 BUNDLE=$(cd "${1:?usage: strong_scaling_device.sh BUNDLE SCENE:K,K ...}" && pwd); shift
 OUT=${OUT:-bench/results/device}; mkdir -p "$OUT"
@@ -27,10 +28,10 @@ if [ ! -f /tmp/site/.warm ]; then
 fi
 echo "warm at $(( $(date +%s) - t0 )) s"
 for spec in "$@"; do
-  scene=${spec%%:*}; ks=${spec#*:}; tag=$(nproc)core-$scene-${ks//,/_}
+  scene=${spec%%:*}; ks=${spec#*:}; tag=$(nproc)core-$scene-${ks//,/_}${BYTE_SLACK:+-slack$BYTE_SLACK}
   # shellcheck disable=SC2086
   python3 -m bench.render.bench_strong_scaling --scenes "$scene" --ks ${ks//,/ } --no-readme \
-    --out "$OUT" --tag "$tag" 2>&1 | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/scaling.log"
+    --out "$OUT" --tag "$tag" ${BYTE_SLACK:+--byte-slack "$BYTE_SLACK"} 2>&1 | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/scaling.log"
   [ -f "$OUT/strong_scaling_$tag.json" ] && rm -f "$OUT/strong_scaling_partial.json"
   echo "$tag done at $(( $(date +%s) - t0 )) s"; uptime
 done
