@@ -2,7 +2,9 @@
 Shards stepped in virtual time, each step lasting its own process CPU plus Ray's CPU for its
 parcels (measured at the start of the run), rays regrouped into steps as they would arrive
 on K cores, each shard holding for more rays as the runtime does (`remote.HOLD_RAYS`,
-`HOLD_S`; `--hold 0:0` for none). Each K runs twice: parcels only at a step's end, and
+`HOLD_S`; `--hold 0:0` for none) and small parcels waiting in its outbox for company
+(`remote.SEND_RAYS`, `SEND_S`; `--send 0:0` for none; before 2026-11-27 the model sent
+every parcel at once). Each K runs twice: parcels only at a step's end, and
 also during a long step (`remote.EMIT_RAYS`). What it answers on a machine with few cores:
 how the wall falls with K, and what sending during a step does where no core waits for
 another's CPU.
@@ -47,7 +49,7 @@ def bench(args) -> dict:
                 shards = shards_in_process(scene, s)
                 for emit in ([0] if k == 1 else args.emits):
                     r = simulate(shards, s, cost, FALLBACK_RPC_S, MODEL_LINK_BPS, emit,
-                                 args.hold)
+                                 args.hold, args.send)
                     one = r if k == 1 else one
                     row = {"scene": name, "mode": mode, "k": k, "emit_rays": emit,
                            "wall_s": round(r["wall_s"], 3),
@@ -78,7 +80,8 @@ def markdown(res: dict) -> str:
     out = [f"Ray per parcel (this run): send {1e3 * c['send_s']:.2f} ms + "
            f"{1e9 * c['send_s_per_byte']:.2f} ms/MB, receive {1e3 * c['receive_s']:.2f} ms + "
            f"{1e9 * c['receive_s_per_byte']:.2f} ms/MB; latency {1e3 * res['rpc_s']:.1f} ms, "
-           f"links {res['link_bps'] / 1e9:g} Gbit/s; hold {_hold(res)}; shard bytes capped at "
+           f"links {res['link_bps'] / 1e9:g} Gbit/s; hold {_hold(res)}; outbox "
+           f"{_hold(res, 'send', 'none (sent at once)')}; shard bytes capped at "
            f"{res['settings'].get('byte_slack', BYTE_SLACK):g}x the bytes-only rule's "
            "largest shard. *wall* is simulated on K dedicated cores; *vs 1 shard* divides it "
            "by the one-shard wall (its CPU).",
@@ -128,9 +131,10 @@ def plot(res: dict, png) -> None:
     plt.close(fig)
 
 
-def _hold(res: dict) -> str:
-    rays, seconds = res["settings"].get("hold", (0, 0.0))
-    return f"{rays} rays / {seconds * 1e3:g} ms" if seconds > 0 else "none"
+def _hold(res: dict, key: str = "hold", none: str = "none") -> str:
+    """A (rays, seconds) setting of the run as text (a run recorded before it: none)."""
+    rays, seconds = res["settings"].get(key, (0, 0.0))
+    return f"{rays} rays / {seconds * 1e3:g} ms" if seconds > 0 and rays > 0 else none
 
 
 def main(argv=None) -> None:
@@ -143,6 +147,10 @@ def main(argv=None) -> None:
     ap.add_argument("--hold", type=parse_hold, default=(remote.HOLD_RAYS, remote.HOLD_S),
                     help="RAYS:MS a shard holds for more rays (default: the runtime's, "
                          f"{remote.HOLD_RAYS}:{remote.HOLD_S * 1e3:g}; 0:0 for none)")
+    ap.add_argument("--send", type=parse_hold, default=(remote.SEND_RAYS, remote.SEND_S),
+                    help="RAYS:MS a small parcel waits in the shard's outbox for company "
+                         f"(default: the runtime's, {remote.SEND_RAYS}:"
+                         f"{remote.SEND_S * 1e3:g}; 0:0 for none)")
     ap.add_argument("--emits", type=int, nargs="+", default=[0, remote.EMIT_RAYS],
                     help="EMIT_RAYS settings to compare at each K > 1 (0: at a step's end)")
     ap.add_argument("--byte-slack", type=float, default=BYTE_SLACK,

@@ -13,7 +13,9 @@ then, in virtual time. The rules, following workers/runtime/coordinator.py and r
   at most HOLD_S;
 - a parcel leaves at the step's end, or, with `emit_rays`, where it left during the step
   (its CPU offset into the step), and arrives `rpc_s` plus its bytes over `link_bps`
-  later;
+  later; with `send` (`remote.SEND_RAYS`, `SEND_S`) it goes through the runtime's own
+  `Outbox` first, on the virtual clock: a small one waits for the next parcels to its
+  target, and everything held leaves when nothing has reached the shard by a step's end;
 - a pass is done once its weight is back (`rpc_s` after the step that returns the last of
   it ends); the next pass is ordered then (films are collected at once, outside the
   clock).
@@ -34,17 +36,20 @@ import numpy as np
 from nprt.workers.filmsum import FilmSums
 from nprt.workers.passes import count_tiles, iter_passes, pass_at
 from nprt.workers.runtime.coordinator import live_window
+from nprt.workers.runtime.outbox import Outbox
 from nprt.workers.runtime.protocol import sum_credits
 from nprt.workers.settings import RenderSettings
 
 
 def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps: float,
-             emit_rays: int = 0, hold: tuple[int, float] = (0, 0.0)) -> dict:
+             emit_rays: int = 0, hold: tuple[int, float] = (0, 0.0),
+             send: tuple[int, float] = (0, 0.0)) -> dict:
     """Render every pass of s on the in-process shards in virtual time. cost: Ray's CPU per
     parcel (`raycalls.parcel_cost`); emit_rays: `remote.EMIT_RAYS`; hold: (rays, seconds),
-    `remote.HOLD_RAYS` and `HOLD_S` (0 seconds: no hold). Returns {"wall_s": virtual
-    render wall, "busy_s": (K,) virtual seconds each shard stepped, "steps", "parcels",
-    "early_parcels", "film": (h * w, 3) float64}."""
+    `remote.HOLD_RAYS` and `HOLD_S` (0 seconds: no hold); send: (rays, seconds),
+    `remote.SEND_RAYS` and `SEND_S` (0 rays: every parcel leaves at once). Returns
+    {"wall_s": virtual render wall, "busy_s": (K,) virtual seconds each shard stepped,
+    "steps", "parcels", "early_parcels", "film": (h * w, 3) float64}."""
     k, tiles = len(shards), count_tiles(s)
     window = live_window(k, tiles)
     for sh in shards:
@@ -58,6 +63,7 @@ def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps
     film = np.zeros((s.height * s.width, 3))
     seq = [0]
     counts = {"steps": 0, "parcels": 0, "early_parcels": 0}
+    outbox = [Outbox(k, *send) for _ in range(k)]
     done_at = 0.0
 
     def arrive(target: int, t: float, orders=(), parcel=None, credits=None) -> None:
@@ -121,19 +127,19 @@ def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps
         cpu = time.process_time() - c0
         sent_cpu = 0.0
         for offset, out in early:  # each leaves where it was made, after earlier sends
-            for target, p in enumerate(out):
-                if p is not None:
-                    sent_cpu += send_cost(p.nbytes)
-                    arrive(target, start + recv + offset + sent_cpu + wire(p.nbytes),
-                           parcel=p, credits=p.credits)
-                    counts["early_parcels"] += 1
-                    counts["parcels"] += 1
-        end = start + recv + cpu + sent_cpu
-        for target, p in enumerate(res.parcels):
-            if p is not None:
-                end += send_cost(p.nbytes)
-                arrive(target, end + wire(p.nbytes), parcel=p, credits=p.credits)
+            for target, p in outbox[sid].put(out, start + recv + offset + sent_cpu, False):
+                sent_cpu += send_cost(p.nbytes)
+                arrive(target, start + recv + offset + sent_cpu + wire(p.nbytes),
+                       parcel=p, credits=p.credits)
+                counts["early_parcels"] += 1
                 counts["parcels"] += 1
+        end = start + recv + cpu + sent_cpu
+        # As the runtime: held parcels all leave when nothing reached the shard meanwhile.
+        flush = not any(it[0] <= end for it in inbox[sid])
+        for target, p in outbox[sid].put(res.parcels, end, flush):
+            end += send_cost(p.nbytes)
+            arrive(target, end + wire(p.nbytes), parcel=p, credits=p.credits)
+            counts["parcels"] += 1
         counts["steps"] += 1
         busy[sid] += end - start
         free_at[sid] = end

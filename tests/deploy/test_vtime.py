@@ -20,11 +20,11 @@ def scene():
     return open_scene("forest:tiny").load()
 
 
-def _run(scene, k: int, emit: int, hold=(0, 0.0)) -> dict:
+def _run(scene, k: int, emit: int, hold=(0, 0.0), send=(0, 0.0)) -> dict:
     s = RenderSettings(width=32, height=24, spp=2, spp_per_pass=1, tile_size=16, seed=1,
                        shards=k)
     return simulate(shards_in_process(scene, s, warm=False), s, COST, 0.005, 25e9, emit,
-                    hold)
+                    hold, send)
 
 
 def test_every_k_and_emit_gives_the_one_shard_film(scene):
@@ -49,3 +49,14 @@ def test_a_hold_that_never_fills_delays_each_step_by_its_length(scene):
     free, held = _run(scene, 2, 0), _run(scene, 2, 0, (1 << 30, 0.05))
     assert np.array_equal(free["film"], held["film"])
     assert free["wall_s"] + 0.05 <= held["wall_s"] <= free["wall_s"] + 0.05 * held["steps"]
+
+
+def test_the_outbox_holds_small_parcels_and_the_film_stays_the_same(scene):
+    """With the runtime's Outbox on the virtual clock: parcels that never fill and never
+    age out leave only when nothing has reached their shard by a step's end (the flush),
+    so fewer of them leave, nothing stalls, and the film is the one-shard film."""
+    one, free = _run(scene, 1, 0), _run(scene, 3, 1)
+    for send in ((1 << 30, 100.0), (64, 0.01)):
+        r = _run(scene, 3, 1, send=send)
+        assert np.array_equal(r["film"], one["film"]), send
+        assert 0 < r["parcels"] < free["parcels"], send
