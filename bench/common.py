@@ -228,6 +228,17 @@ def add_image_flags(ap, width: int = 640, height: int = 360, spp: int = 16) -> N
     ap.add_argument("--spp", type=int, default=spp)
 
 
+def add_byte_slack_flag(ap) -> None:
+    """--byte-slack: the distributed runs' RenderSettings.byte_slack (the placement's cap on
+    a shard's bytes, x the bytes-only rule's largest shard)."""
+    from nprt.scene.partition import BYTE_SLACK
+
+    ap.add_argument("--byte-slack", type=float, default=BYTE_SLACK,
+                    help="RenderSettings.byte_slack of the distributed runs: the placement's "
+                         "cap on a shard's bytes, x the bytes-only rule's largest shard "
+                         f"(default {BYTE_SLACK:g})")
+
+
 def stored_scene(name: str, size: str):
     """The demo scene `name` at `size` ("default": the demo's own) from the scene store,
     as add_image_flags' --scenes and --size name it (call .load() for its geometry)."""

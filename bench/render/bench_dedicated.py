@@ -25,7 +25,15 @@ import os
 
 import numpy as np
 
-from bench.common import add_image_flags, add_output_flags, finish, machine, smoke, stored_scene
+from bench.common import (
+    add_byte_slack_flag,
+    add_image_flags,
+    add_output_flags,
+    finish,
+    machine,
+    smoke,
+    stored_scene,
+)
 from bench.render.bench_step_hold import parse_hold
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost
@@ -153,9 +161,7 @@ def main(argv=None) -> None:
                          f"{remote.SEND_S * 1e3:g}; 0:0 for none)")
     ap.add_argument("--emits", type=int, nargs="+", default=[0, remote.EMIT_RAYS],
                     help="EMIT_RAYS settings to compare at each K > 1 (0: at a step's end)")
-    ap.add_argument("--byte-slack", type=float, default=BYTE_SLACK,
-                    help="RenderSettings.byte_slack: the placement's cap on a shard's bytes, "
-                         f"x the bytes-only rule's largest shard (default {BYTE_SLACK:g})")
+    add_byte_slack_flag(ap)
     add_output_flags(ap)
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
                  spp=2, modes=["exact"], ks=[1, 2], emits=[0, 1])

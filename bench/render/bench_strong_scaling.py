@@ -32,6 +32,7 @@ import platform
 import numpy as np
 
 from bench.common import (
+    add_byte_slack_flag,
     add_image_flags,
     add_output_flags,
     finish,
@@ -43,7 +44,6 @@ from bench.common import (
     timed_render,
 )
 from bench.network.netmodel import film_bytes, fit_rpc_s, replay, step_cpu
-from nprt.scene.partition import BYTE_SLACK
 from nprt.workers.settings import RenderSettings
 
 TARGETS = {"proxy_k8_wall": 0.3, "exact_k8_wall": 0.5, "proxy_cpu": 2.0, "exact_cpu": 3.0,
@@ -256,10 +256,7 @@ def main(argv=None) -> None:
     default_ks = [k for k in (1, 2, 4, 8, 12, 14) if k <= max(2, cores - 2)]
     ap.add_argument("--ks", type=int, nargs="+", default=default_ks)
     ap.add_argument("--tag", default=None, help="results file suffix (default: <nproc>core)")
-    ap.add_argument("--byte-slack", type=float, default=BYTE_SLACK,
-                    help="RenderSettings.byte_slack of the distributed runs: the placement's "
-                         "cap on a shard's bytes, x the bytes-only rule's largest shard "
-                         f"(default {BYTE_SLACK:g})")
+    add_byte_slack_flag(ap)
     add_output_flags(ap)
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
                  spp=1, spp_per_pass=1, ks=[2])
