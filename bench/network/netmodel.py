@@ -256,7 +256,13 @@ def replay(trace: dict, bandwidth_bps: float, rpc_s: float, window: int,
         elif what == "admit":
             admit(now, 1)
     if np.isnan(end).any():
-        raise RuntimeError("replay stalled: some steps never ran (inconsistent trace)")
+        # Name the first steps left, so that a trace that stalls once can be read back.
+        left = [f"shard {steps[i]['shard']} step {steps[i]['step']} (waiting for "
+                f"{waiting[i]} parcels or orders, started: {not np.isnan(start[i])})"
+                for i in np.flatnonzero(np.isnan(end))[:4]]
+        raise RuntimeError(f"replay stalled: {int(np.isnan(end).sum())} of {n} steps never "
+                           f"ran (inconsistent trace), first {'; '.join(left)}; admitted "
+                           f"{next_admit[0]} of {len(admitted)} passes")
     return Replay(float(max(completions, default=0.0)), start, end, busy, int(moved[0]))
 
 
