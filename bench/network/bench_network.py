@@ -100,10 +100,13 @@ def traced_render(scene, s, pools: PoolRegistry) -> dict:
     finally:
         coord.close()  # the pool goes back to the registry, warm; info() still answers
     info = coord.info()
+    if info["reruns"]:  # its wall and trace include the run given up (calltrace.py)
+        log.warning("%s K=%d %s: re-run %d time(s) after a lost shard", scene.name, s.shards,
+                    s.mode, info["reruns"])
     busy = [sh["busy_s"] for sh in info["shard_stats"]]
     return {"wall_s": round(wall, 4), "load_average": round(load, 2),
             "stats": result.stats.to_dict(), "shard_stats": info["shard_stats"],
-            "window": coord.window, "cpu_s": [round(c, 3) for c in cpu],
+            "window": coord.window, "reruns": info["reruns"], "cpu_s": [round(c, 3) for c in cpu],
             "coordinator_cpu_s": info["coordinator_cpu_s"],
             "cpu_over_busy": [round(c / max(b, 1e-9), 4) for c, b in zip(cpu, busy,
                                                                              strict=True)],

@@ -289,7 +289,8 @@ class ShardActor:
                 self._phase_cpu_s[name] = self._phase_cpu_s.get(name, 0.0) + v
             if trace:
                 self._records.append({
-                    "shard": self.id, "step": step_id, "start": start, "end": end,
+                    "shard": self.id, "step": step_id, "epoch": epoch, "start": start,
+                    "end": end,
                     "cpu_s": sum(res.times.phase_cpu_s.values()),
                     "busy_s": time.perf_counter() - t0,
                     "orders": [p.index for p in orders], "passes": sorted(credits),
