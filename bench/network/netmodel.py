@@ -16,11 +16,15 @@ What it models, following workers/runtime/coordinator.py and remote.py:
   reaches its shard `rpc_s` after admission. A pass is complete once every step that ran
   it has ended; the weight reaches the coordinator `rpc_s` later, the collect another
   `rpc_s`, and then every shard sends its film (n_pixels x 3 float64) over its uplink.
+- A job re-run after a lost shard: the given-up run's steps first on every shard, then the
+  new run's (`StepTrace.to_dict` numbers them on); a re-run pass is admitted once, and
+  completes when its steps in both runs have ended.
 
 What it does not model: the grouping of parcels into steps changes with timing in a real
-run, and the replay keeps the recorded grouping; and CPU contention between nodes (the
+run, and the replay keeps the recorded grouping; CPU contention between nodes (the
 model's nodes are dedicated: step compute times measured without contention, or corrected
-for it).
+for it); and films riding on a shard's next poll (coordinator.COLLECT_ON_POLL): the model
+collects them at once, a little earlier than the runtime does in mid-job.
 """
 
 from __future__ import annotations

@@ -1,9 +1,10 @@
 """How long a shard waits to merge parcels into one step (nprt.workers.runtime.remote,
 HOLD_RAYS and HOLD_S), how long a small parcel waits for more before it leaves (SEND_RAYS
 and SEND_S, nprt.workers.runtime.outbox), how many rays leaving make a step send before it
-ends (EMIT_RAYS), and how many passes are live at once (the coordinator's window), side by
-side in one run: the 1-core reference, then each scene at
-one K in exact and proxy mode with each combination of settings.
+ends (EMIT_RAYS), how many passes are live at once (the coordinator's window), and whether
+finished passes' films ride on the shards' next polls or are collected at once
+(coordinator.COLLECT_ON_POLL), side by side in one run: the 1-core reference, then each
+scene at one K in exact and proxy mode with each combination of settings.
 
 A step pays a fixed cost (a Ray call per target, the per-step glue) and a cost per ray. A
 shard whose inbox holds few rays can step at once (small steps: more fixed cost per ray) or
@@ -20,6 +21,7 @@ the shards wait for CPU anyway, and their steps are big whatever the hold.
     python -m bench.render.bench_step_hold --scenes city --holds 16384:8 --sends 0:0 1024:20
     python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --windows 12 48 --rounds 2
     python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --emits 0 8192 --rounds 2
+    python -m bench.render.bench_step_hold --holds 16384:8 --collects now poll --rounds 3
     python -m bench.render.bench_step_hold --smoke
 """
 
@@ -42,7 +44,7 @@ from bench.common import (
     window_arg,
 )
 from bench.render.bench_strong_scaling import run_one
-from nprt.workers.runtime import remote
+from nprt.workers.runtime import coordinator, remote
 from nprt.workers.settings import RenderSettings
 
 HOLDS = ["0:0", "8192:2", "8192:4", "16384:8"]  # rays:milliseconds; the first is the baseline
@@ -89,10 +91,11 @@ def bench(args) -> dict:
     from nprt.workers.render import make_renderer
 
     rows = []
-    saved = remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S, remote.EMIT_RAYS
-    # (window or None: the coordinator's, hold, send, emit); the first is the baseline
-    settings = [(w, h, x, e) for w in args.windows for h in args.holds for x in args.sends
-                for e in args.emits]
+    saved = (remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S, remote.EMIT_RAYS,
+             coordinator.COLLECT_ON_POLL)
+    # (window or None: the coordinator's, hold, send, emit, collect); the first is the baseline
+    settings = [(w, h, x, e, c) for w in args.windows for h in args.holds for x in args.sends
+                for e in args.emits for c in args.collects]
     try:
         for name in args.scenes:
             scene = stored_scene(name, args.size)
@@ -107,17 +110,20 @@ def bench(args) -> dict:
                 try:
                     _render(coord, scene, s)  # the pool's first render: caches warm
                     first, default_window = None, coord.window
-                    for _ in range(args.rounds):
-                        for window, hold, send, emit in settings:
+                    for r in range(args.rounds):
+                        # alternate the order round by round: a drift in the machine's speed
+                        # then falls on every setting alike
+                        for window, hold, send, emit, collect in settings[::1 - 2 * (r % 2)]:
                             coord.window = default_window if window is None else window
                             remote.HOLD_RAYS, remote.HOLD_S = hold
                             remote.SEND_RAYS, remote.SEND_S = send
                             remote.EMIT_RAYS = emit
+                            coordinator.COLLECT_ON_POLL = collect == "poll"
                             row, img = _render(coord, scene, s)
                             first = img if first is None else first
                             row |= {"scene": name, "hold_rays": hold[0], "hold_ms": hold[1] * 1e3,
                                     "send_rays": send[0], "send_ms": send[1] * 1e3,
-                                    "emit_rays": emit,
+                                    "emit_rays": emit, "collect": collect,
                                     "window": coord.window,
                                     "wall_ratio": round(row["render_s"] / ref["render_s"], 3),
                                     "cpu_ratio": round(row["cpu_s"] / ref["cpu_s"], 3),
@@ -130,7 +136,7 @@ def bench(args) -> dict:
                     coord.close()
     finally:
         (remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S,
-         remote.EMIT_RAYS) = saved
+         remote.EMIT_RAYS, coordinator.COLLECT_ON_POLL) = saved
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count()},
             "settings": vars(args) | {"out": str(args.out)}, "rows": rows}
 
@@ -139,26 +145,30 @@ def _line(r: dict) -> str:
     return (f"{r['scene']} {r['mode']} K={r['k']} window {r.get('window', 0):3d}, "
             f"hold {r['hold_rays']:6d} rays "
             f"{r['hold_ms']:4.1f} ms, send {r.get('send_rays', 0):5d} rays "
-            f"{r.get('send_ms', 0.0):4.1f} ms, emit {r.get('emit_rays', 0):5d} rays: "
-            f"wall {r['render_s']:6.2f} s "
+            f"{r.get('send_ms', 0.0):4.1f} ms, emit {r.get('emit_rays', 0):5d} rays, "
+            f"collect {r.get('collect', 'now')}: wall {r['render_s']:6.2f} s "
             f"({r['wall_ratio']:.2f}x) cpu "
-            f"{r['cpu_s']:6.1f} s ({r['cpu_ratio']:.2f}x) steps {r['steps']:5d} parcels "
+            f"{r['cpu_s']:6.1f} s ({r['cpu_ratio']:.2f}x) coordinator "
+            f"{r['coordinator_cpu_s']:5.2f} s steps {r['steps']:5d} parcels "
             f"{r['parcels']:5d} Ray threads {r['ray_threads_s']:5.1f} s raylet "
             f"{fmt_or_blank(r.get('raylet_cpu_s'), '.2f')} s same film {r['same_film_as_no_hold']}")
 
 
 def markdown(res: dict) -> str:
     head = ("| scene | mode | K | window | hold rays | hold ms | send rays | send ms | "
-            "emit rays | render s | vs reference | CPU s | CPU vs ref | steps | parcels | "
-            "rays / parcel | busy | Ray threads s | raylet CPU s | same film |\n"
-            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
-            "---:|---:|---|\n")
+            "emit rays | collect | render s | vs reference | CPU s | CPU vs ref | coordinator "
+            "CPU s | steps | parcels | rays / parcel | busy | Ray threads s | raylet CPU s | "
+            "same film |\n"
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"
+            "---:|---|---:|---:|---|\n")
     return head + "".join(
         f"| {r['scene']} | {r['mode']} | {r['k']} | {r.get('window', '')} | {r['hold_rays']} | "
         f"{r['hold_ms']:g} | "
         f"{r.get('send_rays', 0)} | {r.get('send_ms', 0.0):g} | "
-        f"{fmt_or_blank(r.get('emit_rays'), 'd')} | {r['render_s']:.2f} | "
-        f"{r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x"
+        f"{fmt_or_blank(r.get('emit_rays'), 'd')} | {r.get('collect', '')} | "
+        f"{r['render_s']:.2f} | "
+        f"{r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x | "
+        f"{r['coordinator_cpu_s']:.2f}"
         f" | {r['steps']} | {r['parcels']} | {r['rays_per_parcel']:.0f} | "
         f"{', '.join(f'{b:.2f}' for b in r['busy_fraction'])} | {r['ray_threads_s']:.1f} | "
         f"{fmt_or_blank(r.get('raylet_cpu_s'), '.2f')} | "
@@ -189,10 +199,16 @@ def main():
     ap.add_argument("--windows", nargs="+", type=window_arg, default=[None],
                     help="live passes to compare, each with every hold and send (default: "
                          "the coordinator's own, nprt.workers.runtime.coordinator.live_window)")
+    ap.add_argument("--collects", nargs="+", choices=["poll", "now"],
+                    default=["poll" if coordinator.COLLECT_ON_POLL else "now"],
+                    help="finished passes' films: on the shards' next polls, or collected "
+                         "at once (coordinator.COLLECT_ON_POLL), each tried with every other "
+                         "setting (default: the shipped one)")
     add_output_flags(ap)
     args = smoke(ap.parse_args(), scenes=["forest"], size="tiny", width=32, height=24, spp=2,
                  modes=["exact"], k=2, holds=[(0, 0.0), (1 << 30, 0.002)],
-                 sends=[(0, 0.0), (1 << 30, 1.0)], emits=[0, 1], windows=[None, 1])
+                 sends=[(0, 0.0), (1 << 30, 1.0)], emits=[0, 1], windows=[None, 1],
+                 collects=["poll", "now"])
     res = bench(args)
     finish(res, args.out / "bench_step_hold.json", markdown=markdown, update_readme=False)
 

@@ -12,6 +12,8 @@ from nprt.workers.render import render
 from nprt.workers.runtime import coordinator, remote
 from nprt.workers.runtime.calltrace import StepTrace
 from nprt.workers.runtime.coordinator import Coordinator
+from nprt.workers.runtime.protocol import ShardConfig
+from nprt.workers.runtime.remote import ShardActor
 from nprt.workers.settings import RenderSettings
 
 K = 3  # several targets per call, so the producer -> consumer matching is exercised
@@ -152,3 +154,16 @@ def test_a_render_rerun_in_a_new_epoch_leaves_a_trace_that_replays(ray_local):
     for sid in range(K):
         assert len([s for s in trace["steps"] if s["shard"] == sid]) == info[sid]["steps"]
     _replays_every_step(trace)
+
+
+def test_a_poll_that_hands_back_nothing_leaves_the_step_records_to_a_poll_that_is_read():
+    """A long poll that times out may be dropped unread when the job ends: the records go
+    with the next poll that hands back weight, collects or settles."""
+    actor = ShardActor(ShardConfig(0, 1, RenderSettings(width=8, height=8, spp=1)), {})
+    actor._epoch = 5
+    actor._records = [{"step": 0}]
+    assert actor.poll(5, 0.0).trace == [] and actor._records == [{"step": 0}]
+    actor._returned = [(0, 1)]
+    assert actor.poll(5, 0.0).trace == [{"step": 0}] and actor._records == []
+    actor._records = [{"step": 1}]
+    assert actor.poll(5, 0.0, settle=True).trace == [{"step": 1}]

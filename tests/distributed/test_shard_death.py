@@ -107,7 +107,7 @@ def test_shard_that_dies_between_polls_and_restarts_unseen_is_caught(
     def wrap(coord):
         poll = coord._poll
 
-        def kill_then_poll(shard, epoch):
+        def kill_then_poll(shard, epoch, collect=None):
             # After its first reply, the shard dies and is back before the coordinator
             # polls it again: no call of the coordinator fails, only the incarnation tells.
             if not killed and coord.totals[shard] is not None and coord.totals[shard].steps:
@@ -116,7 +116,7 @@ def test_shard_that_dies_between_polls_and_restarts_unseen_is_caught(
                 _pid(coord.actors[shard])  # wait until it is back...
                 time.sleep(RESTART_SETTLE_S)  # ...and the driver has heard that it restarted
                 _pid(coord.actors[shard])
-            return poll(shard, epoch)
+            return poll(shard, epoch, collect)
 
         coord._poll = kill_then_poll
 

@@ -167,5 +167,8 @@ class PollReply:
     parcels_in: int = 0
     parcels_out: int = 0
     trace: list[dict] = field(default_factory=list)  # new step records (tracing jobs only)
+    # Films of finished passes the poll asked for, as `ShardActor.collect` gives them:
+    # [(pass index, FilmSums or None, stats dict or None)]
+    collected: list = field(default_factory=list)
     idle: bool = False  # no step running and nothing in the inbox when it answered
     at: float = 0.0  # the shard's time.monotonic() when it answered

@@ -178,11 +178,15 @@ class ShardActor:
             self._inbox.append(parcel)
             self._cv.notify_all()
 
-    def poll(self, epoch: int, timeout_s: float, settle: bool = False) -> PollReply:
+    def poll(self, epoch: int, timeout_s: float, settle: bool = False,
+             collect: tuple[int, ...] = ()) -> PollReply:
         """Wait up to timeout_s for weight to hand back; then the totals so far. settle:
         first wait for the step in progress to finish its accounting (the job's last poll:
         a step sends its parcels before it records itself, so a pass can complete on
-        another shard while this one has yet to add the step's totals and trace record)."""
+        another shard while this one has yet to add the step's totals and trace record).
+        collect: finished passes whose films to hand back in the reply (as `collect`
+        gives them): the coordinator's collect rides on the long poll, one call instead
+        of two (coordinator.COLLECT_ON_POLL)."""
         with self._cv:
             if settle:
                 self._cv.wait_for(lambda: not (self._running or self._inbox)
@@ -195,11 +199,15 @@ class ShardActor:
             returned, records = [], []
             # A long poll of an earlier run (the coordinator drops it when a frame or run
             # ends) can wake after the next `begin`: the weight and trace records are the
-            # new run's, and taking them would lose them (the pass never completes).
+            # new run's, and taking them would lose them (the pass never completes). So can
+            # a long poll of this run that times out once the job is done: its trace
+            # records go with a poll the coordinator reads for sure, one that hands back
+            # weight (a pass cannot complete without it), collects or settles.
             if self._epoch == epoch:
                 returned, self._returned = self._returned, []
-                records, self._records = self._records, []
-            return PollReply(
+                if returned or settle or collect:
+                    records, self._records = self._records, []
+            reply = PollReply(
                 self.id, self.incarnation, self._epoch, returned, steps=self._steps,
                 busy_s=self._busy_s, cpu_s=time.process_time() - self._cpu0,
                 wavefront_cpu_s=self._wavefront_cpu_s,
@@ -207,6 +215,9 @@ class ShardActor:
                 bytes_in=self._bytes_in, bytes_out=self._bytes_out,
                 parcels_in=self._parcels_in, parcels_out=self._parcels_out, trace=records,
                 idle=not (self._running or self._inbox), at=time.monotonic())
+        if collect:
+            reply.collected = self.collect(epoch, list(collect))[1]
+        return reply
 
     def collect(self, epoch: int, indices: list[int]) -> tuple[str, list]:
         """(incarnation, [(pass index, sums or None, stats dict or None)]) of finished
