@@ -25,9 +25,10 @@ Design:
   shard and finished pass, and finished passes batch while they wait. That wait (until
   the shard next hands back weight, at most POLL_S) keeps the pass's tile and window slot
   a little longer, so at the tail, with fewer than K passes still out, films are
-  collected at once. On 2 cores at K = 8 (640x360, 8 spp) it took 29 % of the
-  coordinator's CPU and 13-14 % of the job's CPU and wall in city exact and windy proxy,
-  and was neutral at K = 2 (bench/README.md "Films ride on polls").
+  collected at once. On 2 cores it took 4-23 % off the coordinator's CPU (K = 2 and 8;
+  the job's wall and CPU moved within noise: bench/README.md "Films ride on polls").
+  Rejected: a separate collect batched over several passes (the window's slots and
+  tiles wait on it just the same, and it is still a call per shard).
 - Failure: a shard that dies (a failed call) or restarted unseen (a new incarnation in a
   poll or collect reply) may have lost rays, weight or film of any live pass. Every live
   pass is re-run in a new epoch; parcels of the old epoch are dropped where they arrive.
