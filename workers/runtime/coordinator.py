@@ -278,8 +278,8 @@ class Coordinator:
                         for s in range(self.k):
                             owed[s] += done
                         if not COLLECT_ON_POLL or pending - len(done) < self.k:
-                            for s in range(self.k):
-                                if owed[s] and s != shard:
+                            for s in range(self.k):  # at once: nothing waits for a poll
+                                if owed[s]:
                                     collects[self._collect(s, epoch, owed[s])] = s
                                     owed[s] = []
                         polls[self._poll(shard, epoch, owed[shard])] = shard
