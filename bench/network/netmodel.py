@@ -23,7 +23,7 @@ What it models, following workers/runtime/coordinator.py and remote.py:
 What it does not model: the grouping of parcels into steps changes with timing in a real
 run, and the replay keeps the recorded grouping; CPU contention between nodes (the
 model's nodes are dedicated: step compute times measured without contention, or corrected
-for it); and films riding on a shard's next poll (coordinator.COLLECT_ON_POLL): the model
+for it); and films riding on a shard's next poll (coordinator.COLLECT_ON_POLL_FROM_K): the model
 collects them at once, a little earlier than the runtime does in mid-job.
 """
 

@@ -3,7 +3,7 @@ HOLD_RAYS and HOLD_S), how long a small parcel waits for more before it leaves (
 and SEND_S, nprt.workers.runtime.outbox), how many rays leaving make a step send before it
 ends (EMIT_RAYS), how many passes are live at once (the coordinator's window), and whether
 finished passes' films ride on the shards' next polls or are collected at once
-(coordinator.COLLECT_ON_POLL), side by side in one run: the 1-core reference, then each
+(coordinator.COLLECT_ON_POLL_FROM_K), side by side in one run: the 1-core reference, then each
 scene at one K in exact and proxy mode with each combination of settings.
 
 A step pays a fixed cost (a Ray call per target, the per-step glue) and a cost per ray. A
@@ -92,7 +92,7 @@ def bench(args) -> dict:
 
     rows = []
     saved = (remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S, remote.EMIT_RAYS,
-             coordinator.COLLECT_ON_POLL)
+             coordinator.COLLECT_ON_POLL_FROM_K)
     # (window or None: the coordinator's, hold, send, emit, collect); the first is the baseline
     settings = [(w, h, x, e, c) for w in args.windows for h in args.holds for x in args.sends
                 for e in args.emits for c in args.collects]
@@ -118,7 +118,8 @@ def bench(args) -> dict:
                             remote.HOLD_RAYS, remote.HOLD_S = hold
                             remote.SEND_RAYS, remote.SEND_S = send
                             remote.EMIT_RAYS = emit
-                            coordinator.COLLECT_ON_POLL = collect == "poll"
+                            coordinator.COLLECT_ON_POLL_FROM_K = {
+                                "poll": 1, "now": 1 << 30}.get(collect, saved[-1])
                             row, img = _render(coord, scene, s)
                             first = img if first is None else first
                             row |= {"scene": name, "hold_rays": hold[0], "hold_ms": hold[1] * 1e3,
@@ -136,7 +137,7 @@ def bench(args) -> dict:
                     coord.close()
     finally:
         (remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S,
-         remote.EMIT_RAYS, coordinator.COLLECT_ON_POLL) = saved
+         remote.EMIT_RAYS, coordinator.COLLECT_ON_POLL_FROM_K) = saved
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count()},
             "settings": vars(args) | {"out": str(args.out)}, "rows": rows}
 
@@ -199,11 +200,13 @@ def main():
     ap.add_argument("--windows", nargs="+", type=window_arg, default=[None],
                     help="live passes to compare, each with every hold and send (default: "
                          "the coordinator's own, nprt.workers.runtime.coordinator.live_window)")
-    ap.add_argument("--collects", nargs="+", choices=["poll", "now"],
-                    default=["poll" if coordinator.COLLECT_ON_POLL else "now"],
-                    help="finished passes' films: on the shards' next polls, or collected "
-                         "at once (coordinator.COLLECT_ON_POLL), each tried with every other "
-                         "setting (default: the shipped one)")
+    ap.add_argument("--collects", nargs="+", choices=["poll", "now", "shipped"],
+                    default=["shipped"],
+                    help="finished passes' films: on the shards' next polls at any K, "
+                         "collected at once, or as shipped (on polls from K = "
+                         f"{coordinator.COLLECT_ON_POLL_FROM_K}, "
+                         "coordinator.COLLECT_ON_POLL_FROM_K), each tried with every other "
+                         "setting (default: shipped)")
     add_output_flags(ap)
     args = smoke(ap.parse_args(), scenes=["forest"], size="tiny", width=32, height=24, spp=2,
                  modes=["exact"], k=2, holds=[(0, 0.0), (1 << 30, 0.002)],

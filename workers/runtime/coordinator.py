@@ -20,15 +20,15 @@ Design:
 - Films are collected from every shard once a pass is done as exact integers
   (nprt.workers.filmsum), summed, converted once and handed on (so exact mode equals the
   reference bit for bit at any K); `nprt.workers.render` adds them to the image per tile
-  in pass order, so the bytes of an image never depend on timing. A shard's films ride on
-  its next long poll (`COLLECT_ON_POLL`): one call instead of a poll and a collect per
-  shard and finished pass, and finished passes batch while they wait. That wait (until
-  the shard next hands back weight, at most POLL_S) keeps the pass's tile and window slot
-  a little longer, so at the tail, with fewer than K passes still out, films are
-  collected at once. On 2 cores it took 4-23 % off the coordinator's CPU (K = 2 and 8;
-  the job's wall and CPU moved within noise: bench/README.md "Films ride on polls").
-  Rejected: a separate collect batched over several passes (the window's slots and
-  tiles wait on it just the same, and it is still a call per shard).
+  in pass order, so the bytes of an image never depend on timing. From K = 4
+  (`COLLECT_ON_POLL_FROM_K`) a shard's films ride on its next long poll: one call instead
+  of a poll and a collect per shard and finished pass, and finished passes batch while
+  they wait. That wait (until the shard next hands back weight, at most POLL_S) keeps the
+  pass's tile and window slot a little longer, so at the tail, with fewer than K passes
+  still out, films are collected at once. On 2 cores at K = 8 it took 20-32 % off the
+  coordinator's CPU, and the wall fell in 9 of 12 paired rounds (bench/README.md "Films
+  ride on polls"). Rejected: a separate collect batched over several passes (the
+  window's slots and tiles wait on it just the same, and it is still a call per shard).
 - Failure: a shard that dies (a failed call) or restarted unseen (a new incarnation in a
   poll or collect reply) may have lost rays, weight or film of any live pass. Every live
   pass is re-run in a new epoch; parcels of the old epoch are dropped where they arrive.
@@ -88,10 +88,12 @@ MAX_PASS_ATTEMPTS = 4
 WINDOW_PER_SHARD = 24
 MIN_WINDOW = 4
 POLL_S = 0.25  # a shard's long poll; also how often a cancel is noticed
-# A finished pass's films ride on each shard's next poll (one call, not a poll and a
-# collect) while at least K passes still wait for weight, so that the shards have work
-# meanwhile; past that (the job's tail) they are collected at once. False: always at once.
-COLLECT_ON_POLL = True
+# From this K up, a finished pass's films ride on each shard's next poll (one call, not a
+# poll and a collect) while at least K passes still wait for weight; past that (the job's
+# tail), and below this K, they are collected at once. The saving grows with K (K - 1 calls
+# a finished pass); the wait costs what it costs at any K: at K = 2 on 2 cores exact mode
+# took 0-12 % longer in all 6 paired rounds (bench/README.md "Films ride on polls").
+COLLECT_ON_POLL_FROM_K = 4
 BEGIN_TIMEOUT_S = 60.0  # every shard answering `begin` (a restarted one included)
 BEGIN_RETRY_S = 0.5
 SHARD_LOST = (RayActorError, ActorUnavailableError)
@@ -277,7 +279,7 @@ class Coordinator:
                             live[i].collecting = True
                         for s in range(self.k):
                             owed[s] += done
-                        if not COLLECT_ON_POLL or pending - len(done) < self.k:
+                        if self.k < COLLECT_ON_POLL_FROM_K or pending - len(done) < self.k:
                             for s in range(self.k):  # at once: nothing waits for a poll
                                 if owed[s]:
                                     collects[self._collect(s, epoch, owed[s])] = s

@@ -186,7 +186,7 @@ class ShardActor:
         another shard while this one has yet to add the step's totals and trace record).
         collect: finished passes whose films to hand back in the reply (as `collect`
         gives them): the coordinator's collect rides on the long poll, one call instead
-        of two (coordinator.COLLECT_ON_POLL)."""
+        of two (coordinator.COLLECT_ON_POLL_FROM_K)."""
         with self._cv:
             if settle:
                 self._cv.wait_for(lambda: not (self._running or self._inbox)
