@@ -20,7 +20,7 @@ Design:
 - Films are collected from every shard once a pass is done as exact integers
   (nprt.workers.filmsum), summed, converted once and handed on (so exact mode equals the
   reference bit for bit at any K); `nprt.workers.render` adds them to the image per tile
-  in pass order, so the bytes of an image never depend on timing. From K = 4
+  in pass order, so the bytes of an image never depend on timing. From K = 8
   (`COLLECT_ON_POLL_FROM_K`) a shard's films ride on its next long poll: one call instead
   of a poll and a collect per shard and finished pass, and finished passes batch while
   they wait. That wait (until the shard next hands back weight, at most POLL_S) keeps the
@@ -91,9 +91,10 @@ POLL_S = 0.25  # a shard's long poll; also how often a cancel is noticed
 # From this K up, a finished pass's films ride on each shard's next poll (one call, not a
 # poll and a collect) while at least K passes still wait for weight; past that (the job's
 # tail), and below this K, they are collected at once. The saving grows with K (K - 1 calls
-# a finished pass); the wait costs what it costs at any K: at K = 2 on 2 cores exact mode
-# took 0-12 % longer in all 6 paired rounds (bench/README.md "Films ride on polls").
-COLLECT_ON_POLL_FROM_K = 4
+# a finished pass); the wait costs what it costs at any K. On 2 cores: walls shorter at
+# K = 8 (9 of 12 paired rounds), mixed at K = 4 (exact longer in 3 of 6, proxy shorter in
+# 5 of 6), exact longer at K = 2 (6 of 6) (bench/README.md "Films ride on polls").
+COLLECT_ON_POLL_FROM_K = 8
 BEGIN_TIMEOUT_S = 60.0  # every shard answering `begin` (a restarted one included)
 BEGIN_RETRY_S = 0.5
 SHARD_LOST = (RayActorError, ActorUnavailableError)
