@@ -20,6 +20,11 @@ compared with the reference's CPU seconds (its wall on a dedicated core).
     python -m bench.render.bench_strong_scaling                      # forest, city; 640x360 16 spp
     python -m bench.render.bench_strong_scaling --scenes forest --ks 1 2 --width 320 --spp 4
     python -m bench.render.bench_strong_scaling --smoke              # CI: tiny, no README
+    python -m bench.render.bench_strong_scaling --merge A.json B.json --tag T  # one table
+
+Runs cut to fit a short lease (a lent many-core machine) are merged afterwards with
+`--merge`: their rows, each tagged with its run, in one table and one plot (each row's
+ratios stay against the reference of its own run).
 """
 
 from __future__ import annotations
@@ -28,6 +33,7 @@ import argparse
 import json
 import os
 import platform
+from pathlib import Path
 
 import numpy as np
 
@@ -171,19 +177,22 @@ def _line(r: dict) -> str:
 def markdown(res: dict) -> str:
     m = res["machine"]
     tpc = m.get("threads_per_core")
+    runs = any("run" in r for r in res["rows"])  # merged runs: each row says its own
     out = [f"Machine: {m['nproc']} cores ({m['cpu_model']}"
            + (f", {tpc:g} hardware threads per physical core" if tpc else "")
            + f"), Ray {m['ray']}.", "",
-           "| scene | renderer | K | render s | vs reference | CPU s (all) | CPU vs ref | "
+           ("| run " if runs else "") + "| scene | renderer | K | render s | vs reference | "
+           "CPU s (all) | CPU vs ref | "
            "coordinator CPU s (share) | shard CPU s | busy | named CPU | Ray threads | "
            "raylet CPU s | steps | parcels | ray MB | PSNR dB | model s, K cores | model vs ref |",
-           "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|---:|"
-           "---:|---:|"]
+           ("|---" if runs else "") + "|---|---|---:|---:|---:|---:|---:|---:|---|---|---:|"
+           "---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in res["rows"]:
         named = [x for x in r["named_cpu_fraction"] if x is not None]
         psnr = r.get("psnr_vs_exact_db", r.get("psnr_vs_reference_db", ""))
         out.append(
-            f"| {r['scene']} | {r['mode']} | {r['k']} | {r['render_s']:.2f} | "
+            (f"| {r.get('run', '')} " if runs else "")
+            + f"| {r['scene']} | {r['mode']} | {r['k']} | {r['render_s']:.2f} | "
             f"{r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x | "
             f"{r['coordinator_cpu_s']:.2f} ({100 * r.get('coordinator_share', 0):.1f} %) | "
             f"{', '.join(f'{c:.1f}' for c in r['shard_cpu_s'])} | "
@@ -223,19 +232,27 @@ def plot(res: dict, png) -> None:
     fig, axes = plt.subplots(2, len(scenes), figsize=(5 * len(scenes), 7), squeeze=False)
     for j, name in enumerate(scenes):
         rows = [r for r in res["rows"] if r["scene"] == name]
-        for mode, style in (("exact", "o-"), ("proxy", "s-")):
-            rs = [r for r in rows if r["mode"] == mode]
+        for mode, style, color in (("exact", "o-", "C0"), ("proxy", "s-", "C2")):
+            rs = sorted((r for r in rows if r["mode"] == mode), key=lambda r: r["k"])
             if rs:
                 ks = [r["k"] for r in rs]
-                axes[0, j].plot(ks, [r["wall_ratio"] for r in rs], style, label=mode)
+                axes[0, j].plot(ks, [r["wall_ratio"] for r in rs], style, color=color,
+                                label=mode)
                 if all("model_ratio" in r for r in rs):
                     axes[0, j].plot(ks, [r["model_ratio"] for r in rs], style[0] + "--",
-                                    label=f"{mode}, model on K cores")
-                axes[1, j].plot(ks, [r["cpu_ratio"] for r in rs], style, label=mode)
-        for i, what in enumerate(("render wall / 1-core reference",
-                                  "total CPU / reference CPU")):
+                                    color=color, alpha=0.5, label=f"{mode}, model on K cores")
+                axes[1, j].plot(ks, [r["cpu_ratio"] for r in rs], style, color=color,
+                                label=mode)
+        t = res.get("targets", TARGETS)
+        for i, (what, lines) in enumerate((
+                ("render wall / 1-core reference", (("exact K = 8", t["exact_k8_wall"]),
+                                                    ("proxy K = 8", t["proxy_k8_wall"]))),
+                ("total CPU / reference CPU", (("exact", t["exact_cpu"]),
+                                               ("proxy", t["proxy_cpu"]))))):
             ax = axes[i, j]
             ax.axhline(1.0, color="gray", lw=1, ls="--", label="reference")
+            for (label, y), color in zip(lines, ("C0", "C2"), strict=True):
+                ax.axhline(y, color=color, lw=0.8, ls=":", label=f"target, {label}")
             ax.set_xscale("log", base=2)
             ax.set_xlabel("shards K")
             ax.set_ylabel(what)
@@ -244,6 +261,25 @@ def plot(res: dict, png) -> None:
     fig.tight_layout()
     fig.savefig(png, dpi=110)
     plt.close(fig)
+
+
+def merge(paths: list[Path]) -> dict:
+    """The saved results of runs on one machine as one result: every row tagged with its
+    run (the file's stem, less what all the stems begin with), the first file's machine,
+    each run's settings and model."""
+    stems = [Path(p).stem for p in paths]
+    cut = len(os.path.commonprefix(stems)) if len(stems) > 1 else 0
+    runs = [(stem[cut:] or stem, json.loads(Path(p).read_text()))
+            for stem, p in zip(stems, paths, strict=True)]
+    machines = {json.dumps(r["machine"].get("cpu_model")) for _, r in runs}
+    if len(machines) > 1:
+        raise SystemExit(f"--merge: runs from different CPUs {sorted(machines)}")
+    rows = [{**row, "run": name} for name, r in runs for row in r["rows"]]
+    rows.sort(key=lambda r: (r["scene"], r["k"], r["mode"]))
+    return {"machine": runs[0][1]["machine"], "targets": runs[0][1]["targets"], "rows": rows,
+            "runs": {name: r["settings"] for name, r in runs},
+            "model": {f"{scene}, {name}": m for name, r in runs
+                      for scene, m in r.get("model", {}).items()}}
 
 
 def main(argv=None) -> None:
@@ -258,14 +294,19 @@ def main(argv=None) -> None:
     ap.add_argument("--tag", default=None, help="results file suffix (default: <nproc>core)")
     add_byte_slack_flag(ap)
     add_output_flags(ap)
+    ap.add_argument("--merge", nargs="+", type=Path, default=None,
+                    help="saved results of runs on one machine: one table and plot of all "
+                         "their rows (no rendering)")
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
                  spp=1, spp_per_pass=1, ks=[2])
-    res = bench(args)
+    res = merge(args.merge) if args.merge else bench(args)
     tag = args.tag or f"{os.cpu_count()}core"
     finish(res, args.out / f"strong_scaling_{tag}.json", plot=plot, markdown=markdown,
            section=f"bench_strong_scaling_{tag}", update_readme=not args.no_readme,
-           intro=f"`python -m bench.render.bench_strong_scaling` on {tag} "
-                 "(`{json}`):\n\n![]({png})\n\n")
+           intro=(f"`python -m bench.render.bench_strong_scaling --merge "
+                  f"{' '.join(p.name for p in args.merge)} --tag {tag}` (in results/; "
+                  if args.merge else f"`python -m bench.render.bench_strong_scaling` on {tag} (")
+           + "`{json}`):\n\n![]({png})\n\n")
     (args.out / "strong_scaling_partial.json").unlink(missing_ok=True)  # the whole run is saved
 
 
