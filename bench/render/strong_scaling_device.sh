@@ -8,6 +8,8 @@
 # a run cut short by the lease leaves strong_scaling_partial.json. nprt comes from the
 # bundle's wheel, bench/ from this checkout. BYTE_SLACK=1.5 (say) runs them at that
 # RenderSettings.byte_slack, its value in the results' tag.
+# PACK=$OUT_OF_THE_CALL/res.tgz packs $OUT into that one file after each run: a lent
+# machine hands back at most 8 files, and what a cut run left still comes back.
 set -u
 BUNDLE=$(cd "${1:?usage: strong_scaling_device.sh BUNDLE SCENE:K,K ...}" && pwd); shift
 OUT=${OUT:-bench/results/device}; mkdir -p "$OUT"
@@ -34,4 +36,5 @@ for spec in "$@"; do
     --out "$OUT" --tag "$tag" ${BYTE_SLACK:+--byte-slack "$BYTE_SLACK"} 2>&1 | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/scaling.log"
   [ -f "$OUT/strong_scaling_$tag.json" ] && rm -f "$OUT/strong_scaling_partial.json"
   echo "$tag done at $(( $(date +%s) - t0 )) s"; uptime
+  if [ -n "${PACK:-}" ]; then tar -czf "$PACK" -C "$OUT" .; fi
 done
