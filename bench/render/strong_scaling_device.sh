@@ -9,8 +9,8 @@
 # bundle's wheel, bench/ from this checkout. BYTE_SLACK=1.5 (say) runs them at that
 # RenderSettings.byte_slack, its value in the results' tag.
 # PACK=FILE tars the results folder into FILE after each run. A lent machine hands back
-# at most 8 files, so there: OUT=/tmp/res PACK=$OUT/res.tgz bash ... (the device's $OUT
-# expanded before the script's own OUT takes over); what a cut run left still comes back.
+# at most 8 files, so there: PACK=$OUT/res.tgz OUT=/tmp/res bash ... (in that order: the
+# device's $OUT is expanded first); what a cut run left still comes back.
 set -u
 BUNDLE=$(cd "${1:?usage: strong_scaling_device.sh BUNDLE SCENE:K,K ...}" && pwd); shift
 OUT=${OUT:-bench/results/device}; mkdir -p "$OUT"
