@@ -3,7 +3,9 @@ into numba's on-disk cache. tests/conftest.py runs it before a parallel test run
 cache is cold (a fresh checkout): otherwise every process that starts before some process
 has cached a kernel compiles it too, all at once. One exact K = 4 test
 (test_exact.py -k forest-k4, 2 cores) took 99.7 s of CPU with an empty NUMBA_CACHE_DIR, 16.1 s
-after this ran (15.7 s on a warm cache); this took 56.7 s of CPU.
+after this ran (15.7 s on a warm cache); this took 56.7 s of CPU. (A pool now warms
+one shard a node first on a cold cache, `pool.first_cold_per_node`; this run took 62 s
+of CPU on 2026-11-27, 78 s before `nearest.near_search` was compiled on its own.)
 
 What it runs is what a shard's own warm-up runs (Shard.warm, in process, no Ray): a
 reference render, then K = 4 shards of forest:small, exact and proxy (the shipped proxies,

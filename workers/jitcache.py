@@ -15,9 +15,11 @@ log = logging.getLogger(__name__)
 
 WORKERS = Path(__file__).resolve().parent
 KERNELS = WORKERS / "kernels"
-# CPU seconds to compile every kernel with an empty cache: 15.0 s for a 16x12 reference
-# render of forest:tiny with NUMBA_CACHE_DIR empty, against 0.9 s warm (2 cores, 2026-11-26).
-COLD_COMPILE_CPU_S = 15
+# CPU seconds to compile the kernels with an empty cache: 39.3 s for a 16x12 reference render
+# of forest:tiny with NUMBA_CACHE_DIR empty; 62 s for those and the shards' own, exact and
+# proxy (tests/warm_kernels.py); 2 cores, 2026-11-27. A pool compiles on one shard a node
+# (`pool.first_cold_per_node`).
+COLD_COMPILE_CPU_S = {"reference": 40, "distributed": 60}
 # The Wald step routes between shards, and buckets sorts rays leaving for them: the
 # reference never runs either.
 SHARD_ONLY = ("nearest", "buckets")
@@ -61,14 +63,19 @@ def _compiles_alone(source: str) -> bool:
     return any('inline="always"' not in args for args in decorators)
 
 
+def cold_modules_run_by(distributed: bool, proxies: bool = False) -> list[str]:
+    """`cold_kernel_modules` that a render of this kind compiles: a module it never runs
+    would look cold before every render."""
+    return [m for m in cold_kernel_modules() if (distributed or m not in SHARD_ONLY)
+            and (proxies or m not in PROXY_ONLY)]
+
+
 def note_cold_compile(where: str, distributed: bool, proxies: bool = False) -> bool:
     """Log, before a render whose kernels are not cached yet, that it compiles them first
-    and about how long that takes (only the kernels this render runs: a module it never
-    compiles would be announced before every render). Returns whether it did."""
-    cold = [m for m in cold_kernel_modules() if (distributed or m not in SHARD_ONLY)
-            and (proxies or m not in PROXY_ONLY)]
+    and about how long that takes. Returns whether it did."""
+    cold = cold_modules_run_by(distributed, proxies)
     if cold:
         log.warning("compiling the numba kernels before the first %s (%s): about %d s of CPU, "
                     "once; later runs load them from the cache", where, ", ".join(cold),
-                    COLD_COMPILE_CPU_S)
+                    COLD_COMPILE_CPU_S["distributed" if distributed else "reference"])
     return bool(cold)

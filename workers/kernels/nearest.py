@@ -32,7 +32,10 @@ def nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node_sta
     return near_owner
 
 
-@njit(inline="always", **JIT)
+# Not inlined: it runs once per batch, and inlined (numba's IR inliner) it cost about 7 s
+# of a cold compile in each of its callers (the two walks in `crossings`, and
+# `nearest_owner`); 2 cores, 2026-11-27.
+@njit(**JIT)
 def near_search(origin, direction, lim, active, boxes, bvh, cand_owner, cands, cand_flat,
                 cand_bvh, visited, near_t, near_owner):
     """The exact policy's next stop of each active (n,) bool ray: near_t (n,) float64 and

@@ -84,6 +84,16 @@ def frame_key(scene: Scene | SceneMeta) -> str:
     return h.hexdigest()
 
 
+def first_cold_per_node(shard_info: list[dict]) -> list[int]:
+    """The lowest shard id on each node whose shards found numba's cache cold (`ready()`'s
+    "cold_kernels"), in id order: they warm first, alone on their node."""
+    first: dict = {}
+    for sid, info in enumerate(shard_info):
+        if info.get("cold_kernels"):
+            first.setdefault(info.get("node"), sid)
+    return sorted(first.values())
+
+
 class ShardPool:
     """K started, warmed Shard actors for one scene and placement.
 
@@ -175,9 +185,15 @@ class ShardPool:
         # Every shard loads (then warms) at once: submitted together, waited for in turn.
         loads = [a.load.remote(*self._init_refs[sid]) for sid, a in enumerate(self.actors)]
         self.shard_info = [_wait_ready(ref, f"shard {sid}") for sid, ref in enumerate(loads)]
-        warms = [a.warm.remote() for a in self.actors]
-        self.warm_s = [_wait_ready(ref, f"shard {sid} (warming its kernels)")
-                       for sid, ref in enumerate(warms)]
+        # On a cold numba cache (a fresh install) one shard a node compiles the kernels into
+        # that node's cache first and the others then load them: warmed all at once, each
+        # would compile them all, K times the CPU on cores they share.
+        first = first_cold_per_node(self.shard_info)
+        self.warm_s = [0.0] * self.k
+        for wave in (first, [sid for sid in range(self.k) if sid not in first]):
+            warms = [(sid, self.actors[sid].warm.remote()) for sid in wave]
+            for sid, ref in warms:
+                self.warm_s[sid] = _wait_ready(ref, f"shard {sid} (warming its kernels)")
 
     def show(self, scene: Scene | SceneMeta) -> None:
         """Make every shard render `scene`: a frame of the pool's scene (its meshes and

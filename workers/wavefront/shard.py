@@ -26,6 +26,7 @@ import numpy as np
 
 from nprt.scene.model import Mesh
 from nprt.workers.filmsum import MAX_EXP, FilmSums
+from nprt.workers.jitcache import cold_modules_run_by
 from nprt.workers.kernels import tiles
 from nprt.workers.kernels.buckets import group_rows, mark_for_owner
 from nprt.workers.kernels.filmsum import splat
@@ -261,7 +262,9 @@ class Shard:
         node = ray.util.get_node_ip_address() if ray.is_initialized() else "local"
         return {"shard": self.id, "pid": os.getpid(), "node": node,
                 "geometry_bytes": int(sum(m.nbytes for m in self.meshes.values())),
-                "meshes": sorted(self.meshes), "load_s": round(self.load_s, 4)}
+                "meshes": sorted(self.meshes), "load_s": round(self.load_s, 4),
+                "cold_kernels": len(cold_modules_run_by(
+                    True, proxies=self.config.settings.mode == "proxy"))}
 
     def warm(self) -> float:
         """Trace two 4x4-pixel, 1-sample passes and drop them, so every kernel is compiled
