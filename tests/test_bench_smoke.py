@@ -7,7 +7,7 @@ multi-process runtime at scale, minutes even at their smallest) are marked slow.
 
 The runs join one local Ray (RAY_ADDRESS; bench.common.start_ray and the pools connect to
 it) that a holder process keeps up while they run: starting a Ray took 9 s of each run
-under load. OWN_RAY ones start their own (several drivers and Ray starts by design)."""
+under load."""
 
 from __future__ import annotations
 
@@ -27,10 +27,9 @@ BENCH = REPO / "bench"
 GROUPS = ("render", "proxy", "training", "experiments", "network", "service")
 PARALLEL = 2  # CI has two cores; more runs at once only share them
 RUN_TIMEOUT_S = 600  # a hung bench fails instead of stalling CI
-# bench_massive: three driver processes, two Ray starts and two training rounds;
+# bench_massive: four driver processes and two training rounds;
 # bench_scale: four pools and a job manager.
 SLOW = ("bench.render.bench_massive", "bench.render.bench_scale")
-OWN_RAY = ("bench.render.bench_massive",)
 # Started first, so that no long run is left alone at the end: the longest walls of a serial
 # `pytest tests/test_bench_smoke.py` (2 at a time, 2026-11-26 23:50, load 1.5 -> 13): 82, 42,
 # 37 and 36 s; the other 27 runs took 28 s or less.
@@ -71,9 +70,8 @@ def _fingerprint() -> dict[str, str]:
 
 def _run(module: str, out: Path, caches: Path, ray_address: str
          ) -> tuple[subprocess.CompletedProcess, float]:
-    own = module in OWN_RAY
     env = {**os.environ, "NPRT_BENCH_RESULTS": str(out),
-           "RAY_ADDRESS": "local" if own else ray_address, **({} if own else SHARED_AUTH),
+           "RAY_ADDRESS": ray_address, **SHARED_AUTH,
            "NPRT_SCENE_CACHE": str(caches / "scenes"), "NPRT_PROXY_CACHE": str(caches / "proxies"),
            "PYTHONPATH": os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))),
            "MPLBACKEND": "Agg"}

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import RESULTS, publish, smoke  # light: no Ray, no nprt
+from bench.common import RESULTS, publish, smoke, start_ray  # light: no Ray, no nprt
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -161,7 +161,7 @@ def main(argv=None) -> int:
     open_s = time.perf_counter() - t0
     with tempfile.TemporaryDirectory(prefix="bench-massive-") as tmp:
         tmp = Path(tmp)
-        ray.init(num_cpus=args.ray_cpus, include_dashboard=False, log_to_driver=False)
+        start_ray(args.ray_cpus)  # or the cluster RAY_ADDRESS names (the smoke test's)
         try:
             address = ray.get_runtime_context().gcs_address
             bare_mb = _bare(address, tmp)
@@ -171,7 +171,7 @@ def main(argv=None) -> int:
             ray.shutdown()
         # Training on as many Ray CPUs as real cores: each task trains one thread, so
         # more tasks than cores would only share them.
-        ray.init(num_cpus=os.cpu_count(), include_dashboard=False, log_to_driver=False)
+        start_ray(os.cpu_count())
         try:
             training = [_train(meta, True, args, tmp), _train(meta, False, args, tmp)]
         finally:
