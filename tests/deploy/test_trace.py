@@ -159,7 +159,7 @@ def test_a_render_rerun_in_a_new_epoch_leaves_a_trace_that_replays(ray_local):
 def test_a_poll_that_hands_back_nothing_leaves_the_step_records_to_a_poll_that_is_read():
     """A long poll that times out may be dropped unread when the job ends: the records go
     with the next poll that hands back weight, collects or settles."""
-    actor = ShardActor(ShardConfig(0, 1, RenderSettings(width=8, height=8, spp=1)), {})
+    actor = ShardActor(ShardConfig(0, 1, RenderSettings(width=8, height=8, spp=1)))
     actor._epoch = 5
     actor._records = [{"step": 0}]
     assert actor.poll(5, 0.0).trace == [] and actor._records == [{"step": 0}]

@@ -53,3 +53,23 @@ def test_a_distributed_render_prints_no_line_of_ray(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     assert (tmp_path / "out.png").stat().st_size > 0
     assert ray_lines(res.stdout + res.stderr) == []
+
+
+_LIBRARY_RENDER = """
+from nprt.scene.demos import make_demo
+from nprt.workers.render import render
+from nprt.workers.settings import RenderSettings
+r = render(make_demo("forest", "tiny"), RenderSettings(width=16, height=12, spp=1, shards=2))
+print(float(r.film.image().mean()))
+"""
+
+
+def test_a_library_render_of_a_scene_in_memory_prints_no_line_of_ray(tmp_path):
+    """An in-memory scene's meshes go through Ray's object store; they reach a shard as an
+    argument of `load`, not of its constructor (Ray printed an error line for that)."""
+    env = {**os.environ, "RAY_ADDRESS": "local", "PYTHONPATH": str(REPO)}
+    res = subprocess.run([sys.executable, "-c", _LIBRARY_RENDER], env=env, cwd=tmp_path,
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert float(res.stdout.strip().splitlines()[-1]) > 0
+    assert ray_lines(res.stdout + res.stderr) == []

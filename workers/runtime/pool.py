@@ -158,11 +158,11 @@ class ShardPool:
             self.pg = placement_group([{"CPU": per_shard_cpu}] * self.k, strategy="SPREAD")
             _wait_ready(self.pg.ready(), f"a placement group of {self.k} x "
                         f"{per_shard_cpu:g} CPU ({cpus:g} CPUs in the cluster)")
-        # The world and the proxies reach each actor as arguments of `load`, not of its
+        # The meshes, world and proxies reach each actor as arguments of `load`, not of its
         # constructor: a restarted actor (Ray re-runs only the constructor) is loaded again
-        # by `resync`, and no constructor argument lives in the object store (Ray warns
-        # about those on the console).
-        self._init_refs = []  # (world, proxies) per shard, kept for restarts
+        # by `resync`, and no constructor argument lives in the object store (Ray prints an
+        # error line for those on the console; an in-memory scene's meshes are there).
+        self._init_refs = []  # `ShardActor.load`'s arguments per shard, kept for restarts
         for sid in range(self.k):
             held = set(shard_meshes[sid])
             # Only the proxies of meshes this shard does not hold.
@@ -178,10 +178,10 @@ class ShardPool:
                     self.pg, placement_group_bundle_index=sid)
             opts.update((shard_options or [{}] * self.k)[sid])
             actor = ray.remote(ShardActor).options(**opts).remote(
-                ShardConfig(sid, self.k, settings),
-                MeshRequest(self.source, tuple(shard_meshes[sid])), all_req)
+                ShardConfig(sid, self.k, settings))
             self.actors.append(actor)
-            self._init_refs.append((world_ref, proxies_ref))
+            self._init_refs.append((world_ref, proxies_ref,
+                                    MeshRequest(self.source, tuple(shard_meshes[sid])), all_req))
         # Every shard loads (then warms) at once: submitted together, waited for in turn.
         loads = [a.load.remote(*self._init_refs[sid]) for sid, a in enumerate(self.actors)]
         self.shard_info = [_wait_ready(ref, f"shard {sid}") for sid, ref in enumerate(loads)]

@@ -75,10 +75,12 @@ class ShardActor:
     """Drives nprt.workers.wavefront.shard.Shard; tests/distributed/test_driver_imports.py
     checks that the calls the coordinator and pool make exist here."""
 
-    def __init__(self, config, meshes, all_meshes=None):
-        """config: ShardConfig; meshes, all_meshes: as Shard's. The shard itself is made by
-        `load`, which brings the world and the proxies."""
-        self._args = (config, meshes, all_meshes)
+    def __init__(self, config):
+        """config: ShardConfig. The shard itself is made by `load`, which brings its meshes,
+        the world and the proxies: nothing the constructor takes lives in the object store
+        (Ray re-runs only the constructor on a restart, and prints an error line for an actor
+        whose constructor arguments do; an in-memory scene's meshes do)."""
+        self._config = config
         self._shard = None
         self.id = config.shard_id
         self.incarnation = uuid.uuid4().hex  # a restart by Ray makes a new one
@@ -114,13 +116,13 @@ class ShardActor:
 
     # -- the pool ---------------------------------------------------------------------
 
-    def load(self, world, proxies) -> dict:
-        """Make the Shard (once: a no-op on a loaded actor); returns `ready()`."""
+    def load(self, world, proxies, meshes, all_meshes=None) -> dict:
+        """Make the Shard (once: a no-op on a loaded actor); meshes, all_meshes as Shard's.
+        Returns `ready()`."""
         if self._shard is None:
             from nprt.workers.wavefront.shard import Shard
 
-            config, meshes, all_meshes = self._args
-            self._shard = Shard(config, world, meshes, proxies, all_meshes)
+            self._shard = Shard(self._config, world, meshes, proxies, all_meshes)
         return self.ready()
 
     def ready(self) -> dict:
