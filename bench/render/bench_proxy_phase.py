@@ -12,13 +12,16 @@ the proxy phase's parts timed around their calls:
 
 It also counts the pairs a proxy answered whose box the ray enters only after its final
 closest hit: they cannot change an answer, and a nearest-box-first order of asking would
-skip them (at the price of more onnxruntime calls).
+skip them (at the price of more onnxruntime calls). With --repeats, it counts the pairs
+asked before, on this or another shard (the same ray, origin and direction, and the same
+box): the answers a ray could carry from shard to shard instead (this adds CPU to the run).
 
 The phase is the whole of what proxy mode adds at K = 2 in forest: without it the K = 2
 CPU is about the one-shard CPU (bench/README.md "What proxy mode's CPU is made of").
 
     python -m bench.render.bench_proxy_phase                    # forest, city, windy; K 2 8
     python -m bench.render.bench_proxy_phase --scenes city --ks 2 --width 320 --height 180
+    python -m bench.render.bench_proxy_phase --scenes forest city --ks 8 --repeats
     python -m bench.render.bench_proxy_phase --smoke
 """
 
@@ -46,10 +49,28 @@ class _Meter:
     functions the phase calls (`timed`); `counts` : rays walked, pairs, net calls and rows,
     and the needless pairs (box entered after the ray's final closest hit)."""
 
-    def __init__(self):
+    def __init__(self, repeats: bool = False):
         self.cpu = dict.fromkeys(PARTS, 0.0)
         self.counts = dict.fromkeys(("rays_walked", "pairs", "net_calls", "visibility_rows",
                                      "depth_rows", "needless_pairs", "needless_depth_rows"), 0)
+        # (origin, direction, box) of every pair asked so far, as 96 bytes: with repeats
+        self._asked: set[bytes] | None = set() if repeats else None
+        if repeats:
+            self.counts["repeat_pairs"] = 0
+
+    def _count_repeats(self, origin, direction, boxes, ray, inst) -> None:
+        """Pairs (ray (p,), inst (p,) positions into boxes (k, 2, 3) float64) asked before."""
+        if self._asked is None or len(ray) == 0:
+            return
+        keys = np.ascontiguousarray(np.concatenate(
+            [np.asarray(origin, np.float64)[ray], np.asarray(direction, np.float64)[ray],
+             boxes[inst].reshape(len(inst), 6)], axis=1))
+        for key in keys.view(np.dtype((np.void, keys.shape[1] * 8))).ravel():
+            b = key.tobytes()
+            if b in self._asked:
+                self.counts["repeat_pairs"] += 1
+            else:
+                self._asked.add(b)
 
     def _timed(self, part: str, fn):
         def wrapped(*args):
@@ -71,6 +92,7 @@ class _Meter:
             out = timed_walk(*args)
             self.counts["rays_walked"] += len(args[0])
             self.counts["pairs"] += len(out[0])
+            self._count_repeats(args[0], args[1], args[3], out[0], out[1])
             return out
 
         def nets_counted(proxy, net, x):
@@ -106,7 +128,7 @@ def bench(args) -> dict:
         for k in args.ks:
             s = RenderSettings(**base, shards=k, mode="proxy")
             shards = shards_in_process(scene, s)
-            with _Meter().timed() as meter:
+            with _Meter(args.repeats).timed() as meter:
                 r = run(shards, s)
             phase = r["phase_cpu_s"].get("proxy", 0.0)
             c = meter.counts
@@ -131,17 +153,23 @@ def _line(r: dict) -> str:
             f"shard; proxy phase {r['proxy_s']:.2f} s = {r['proxy_s'] / one:.2f}x (walk "
             f"{r['walk_s']:.2f}, known {r['known_s']:.2f}, nets {r['nets_s']:.2f}, decide "
             f"{r['decide_s']:.2f}, rest {r['rest_s']:.2f}); needless pairs "
-            f"{r['needless_pairs'] / max(r['pairs'], 1):.0%}")
+            f"{r['needless_pairs'] / max(r['pairs'], 1):.0%}"
+            + (f"; asked before {r['repeat_pairs'] / max(r['pairs'], 1):.1%}"
+               if "repeat_pairs" in r else ""))
 
 
 def markdown(res: dict) -> str:
+    rep = all("repeat_pairs" in r for r in res["rows"])
     out = ["Seconds of process CPU; *x one shard* divides by the one-shard CPU of the same "
            "image (proxy mode, K = 1: the reference's wavefront). *needless*: pairs (and "
-           "depth rows) whose box the ray enters after its final closest hit.", "",
+           "depth rows) whose box the ray enters after its final closest hit."
+           + (" *asked before*: pairs asked before on some shard (the CPU then includes "
+              "counting them)." if rep else ""), "",
            "| scene | K | CPU (x one shard) | proxy phase (x one shard) | walk | known | nets "
            "| decide | rest | rays walked, ns/ray | net rows (vis + depth), ns/row | net calls, "
-           "us/call | needless pairs, depth rows |",
-           "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+           "us/call | needless pairs, depth rows |" + (" asked before |" if rep else ""),
+           "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+           + ("---:|" if rep else "")]
     for r in res["rows"]:
         one = r["one_shard_cpu_s"]
         out.append(
@@ -152,7 +180,8 @@ def markdown(res: dict) -> str:
             f"{r['visibility_rows'] / 1e6:.2f} + {r['depth_rows'] / 1e6:.2f} M, "
             f"{r['net_ns_per_row']:.0f} | {r['net_calls']:,}, {r['net_us_per_call']:.0f} | "
             f"{r['needless_pairs'] / max(r['pairs'], 1):.0%}, "
-            f"{r['needless_depth_rows'] / max(r['depth_rows'], 1):.0%} |")
+            f"{r['needless_depth_rows'] / max(r['depth_rows'], 1):.0%} |"
+            + (f" {r['repeat_pairs'] / max(r['pairs'], 1):.1%} |" if rep else ""))
     return "\n".join(out) + "\n"
 
 
@@ -185,6 +214,8 @@ def main(argv=None) -> None:
     add_image_flags(ap)
     ap.set_defaults(scenes=["forest", "city", "windy"])
     ap.add_argument("--ks", type=int, nargs="+", default=[2, 8])
+    ap.add_argument("--repeats", action="store_true",
+                    help="count the pairs asked before (adds CPU: leave the timings aside)")
     add_output_flags(ap)
     # The demo's own size: a tiny scene gets no proxy (the policy replicates its meshes).
     args = smoke(ap.parse_args(argv), scenes=["forest"], width=32, height=24, spp=2, ks=[2])
