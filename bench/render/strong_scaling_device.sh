@@ -7,7 +7,9 @@
 # first, then exact and proxy per K) into $OUT (default bench/results/device), one JSON each;
 # a run cut short by the lease leaves strong_scaling_partial.json. nprt comes from the
 # bundle's wheel, bench/ from this checkout. BYTE_SLACK=1.5 (say) runs them at that
-# RenderSettings.byte_slack, its value in the results' tag.
+# RenderSettings.byte_slack, its value in the results' tag. REF_RUNS (default 2) runs the
+# reference that many times per scene, before and after the distributed rows (the ratios
+# against their mean): one reference moved 13-20 % within a lease in session 16.
 # PACK=FILE tars the results folder into FILE after each run. A lent machine hands back
 # at most 8 files, so there: PACK=$OUT/res.tgz OUT=/tmp/res bash ... (in that order: the
 # device's $OUT is expanded first); what a cut run left still comes back.
@@ -34,7 +36,7 @@ for spec in "$@"; do
   scene=${spec%%:*}; ks=${spec#*:}; tag=$(nproc)core-$scene-${ks//,/_}${BYTE_SLACK:+-slack$BYTE_SLACK}
   # shellcheck disable=SC2086
   python3 -m bench.render.bench_strong_scaling --scenes "$scene" --ks ${ks//,/ } --no-readme \
-    --out "$OUT" --tag "$tag" ${BYTE_SLACK:+--byte-slack "$BYTE_SLACK"} 2>&1 | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/scaling.log"
+    --out "$OUT" --tag "$tag" --ref-runs "${REF_RUNS:-2}" ${BYTE_SLACK:+--byte-slack "$BYTE_SLACK"} 2>&1 | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/scaling.log"
   [ -f "$OUT/strong_scaling_$tag.json" ] && rm -f "$OUT/strong_scaling_partial.json"
   echo "$tag done at $(( $(date +%s) - t0 )) s"; uptime
   if [ -n "${PACK:-}" ]; then tar -czf "$PACK" -C "$OUT" .; fi

@@ -49,3 +49,14 @@ def test_runs_from_different_cpus_are_not_merged(tmp_path):
     b.write_text(json.dumps(_result("EPYC", [_row("city", "exact", 4, 5.0, 10.0)])))
     with pytest.raises(SystemExit, match="different CPUs"):
         bss.merge([a, b])
+
+
+def test_a_bracketed_reference_gives_ratios_against_the_mean_of_its_runs():
+    ref = _row("forest", "reference", 0, 12.0, 12.0)
+    row = _row("forest", "exact", 8, 5.0, 12.0)
+    bss._bracket(ref, [_row("forest", "reference", 0, 14.0, 14.0)])
+    bss._ratios(row, ref)
+    assert ref["render_s_runs"] == [12.0, 14.0] and ref["render_s"] == 13.0
+    assert row["wall_ratio"] == round(5.0 / 13.0, 3) and row["cpu_ratio"] == round(40 / 13, 3)
+    table = bss.markdown(_result("Xeon", [ref, row]))
+    assert "forest 12.00, 14.00 s" in table
