@@ -61,7 +61,7 @@ def test_a_delivery_makes_no_object_ref_and_still_arrives(ray_local):
     reaches the wavefront thread: on an actor with no shard loaded, its step fails, and
     the next poll says so."""
     actor = ray.remote(ShardActor).options(num_cpus=0, enable_task_events=False).remote(
-        ShardConfig(0, 1, RenderSettings()), None)
+        ShardConfig(0, 1, RenderSettings()))
     try:
         assert actor.deliver.remote(Parcel(None, {})) is None  # epoch None: no run begun
         with pytest.raises(ray.exceptions.RayTaskError, match="failed in its wavefront"):

@@ -21,7 +21,7 @@ def _finish_step(actor: ShardActor, weight: list) -> None:
 
 
 def test_a_poll_of_an_earlier_run_leaves_the_next_runs_weight():
-    actor = ShardActor(ShardConfig(0, 1, RenderSettings()), None)
+    actor = ShardActor(ShardConfig(0, 1, RenderSettings()))
     with actor._cv:
         actor._epoch = 1
     stale: list = []
