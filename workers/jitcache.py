@@ -15,10 +15,10 @@ log = logging.getLogger(__name__)
 
 WORKERS = Path(__file__).resolve().parent
 KERNELS = WORKERS / "kernels"
-# CPU seconds to compile the kernels with an empty cache: 39.3 s for a 16x12 reference render
-# of forest:tiny with NUMBA_CACHE_DIR empty; 62 s for those and the shards' own, exact and
-# proxy (tests/warm_kernels.py); 2 cores, 2026-11-27. A pool compiles on one shard a node
-# (`pool.first_cold_per_node`).
+# CPU seconds to compile the kernels with an empty cache: 34-44 s for a 16x12 reference render
+# of forest:tiny (bench/render/bench_first_run.py); 62 s for those and the shards' own, exact
+# and proxy (tests/warm_kernels.py); 2 cores, 2026-11-27. A pool compiles on one shard a
+# node (`pool.first_cold_per_node`).
 COLD_COMPILE_CPU_S = {"reference": 40, "distributed": 60}
 # The Wald step routes between shards, and buckets sorts rays leaving for them: the
 # reference never runs either.
