@@ -20,7 +20,7 @@ NONE = -1  # no unvisited box before tmax
 @njit(**JIT)
 def nearest_owner(origin, direction, tmax, boxes, node_box, node_child, node_start, node_count,
                   prim, cand_owner, cands, cand_flat, cand_bvh, visited):
-    """origin (n, 3) float64, direction (n, 3) float64, tmax (n,) float64; boxes and the
+    """origin (n, 3) float64, direction (n, 3) float32, tmax (n,) float64; boxes and the
     BVH arrays from `bvh_build` (placeholders when not cand_bvh); the candidates as
     `InstanceTable.route_inputs` gives them; visited (n,) uint64 shard bitmask.
     Returns (n,) int32 owner, or NONE."""
