@@ -39,6 +39,15 @@ def machine(ray_cpus: int) -> dict:
 _TICK = os.sysconf("SC_CLK_TCK")
 
 
+def child_env(**extra: str) -> dict:
+    """The environment of a benchmark's child Python process: this one's, with the
+    repository root first on PYTHONPATH (so `-m bench...` and `-c` children import this
+    checkout), and extra set."""
+    root = str(BENCH_README.parents[1])
+    path = os.pathsep.join(filter(None, (root, os.environ.get("PYTHONPATH"))))
+    return {**os.environ, "PYTHONPATH": path, **extra}
+
+
 def proc_cpu(pid: int) -> float:
     """User + system CPU seconds of every thread of process pid, so far."""
     with open(f"/proc/{pid}/stat") as f:

@@ -24,7 +24,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from bench.common import RESULTS, add_output_flags, finish, machine, smoke
+from bench.common import RESULTS, add_output_flags, child_env, finish, machine, smoke
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -60,10 +60,7 @@ print(json.dumps(out))
 
 def _run(code: str, cache: str | None, *argv: str) -> dict:
     """code run by a fresh interpreter (NUMBA_CACHE_DIR=cache when given); its last line."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-        filter(None, (str(ROOT), os.environ.get("PYTHONPATH"))))}
-    if cache is not None:
-        env["NUMBA_CACHE_DIR"] = cache
+    env = child_env(**({} if cache is None else {"NUMBA_CACHE_DIR": cache}))
     done = subprocess.run([sys.executable, "-c", code, *argv], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=1800)
     if done.returncode != 0:

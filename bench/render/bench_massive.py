@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import RESULTS, publish, smoke, start_ray  # light: no Ray, no nprt
+from bench.common import RESULTS, child_env, publish, smoke, start_ray  # light: no Ray, no nprt
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -88,8 +88,7 @@ def driver(args) -> int:
 def _child(report: Path, *flags: str) -> dict:
     """Run this module as a driver process with `flags`; returns the report it wrote."""
     cmd = [sys.executable, "-m", "bench.render.bench_massive", *flags, "--report", str(report)]
-    path = os.pathsep.join(filter(None, (str(ROOT), os.environ.get("PYTHONPATH"))))
-    subprocess.run(cmd, check=True, cwd=ROOT, env={**os.environ, "PYTHONPATH": path})
+    subprocess.run(cmd, check=True, cwd=ROOT, env=child_env())
     return json.loads(report.read_text())
 
 

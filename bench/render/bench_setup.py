@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import RESULTS, finish, smoke
+from bench.common import RESULTS, child_env, finish, smoke
 
 WARMUP_INSTANCES = 1000
 TARGET_S = 5.0
@@ -156,9 +156,7 @@ def run(n: int = 100_000, k: int = 2, seed: int = 0, form: str = "npz",
         if warmup:
             cmd += ["--warmup", str(write_scene(Path(tmp) / "warm", WARMUP_INSTANCES, seed + 1,
                                                 form))]
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join(
-            filter(None, (str(root), os.environ.get("PYTHONPATH"))))}
-        out = subprocess.run(cmd, env=env, cwd=root, capture_output=True, text=True)
+        out = subprocess.run(cmd, env=child_env(), cwd=root, capture_output=True, text=True)
         if out.returncode != 0:
             raise RuntimeError(f"measurement failed ({out.returncode}):\n{out.stderr[-4000:]}")
         res = json.loads(out.stdout.strip().splitlines()[-1])
