@@ -167,3 +167,14 @@ def test_a_poll_that_hands_back_nothing_leaves_the_step_records_to_a_poll_that_i
     assert actor.poll(5, 0.0).trace == [{"step": 0}] and actor._records == []
     actor._records = [{"step": 1}]
     assert actor.poll(5, 0.0, settle=True).trace == [{"step": 1}]
+
+
+def test_ending_a_run_hands_back_its_totals_and_the_records_no_poll_took():
+    """A run given up keeps every step once: `end` returns what no poll handed back."""
+    actor = ShardActor(ShardConfig(0, 1, RenderSettings(width=8, height=8, spp=1)))
+    actor._epoch, actor._steps = 5, 1
+    actor._records = [{"step": 0}]
+    assert actor.end(4) is None and actor._records == [{"step": 0}]
+    final = actor.end(5)
+    assert (final.epoch, final.steps, final.trace) == (5, 1, [{"step": 0}])
+    assert actor._records == [] and actor.end(5) is None

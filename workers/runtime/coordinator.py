@@ -301,7 +301,7 @@ class Coordinator:
                                     shard, type(e).__name__, len(lost))
                     for i in reversed(lost):  # oldest first again
                         self._requeue(live.pop(i).pass_, waiting, attempts)
-                    self._end(epoch)
+                    self._end(epoch, unread=polls)
                     self._keep_totals()
                     self.reruns += 1
                     epoch = self._begin()
@@ -427,13 +427,32 @@ class Coordinator:
                 break
         raise ShardsLost(f"shards did not come back within {BEGIN_TIMEOUT_S:g} s")
 
-    def _end(self, epoch: int, wait: bool = True) -> None:
+    def _end(self, epoch: int, wait: bool = True, unread: dict | None = None) -> None:
+        """End run `epoch` on every shard; wait: take each live shard's final totals and
+        the trace records no poll handed back (a run given up), before `_keep_totals`.
+        unread: the run's polls not read yet (ref -> shard); ending the run wakes them, and
+        the trace records they took are kept too (every step of the run is in the trace
+        once, as in the totals)."""
         refs = [a.end.remote(epoch) for a in self.actors]
-        if wait:
+        if not wait:
+            return
+        deadline = time.monotonic() + BEGIN_TIMEOUT_S
+        for ref in (unread or {}) if self.trace is not None else ():
             try:
-                ray.get(refs, timeout=BEGIN_TIMEOUT_S)
+                self.trace.add(ray.get(ref, timeout=max(0.0, deadline - time.monotonic())
+                                       ).trace)
+            except ray.exceptions.RayError:
+                continue  # a dead shard's, or a failed wavefront's: nothing to keep
+        for shard, ref in enumerate(refs):
+            try:
+                final = ray.get(ref, timeout=max(0.0, deadline - time.monotonic()))
             except (*SHARD_LOST, ray.exceptions.GetTimeoutError):
-                pass  # a dead shard holds nothing; `_begin` waits for it to come back
+                continue  # a dead shard holds nothing; `_begin` waits for it to come back
+            if final is None or final.incarnation != self._incarnations[shard]:
+                continue  # restarted: its totals went with the process
+            self.totals[shard] = final
+            if self.trace is not None:
+                self.trace.add(final.trace)
 
     def _keep_totals(self) -> None:
         """Add the shards' totals of a failed run to the job's (its CPU was spent)."""

@@ -161,16 +161,22 @@ class ShardActor:
             self._shard.begin(settings)
         return self.incarnation
 
-    def end(self, epoch: int) -> None:
-        """Drop run `epoch` (finished, canceled or failed): its parcels and pass state."""
+    def end(self, epoch: int) -> PollReply | None:
+        """Drop run `epoch` (finished, canceled or failed): its parcels and pass state.
+        Returns the run's final totals and the trace records no poll handed back (None:
+        not this run). A step still running is dropped uncounted (`_run`), so the totals
+        and the records count the same steps: a run given up keeps a trace that adds up."""
         with self._cv:
             if self._epoch != epoch:
-                return
+                return None
             self._epoch = None
             self._inbox.clear()
+            records, self._records = self._records, []
+            final = self._reply(epoch, [], records)
         if self._shard is not None:  # a restarted actor not loaded again holds nothing
             with self._step_lock:
                 self._shard.reset()
+        return final
 
     @ray.method(num_returns=0)
     def deliver(self, parcel: Parcel) -> None:
@@ -209,17 +215,22 @@ class ShardActor:
                 returned, self._returned = self._returned, []
                 if returned or settle or collect:
                     records, self._records = self._records, []
-            reply = PollReply(
-                self.id, self.incarnation, self._epoch, returned, steps=self._steps,
-                busy_s=self._busy_s, cpu_s=time.process_time() - self._cpu0,
-                wavefront_cpu_s=self._wavefront_cpu_s,
-                phase_s=dict(self._phase_s), phase_cpu_s=dict(self._phase_cpu_s),
-                bytes_in=self._bytes_in, bytes_out=self._bytes_out,
-                parcels_in=self._parcels_in, parcels_out=self._parcels_out, trace=records,
-                idle=not (self._running or self._inbox), at=time.monotonic())
+            reply = self._reply(self._epoch, returned, records)
         if collect:
             reply.collected = self.collect(epoch, list(collect))[1]
         return reply
+
+    def _reply(self, epoch: int | None, returned: list, records: list) -> PollReply:
+        """The totals so far of the run, with this weight and these trace records (called
+        with self._cv held)."""
+        return PollReply(
+            self.id, self.incarnation, epoch, returned, steps=self._steps,
+            busy_s=self._busy_s, cpu_s=time.process_time() - self._cpu0,
+            wavefront_cpu_s=self._wavefront_cpu_s,
+            phase_s=dict(self._phase_s), phase_cpu_s=dict(self._phase_cpu_s),
+            bytes_in=self._bytes_in, bytes_out=self._bytes_out,
+            parcels_in=self._parcels_in, parcels_out=self._parcels_out, trace=records,
+            idle=not (self._running or self._inbox), at=time.monotonic())
 
     def collect(self, epoch: int, indices: list[int]) -> tuple[str, list]:
         """(incarnation, [(pass index, sums or None, stats dict or None)]) of finished
