@@ -189,7 +189,9 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
     else:
         d.decision = "proxy"
         d.reason = (f"no width met accuracy {target:.3f}; best held-out accuracy "
-                    f"{d.accuracy:.4f} at width {d.width}")
+                    f"{d.accuracy:.4f} at width {d.width}; kept: a job's accuracy target (one is "
+                    f"set by default) picks its confidence bands from its own held-out error "
+                    f"curve, and the rays it is unsure of are traced exactly")
     if proxy.meta.get("report", {}).get("capped"):
         d.reason += ("; its training hit the wall-clock safety cap before its step budget, "
                      "so it is not reproducible")

@@ -12,6 +12,7 @@ import numpy as np
 from nprt.scene.errors import SceneError
 from nprt.scene.model import INDEX_DTYPE, VERTEX_DTYPE, Mesh, validate_mesh
 from nprt.scene.paths import FileRefs, load_trimesh
+from nprt.scene.ply import read_triangle_ply
 
 if TYPE_CHECKING:
     import trimesh
@@ -129,7 +130,12 @@ def mesh_arrays(tm: trimesh.Trimesh) -> dict:
 
 
 def read_mesh_file(path: Path, where: str, refs: FileRefs | None = None) -> dict:
-    """`mesh_arrays` of `open_mesh_file`."""
+    """`mesh_arrays` of `open_mesh_file`; a binary PLY of triangles (every mesh of a stored
+    scene) is read without trimesh (`nprt.scene.ply`)."""
+    if path.suffix.lower() == ".ply":
+        arrays = read_triangle_ply(path)
+        if arrays is not None:
+            return arrays
     return mesh_arrays(open_mesh_file(path, where, refs)[0])
 
 
