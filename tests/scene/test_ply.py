@@ -125,3 +125,25 @@ def test_a_shard_loads_a_stored_scene_without_importing_trimesh(tmp_path):
     assert res.returncode == 0, res.stderr[-3000:]
     out = json.loads(res.stdout.strip().splitlines()[-1])
     assert out == {"meshes": 5, "trimesh": False}
+
+
+def test_random_meshes_read_as_trimesh_reads_them(tmp_path):
+    """Normals or not, UVs or not, vertices that no face uses or not (with UVs trimesh
+    drops those, so such a file is left to it)."""
+    rng = np.random.default_rng(7)
+    path = tmp_path / "m.ply"
+    fast_reads = 0
+    for trial in range(120):
+        n = int(rng.integers(3, 30))
+        faces = rng.integers(0, n, (int(rng.integers(1, 50)), 3)).astype(np.uint32)
+        normals = rng.random((n, 3)).astype(np.float32) if trial % 2 else None
+        uvs = rng.random((n, 2)).astype(np.float32) if trial % 3 else None
+        write_ply(Mesh("m", rng.random((n, 3)).astype(np.float32), faces, normals, uvs, 0),
+                  path)
+        fast = read_triangle_ply(path)
+        if fast is None:
+            assert uvs is not None and len(np.unique(faces)) < n, trial
+            continue
+        fast_reads += 1
+        _assert_same(fast, _by_trimesh(path))
+    assert fast_reads > 60
