@@ -173,6 +173,7 @@ class ShardActor:
             self._inbox.clear()
             records, self._records = self._records, []
             final = self._reply(epoch, [], records)
+            self._cv.notify_all()  # a long poll of the run answers now, not at its timeout
         if self._shard is not None:  # a restarted actor not loaded again holds nothing
             with self._step_lock:
                 self._shard.reset()
