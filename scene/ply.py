@@ -61,7 +61,7 @@ def read_triangle_ply(path: Path) -> dict | None:
             or props & set(NORMAL) not in (set(), set(NORMAL))):
         return None
     faces = np.array(face["vertex_indices"], np.int64).reshape(-1, 3)
-    if faces.size and (faces.min() < 0 or faces.max() >= len(vertex)):
+    if not len(faces) or faces.min() < 0 or faces.max() >= len(vertex):
         return None  # trimesh's reading, then `build_mesh`, say what is wrong
     if uv and len(np.unique(faces)) != len(vertex):
         return None  # with UVs, trimesh drops the vertices that no face uses

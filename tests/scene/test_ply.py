@@ -147,3 +147,12 @@ def test_random_meshes_read_as_trimesh_reads_them(tmp_path):
         fast_reads += 1
         _assert_same(fast, _by_trimesh(path))
     assert fast_reads > 60
+
+
+def test_a_ply_without_faces_is_left_to_trimesh(tmp_path):
+    path = tmp_path / "points.ply"
+    header = ("ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\n"
+              "property float y\nproperty float z\nelement face 0\n"
+              "property list uchar int vertex_indices\nend_header\n")
+    path.write_bytes(header.encode() + np.zeros((3, 3), np.float32).tobytes())
+    assert read_triangle_ply(path) is None
