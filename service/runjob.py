@@ -64,7 +64,6 @@ class JobRunner:
         resume = checkpoint.load_checkpoint(job_dir)
         log.info("job %s: preparing scene %r%s", job_id, rec.scene,
                  f" (resuming at pass {resume.next_pass})" if resume else "")
-        renderer = None
         try:
             scene = self.sched.scenes.load(rec.scene)
             self._check_cancel(job_id, live, "loading the scene")
@@ -76,16 +75,19 @@ class JobRunner:
                 proxy_dir=self.settings.proxies_dir, pools=self.sched.pools,
                 on_progress=lambda rows: self.store.update(
                     job_id, stats={"proxy_training": rows}))
-            self._check_cancel(job_id, live, "starting the renderer")
-            self.states.move(job_id, "running", ("preparing",))
-            if rec.frames is not None:
-                result = self._frames(rec, job_dir, settings, live, scene, renderer)
-            else:
-                result = render(scene, settings, resume=resume, cancel=live.cancel,
-                                renderer=renderer,
-                                on_pass=lambda p: self.on_pass(job_id, job_dir, live, p))
-            renderer.close()
-            renderer = None
+            # Closed before the job's end is published, whatever the end: a job shown
+            # canceled or failed holds no shards (its pool is back in the registry).
+            try:
+                self._check_cancel(job_id, live, "starting the renderer")
+                self.states.move(job_id, "running", ("preparing",))
+                if rec.frames is not None:
+                    result = self._frames(rec, job_dir, settings, live, scene, renderer)
+                else:
+                    result = render(scene, settings, resume=resume, cancel=live.cancel,
+                                    renderer=renderer,
+                                    on_pass=lambda p: self.on_pass(job_id, job_dir, live, p))
+            finally:
+                renderer.close()
             self._check_accuracy(scene, settings, result)
             self._finish(job_id, job_dir, result, live)
         except RenderCanceled as e:
@@ -105,9 +107,6 @@ class JobRunner:
             log.exception("job %s failed", job_id)
             self.states.end(job_id, "failed", error=self._redact(f"{type(e).__name__}: {e}"),
                             finished_at=time.time())
-        finally:
-            if renderer is not None:
-                renderer.close()
         return False
 
     def _check_accuracy(self, scene, settings: RenderSettings, result) -> None:

@@ -190,7 +190,9 @@ def test_renderer_that_fails_to_start_fails_the_job_with_the_reason(manager, mon
 
 def test_cancel_while_preparing_stops_before_rendering_and_closes_the_renderer(
         manager, monkeypatch):
-    starting, release, made = threading.Event(), threading.Event(), []
+    """The renderer is closed before the job shows as canceled: whoever sees the end sees
+    its shards released (once the state was published first, and this test raced it)."""
+    starting, release, made, state_at_close = threading.Event(), threading.Event(), [], []
 
     class SlowStart(_FakeShards):
         def __init__(self, *args, **kwargs):
@@ -198,6 +200,10 @@ def test_cancel_while_preparing_stops_before_rendering_and_closes_the_renderer(
             made.append(self)
             starting.set()
             release.wait(30)
+
+        def close(self) -> None:
+            state_at_close.append(manager.get(rec.id).state)
+            super().close()
 
     def must_not_render(*args, **kwargs):
         raise AssertionError("rendered after a cancel")
@@ -213,6 +219,7 @@ def test_cancel_while_preparing_stops_before_rendering_and_closes_the_renderer(
     release.set()
     final = _done(manager, rec.id)
     assert final.state == "canceled" and made[0].closed
+    assert state_at_close == ["preparing"]
 
 
 def test_ray_start_is_retried_then_fails_naming_the_address(tmp_path, monkeypatch):
