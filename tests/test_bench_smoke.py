@@ -22,6 +22,8 @@ from pathlib import Path
 
 import pytest
 
+from bench.common import child_env
+
 REPO = Path(__file__).resolve().parents[1]
 BENCH = REPO / "bench"
 GROUPS = ("render", "proxy", "training", "experiments", "network", "service")
@@ -70,11 +72,9 @@ def _fingerprint() -> dict[str, str]:
 
 def _run(module: str, out: Path, caches: Path, ray_address: str
          ) -> tuple[subprocess.CompletedProcess, float]:
-    env = {**os.environ, "NPRT_BENCH_RESULTS": str(out),
-           "RAY_ADDRESS": ray_address, **SHARED_AUTH,
-           "NPRT_SCENE_CACHE": str(caches / "scenes"), "NPRT_PROXY_CACHE": str(caches / "proxies"),
-           "PYTHONPATH": os.pathsep.join(filter(None, (str(REPO), os.environ.get("PYTHONPATH")))),
-           "MPLBACKEND": "Agg"}
+    env = child_env(NPRT_BENCH_RESULTS=str(out), RAY_ADDRESS=ray_address, **SHARED_AUTH,
+                    NPRT_SCENE_CACHE=str(caches / "scenes"),
+                    NPRT_PROXY_CACHE=str(caches / "proxies"), MPLBACKEND="Agg")
     t0 = time.perf_counter()
     try:
         res = subprocess.run([sys.executable, "-m", module, "--smoke"], cwd=REPO, env=env,

@@ -448,8 +448,8 @@ class Coordinator:
                 final = ray.get(ref, timeout=max(0.0, deadline - time.monotonic()))
             except (*SHARD_LOST, ray.exceptions.GetTimeoutError):
                 continue  # a dead shard holds nothing; `_begin` waits for it to come back
-            if final is None or final.incarnation != self._incarnations[shard]:
-                continue  # restarted: its totals went with the process
+            if final is None:
+                continue  # not running this run: restarted, its totals gone with the process
             self.totals[shard] = final
             if self.trace is not None:
                 self.trace.add(final.trace)
