@@ -201,9 +201,10 @@ def markdown(res: dict) -> str:
 
 
 def _bound(r: dict, res: dict) -> float:
-    """The busiest shard's CPU over the one-shard CPU of the same scene and mode."""
-    one = next(x for x in res["rows"] if (x["scene"], x["k"]) == (r["scene"], 1))
-    return r["imbalance"] * r["cpu_s"] / r["k"] / one["cpu_s"]
+    """The busiest shard's CPU over the one-shard CPU of the scene (the baseline of
+    `cpu_vs_one_shard`); NaN for a run without K = 1."""
+    ratio = r.get("cpu_vs_one_shard")
+    return float("nan") if ratio is None else r["imbalance"] * ratio / r["k"]
 
 
 def plot(res: dict, png) -> None:
