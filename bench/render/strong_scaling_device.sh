@@ -10,6 +10,8 @@
 # RenderSettings.byte_slack, its value in the results' tag. REF_RUNS (default 2) runs the
 # reference that many times per scene, before and after the distributed rows (the ratios
 # against their mean): one reference moved 13-20 % within a lease in session 16.
+# CONTENTION_NS="1 8 9 16" (say) first runs bench_contention at those copy counts: how much
+# CPU the machine itself adds to a render when that many run at once (one round each).
 # PACK=FILE tars the results folder into FILE after each run. A lent machine hands back
 # at most 8 files, so there: PACK=$OUT/res.tgz OUT=/tmp/res bash ... (in that order: the
 # device's $OUT is expanded first); what a cut run left still comes back.
@@ -32,6 +34,13 @@ if [ ! -f /tmp/site/.warm ]; then
   rm -rf "$OUT/warm"; touch /tmp/site/.warm
 fi
 echo "warm at $(( $(date +%s) - t0 )) s"
+if [ -n "${CONTENTION_NS:-}" ]; then
+  # shellcheck disable=SC2086
+  python3 -m bench.render.bench_contention --ns $CONTENTION_NS --rounds 1 --no-readme \
+    --out "$OUT" 2>&1 | tee -a "$OUT/contention.log"
+  echo "contention done at $(( $(date +%s) - t0 )) s"
+  if [ -n "${PACK:-}" ]; then tar -czf "$PACK" -C "$OUT" .; fi
+fi
 for spec in "$@"; do
   scene=${spec%%:*}; ks=${spec#*:}; tag=$(nproc)core-$scene-${ks//,/_}${BYTE_SLACK:+-slack$BYTE_SLACK}
   # shellcheck disable=SC2086
