@@ -18,12 +18,16 @@ from __future__ import annotations
 import argparse
 import multiprocessing as mp
 import os
+import queue
 import statistics
 import time
 
 from bench.common import add_image_flags, add_output_flags, finish, smoke, stored_scene
 
 SECTION = "bench_contention"
+
+
+WAIT_S = 900  # a copy that neither answers nor exits within this fails the run
 
 
 def _copy(scene_name: str, size: str, image: dict, barrier, out) -> None:
@@ -35,25 +39,37 @@ def _copy(scene_name: str, size: str, image: dict, barrier, out) -> None:
     scene = stored_scene(scene_name, size).load()
     render(scene, RenderSettings(width=8, height=8, spp=1, shards=0))
     s = RenderSettings(**image, seed=0, shards=0)
-    barrier.wait()
+    barrier.wait(timeout=WAIT_S)  # a copy that died breaks it: the others stop too
     c0, t0 = time.process_time(), time.perf_counter()
     render(scene, s)
     out.put((time.process_time() - c0, time.perf_counter() - t0))
 
 
 def together(n: int, scene_name: str, size: str, image: dict) -> list[tuple[float, float]]:
-    """[(CPU s, wall s)] of n copies started at once (fresh processes: spawn)."""
+    """[(CPU s, wall s)] of n copies started at once (fresh processes: spawn). Raises
+    RuntimeError naming the exit codes when a copy fails."""
     ctx = mp.get_context("spawn")
     barrier, out = ctx.Barrier(n), ctx.Queue()
     procs = [ctx.Process(target=_copy, args=(scene_name, size, image, barrier, out))
              for _ in range(n)]
     for p in procs:
         p.start()
-    got = [out.get(timeout=900) for _ in range(n)]
-    for p in procs:
-        p.join()
-        if p.exitcode != 0:
-            raise RuntimeError(f"a copy exited with {p.exitcode}")
+    got, deadline = [], time.monotonic() + WAIT_S
+    try:
+        while len(got) < n:
+            try:
+                got.append(out.get(timeout=1.0))
+            except queue.Empty:
+                failed = [p.exitcode for p in procs if p.exitcode not in (None, 0)]
+                if failed or time.monotonic() > deadline:
+                    raise RuntimeError(f"{n} copies of the {scene_name} reference: "
+                                       f"{len(got)} answered; exit codes "
+                                       f"{[p.exitcode for p in procs]}") from None
+    finally:
+        for p in procs:
+            if len(got) < n:
+                p.terminate()
+            p.join()
     return got
 
 
