@@ -12,6 +12,8 @@
 # against their mean): one reference moved 13-20 % within a lease in session 16.
 # CONTENTION_NS="1 8 9 16" (say) first runs bench_contention at those copy counts: how much
 # CPU the machine itself adds to a render when that many run at once (one round each).
+# THREADS=city:8 (say) then runs bench_shard_threads for that scene and K (both modes):
+# the shards' CPU split by thread (the wavefront thread, Ray's Python and C++ threads).
 # PACK=FILE tars the results folder into FILE after each run. A lent machine hands back
 # at most 8 files, so there: PACK=$OUT/res.tgz OUT=/tmp/res bash ... (in that order: the
 # device's $OUT is expanded first); what a cut run left still comes back.
@@ -39,6 +41,12 @@ if [ -n "${CONTENTION_NS:-}" ]; then
   python3 -m bench.render.bench_contention --ns $CONTENTION_NS --rounds 1 --no-readme \
     --out "$OUT" 2>&1 | tee -a "$OUT/contention.log"
   echo "contention done at $(( $(date +%s) - t0 )) s"
+  if [ -n "${PACK:-}" ]; then tar -czf "$PACK" -C "$OUT" .; fi
+fi
+if [ -n "${THREADS:-}" ]; then
+  python3 -m bench.render.bench_shard_threads --scenes "${THREADS%%:*}" --k "${THREADS#*:}" \
+    --no-readme --out "$OUT" 2>&1 | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/threads.log"
+  echo "threads done at $(( $(date +%s) - t0 )) s"
   if [ -n "${PACK:-}" ]; then tar -czf "$PACK" -C "$OUT" .; fi
 fi
 for spec in "$@"; do
