@@ -116,8 +116,9 @@ def markdown(res: dict) -> str:
            "|---|---|---:|---:|---:|" + "---:|" * (len(shown) + 3)]
     for r in res["rows"]:
         total = r["total_cpu_s"]
+        # /proc counts whole ticks (10 ms): a tiny render can show no CPU at all
         cells = [f"{r['cpu_s'].get(g, 0.0):.2f} ({100 * r['cpu_s'].get(g, 0.0) / total:.0f} %)"
-                 for g in shown]
+                 if total > 0 else f"{r['cpu_s'].get(g, 0.0):.2f}" for g in shown]
         other = max(0.0, total - sum(r["cpu_s"].get(g, 0.0) for g in shown))  # not -0.00
         out.append(f"| {r['scene']} | {r['mode']} | {r['k']} | {r['render_s']:.2f} | "
                    f"{total:.2f} | " + " | ".join(cells) + f" | {other:.2f} | {r['parcels']} | "

@@ -9,7 +9,7 @@ import threading
 
 import pytest
 
-from bench.render.bench_shard_threads import group, split, threads_cpu
+from bench.render.bench_shard_threads import group, markdown, split, threads_cpu
 from nprt.workers.runtime.remote import WAVEFRONT_THREAD, name_os_thread
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="/proc and prctl")
@@ -41,3 +41,12 @@ def test_a_thread_born_between_readings_counts_from_zero():
     before = {(1, "worker.io"): 2.0}
     after = {(1, "worker.io"): 2.5, (2, "ray::ShardActor"): 0.25}
     assert split(before, after) == {"worker.io": 0.5, "ray python threads": 0.25}
+
+
+def test_a_render_too_short_for_a_tick_still_makes_its_table():
+    """/proc counts CPU in ticks (10 ms): the smoke run's tiny render shows none at all."""
+    row = {"scene": "forest", "mode": "exact", "k": 2, "render_s": 0.1, "parcels": 5,
+           "cpu_s": {"wavefront": 0.0, "ray python threads": 0.0}, "total_cpu_s": 0.0,
+           "ray_ms_per_parcel": 0.0}
+    table = markdown({"rows": [row]})
+    assert table.splitlines()[-1].startswith("| forest | exact | 2 | 0.10 | 0.00 | 0.00 |")
