@@ -50,7 +50,13 @@ def child_env(**extra: str) -> dict:
 
 def proc_cpu(pid: int) -> float:
     """User + system CPU seconds of every thread of process pid, so far."""
-    with open(f"/proc/{pid}/stat") as f:
+    return stat_cpu(f"/proc/{pid}/stat")
+
+
+def stat_cpu(path: str) -> float:
+    """User + system CPU seconds in a /proc stat file: /proc/<pid>/stat (the process) or
+    /proc/<pid>/task/<tid>/stat (one thread)."""
+    with open(path) as f:
         fields = f.read().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / _TICK
 

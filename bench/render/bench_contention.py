@@ -107,18 +107,11 @@ def bench(args) -> dict:
                 row["inflation"] = row["median_cpu_s"] / alone
                 row["worst"] = max(row["cpu_s"]) / alone
         rows += mine
-    return {"cores": os.cpu_count(), "cpu_model": _cpu_model(), "settings": {
+    from bench.render.bench_strong_scaling import cpu_model
+
+    return {"cores": os.cpu_count(), "cpu_model": cpu_model(), "settings": {
         **image, "scenes": args.scenes, "size": args.size, "ns": args.ns,
         "rounds": args.rounds}, "rows": rows}
-
-
-def _cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            return next((ln.split(":", 1)[1].strip() for ln in f if ln.startswith("model name")),
-                        "?")
-    except OSError:
-        return "?"
 
 
 def markdown(res: dict) -> str:

@@ -18,10 +18,17 @@ import os
 import time
 from collections import Counter
 
-from bench.common import add_image_flags, add_output_flags, finish, machine, smoke, stored_scene
+from bench.common import (
+    add_image_flags,
+    add_output_flags,
+    finish,
+    machine,
+    smoke,
+    stat_cpu,
+    stored_scene,
+)
 
 SECTION = "bench_shard_threads"
-_TICK = os.sysconf("SC_CLK_TCK")
 
 
 def threads_cpu(pid: int) -> dict[tuple[int, str], float]:
@@ -35,11 +42,9 @@ def threads_cpu(pid: int) -> dict[tuple[int, str], float]:
         try:
             with open(f"/proc/{pid}/task/{tid}/comm") as f:
                 name = f.read().strip()
-            with open(f"/proc/{pid}/task/{tid}/stat") as f:
-                fields = f.read().rsplit(")", 1)[1].split()
+            out[(int(tid), name)] = stat_cpu(f"/proc/{pid}/task/{tid}/stat")
         except OSError:  # the thread ended between the listing and the read
             continue
-        out[(int(tid), name)] = (int(fields[11]) + int(fields[12])) / _TICK
     return out
 
 
