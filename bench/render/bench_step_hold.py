@@ -1,7 +1,8 @@
 """How long a shard waits to merge parcels into one step (nprt.workers.runtime.remote,
 HOLD_RAYS and HOLD_S), how long a small parcel waits for more before it leaves (SEND_RAYS
 and SEND_S, nprt.workers.runtime.outbox), how many rays leaving make a step send before it
-ends (EMIT_RAYS), how many passes are live at once (the coordinator's window), and whether
+ends (EMIT_RAYS), how few rays left after an iteration go on in the next step once parcels
+wait (CARRY_RAYS), how many passes are live at once (the coordinator's window), and whether
 finished passes' films ride on the shards' next polls or are collected at once
 (coordinator.COLLECT_ON_POLL_FROM_K), side by side in one run: the 1-core reference, then each
 scene at one K in exact and proxy mode with each combination of settings.
@@ -22,6 +23,7 @@ the shards wait for CPU anyway, and their steps are big whatever the hold.
     python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --windows 12 48 --rounds 2
     python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --emits 0 8192 --rounds 2
     python -m bench.render.bench_step_hold --holds 16384:8 --collects now poll --rounds 3
+    python -m bench.render.bench_step_hold --k 4 --holds 16384:8 --carries 0 4096 --rounds 2
     python -m bench.render.bench_step_hold --smoke
 """
 
@@ -92,10 +94,12 @@ def bench(args) -> dict:
 
     rows = []
     saved = (remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S, remote.EMIT_RAYS,
-             coordinator.COLLECT_ON_POLL_FROM_K)
-    # (window or None: the coordinator's, hold, send, emit, collect); the first is the baseline
-    settings = [(w, h, x, e, c) for w in args.windows for h in args.holds for x in args.sends
-                for e in args.emits for c in args.collects]
+             remote.CARRY_RAYS, coordinator.COLLECT_ON_POLL_FROM_K)
+    # (window or None: the coordinator's, hold, send, emit, carry, collect); the first is the
+    # baseline
+    settings = [(w, h, x, e, cr, c) for w in args.windows for h in args.holds
+                for x in args.sends for e in args.emits for cr in args.carries
+                for c in args.collects]
     try:
         for name in args.scenes:
             scene = stored_scene(name, args.size)
@@ -113,18 +117,20 @@ def bench(args) -> dict:
                     for r in range(args.rounds):
                         # alternate the order round by round: a drift in the machine's speed
                         # then falls on every setting alike
-                        for window, hold, send, emit, collect in settings[::1 - 2 * (r % 2)]:
+                        for window, hold, send, emit, carry, collect in settings[
+                                ::1 - 2 * (r % 2)]:
                             coord.window = default_window if window is None else window
                             remote.HOLD_RAYS, remote.HOLD_S = hold
                             remote.SEND_RAYS, remote.SEND_S = send
-                            remote.EMIT_RAYS = emit
+                            remote.EMIT_RAYS, remote.CARRY_RAYS = emit, carry
                             coordinator.COLLECT_ON_POLL_FROM_K = {
                                 "poll": 1, "now": 1 << 30}.get(collect, saved[-1])
                             row, img = _render(coord, scene, s)
                             first = img if first is None else first
                             row |= {"scene": name, "hold_rays": hold[0], "hold_ms": hold[1] * 1e3,
                                     "send_rays": send[0], "send_ms": send[1] * 1e3,
-                                    "emit_rays": emit, "collect": collect,
+                                    "emit_rays": emit, "carry_rays": carry,
+                                    "collect": collect,
                                     "window": coord.window,
                                     "wall_ratio": round(row["render_s"] / ref["render_s"], 3),
                                     "cpu_ratio": round(row["cpu_s"] / ref["cpu_s"], 3),
@@ -137,7 +143,7 @@ def bench(args) -> dict:
                     coord.close()
     finally:
         (remote.HOLD_RAYS, remote.HOLD_S, remote.SEND_RAYS, remote.SEND_S,
-         remote.EMIT_RAYS, coordinator.COLLECT_ON_POLL_FROM_K) = saved
+         remote.EMIT_RAYS, remote.CARRY_RAYS, coordinator.COLLECT_ON_POLL_FROM_K) = saved
     return {"machine": {**machine(os.cpu_count()), "nproc": os.cpu_count()},
             "settings": vars(args) | {"out": str(args.out)}, "rows": rows}
 
@@ -146,7 +152,8 @@ def _line(r: dict) -> str:
     return (f"{r['scene']} {r['mode']} K={r['k']} window {r.get('window', 0):3d}, "
             f"hold {r['hold_rays']:6d} rays "
             f"{r['hold_ms']:4.1f} ms, send {r.get('send_rays', 0):5d} rays "
-            f"{r.get('send_ms', 0.0):4.1f} ms, emit {r.get('emit_rays', 0):5d} rays, "
+            f"{r.get('send_ms', 0.0):4.1f} ms, emit {r.get('emit_rays', 0):5d} rays, carry "
+            f"{r.get('carry_rays', 0):5d}, "
             f"collect {r.get('collect', 'now')}: wall {r['render_s']:6.2f} s "
             f"({r['wall_ratio']:.2f}x) cpu "
             f"{r['cpu_s']:6.1f} s ({r['cpu_ratio']:.2f}x) coordinator "
@@ -157,16 +164,18 @@ def _line(r: dict) -> str:
 
 def markdown(res: dict) -> str:
     head = ("| scene | mode | K | window | hold rays | hold ms | send rays | send ms | "
-            "emit rays | collect | render s | vs reference | CPU s | CPU vs ref | coordinator "
-            "CPU s | steps | parcels | rays / parcel | busy | Ray threads s | raylet CPU s | "
-            "same film |\n"
-            "|---|---|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|"
+            "emit rays | carry rays | collect | render s | vs reference | CPU s | CPU vs ref | "
+            "coordinator CPU s | steps | parcels | rays / parcel | busy | Ray threads s | "
+            "raylet CPU s | same film |\n"
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|"
+            "---:|"
             "---:|---|---:|---:|---|\n")
     return head + "".join(
         f"| {r['scene']} | {r['mode']} | {r['k']} | {r.get('window', '')} | {r['hold_rays']} | "
         f"{r['hold_ms']:g} | "
         f"{r.get('send_rays', 0)} | {r.get('send_ms', 0.0):g} | "
-        f"{fmt_or_blank(r.get('emit_rays'), 'd')} | {r.get('collect', '')} | "
+        f"{fmt_or_blank(r.get('emit_rays'), 'd')} | {fmt_or_blank(r.get('carry_rays'), 'd')} | "
+        f"{r.get('collect', '')} | "
         f"{r['render_s']:.2f} | "
         f"{r['wall_ratio']:.2f}x | {r['cpu_s']:.1f} | {r['cpu_ratio']:.2f}x | "
         f"{r['coordinator_cpu_s']:.2f}"
@@ -197,6 +206,10 @@ def main():
                     help="rays leaving that make a step send before it ends (0: at its end "
                          f"only), each tried with every other setting (default: "
                          f"{remote.EMIT_RAYS})")
+    ap.add_argument("--carries", nargs="+", type=int, default=[remote.CARRY_RAYS],
+                    help="fewer rays left after an iteration go on in the next step once "
+                         "parcels wait (0: never), each tried with every other setting "
+                         f"(default: {remote.CARRY_RAYS})")
     ap.add_argument("--windows", nargs="+", type=window_arg, default=[None],
                     help="live passes to compare, each with every hold and send (default: "
                          "the coordinator's own, nprt.workers.runtime.coordinator.live_window)")
@@ -210,7 +223,8 @@ def main():
     add_output_flags(ap)
     args = smoke(ap.parse_args(), scenes=["forest"], size="tiny", width=32, height=24, spp=2,
                  modes=["exact"], k=2, holds=[(0, 0.0), (1 << 30, 0.002)],
-                 sends=[(0, 0.0), (1 << 30, 1.0)], emits=[0, 1], windows=[None, 1],
+                 sends=[(0, 0.0), (1 << 30, 1.0)], emits=[0, 1], carries=[1 << 30],
+                 windows=[None, 1],
                  collects=["poll", "now"])
     res = bench(args)
     finish(res, args.out / "bench_step_hold.json", markdown=markdown, update_readme=False)

@@ -38,16 +38,20 @@ from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost, with_ray_cost
 from bench.render.vtime import collect_pass
 from nprt.workers.passes import count_tiles, iter_passes
+from nprt.workers.runtime import remote
 from nprt.workers.runtime.coordinator import live_window
 from nprt.workers.runtime.protocol import sum_credits
+from nprt.workers.runtime.remote import carry_when
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats
 from nprt.workers.wavefront.inprocess import shards_in_process
 from nprt.workers.wavefront.shard import Shard
 
 
-def run(shards: list[Shard], s: RenderSettings) -> dict:
-    """Render every pass of `s` on `shards`; returns CPU, visits, phases and the film."""
+def run(shards: list[Shard], s: RenderSettings, carry: bool = True) -> dict:
+    """Render every pass of `s` on `shards`; returns CPU, visits, phases and the film.
+    carry: a shard's few rays left after an iteration wait for its next step when rays
+    for it were sent this round (`Shard.step`, carry), as the runtime does."""
     k, tiles = len(shards), count_tiles(s)
     window = live_window(k, tiles)
     inbox: list[list] = [[] for _ in range(k)]  # per shard: (orders, parcel or None, credits)
@@ -82,7 +86,8 @@ def run(shards: list[Shard], s: RenderSettings) -> dict:
             parcels = [x for _, x, _ in work if x is not None]
             orders = [o for os_, _, _ in work for o in os_]
             t0 = time.process_time()
-            res = sh.step(orders, parcels, credits)
+            res = sh.step(orders, parcels, credits, carry=carry_when(
+                lambda box=inbox[sid]: bool(box), remote.CARRY_RAYS if carry else 0))
             dt = time.process_time() - t0
             steps += 1
             rays_in += res.rays_in
@@ -134,7 +139,7 @@ def bench(args) -> dict:
         for mode in args.modes:
             for k in args.ks:
                 s = RenderSettings(**base, shards=k, mode=mode)
-                r = run(shards_in_process(scene, s), s)
+                r = run(shards_in_process(scene, s), s, carry=not args.no_carry)
                 if k == 1 and one is None:
                     one = r
                 elif k == 1:
@@ -246,6 +251,8 @@ def main(argv=None) -> None:
     add_image_flags(ap, 320, 180, 8)
     ap.add_argument("--spp-per-pass", type=int, default=4)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
+    ap.add_argument("--no-carry", action="store_true",
+                    help="no shard carries its last few rays into its next step")
     ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     add_output_flags(ap)
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,

@@ -16,6 +16,8 @@ then, in virtual time. The rules, following workers/runtime/coordinator.py and r
   later; with `send` (`remote.SEND_RAYS`, `SEND_S`) it goes through the runtime's own
   `Outbox` first, on the virtual clock: a small one waits for the next parcels to its
   target, and everything held leaves when nothing has reached the shard by a step's end;
+- with `carry_rays`, a step leaves its last few rays to the next one once a parcel has
+  reached the shard, in virtual time (`Shard.step`, `remote.carry_when`);
 - a pass is done once its weight is back (`rpc_s` after the step that returns the last of
   it ends); the next pass is ordered then (films are collected at once, outside the
   clock).
@@ -38,16 +40,19 @@ from nprt.workers.passes import count_tiles, iter_passes, pass_at
 from nprt.workers.runtime.coordinator import live_window
 from nprt.workers.runtime.outbox import Outbox
 from nprt.workers.runtime.protocol import sum_credits
+from nprt.workers.runtime.remote import carry_when
 from nprt.workers.settings import RenderSettings
 
 
 def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps: float,
              emit_rays: int = 0, hold: tuple[int, float] = (0, 0.0),
-             send: tuple[int, float] = (0, 0.0)) -> dict:
+             send: tuple[int, float] = (0, 0.0), carry_rays: int = 0) -> dict:
     """Render every pass of s on the in-process shards in virtual time. cost: Ray's CPU per
     parcel (`raycalls.parcel_cost`); emit_rays: `remote.EMIT_RAYS`; hold: (rays, seconds),
     `remote.HOLD_RAYS` and `HOLD_S` (0 seconds: no hold); send: (rays, seconds),
-    `remote.SEND_RAYS` and `SEND_S` (0 rays: every parcel leaves at once). Returns
+    `remote.SEND_RAYS` and `SEND_S` (0 rays: every parcel leaves at once); carry_rays:
+    `remote.CARRY_RAYS` (fewer rays left after an iteration go on in the next step once a
+    parcel has reached the shard, in virtual time; 0: never). Returns
     {"wall_s": virtual render wall, "busy_s": (K,) virtual seconds each shard stepped,
     "steps", "parcels", "early_parcels", "film": (h * w, 3) float64}."""
     k, tiles = len(shards), count_tiles(s)
@@ -94,7 +99,7 @@ def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps
         t0 = max(free_at[i], inbox[i][0][0])
         if hold[1] <= 0:
             return t0
-        rays = 0
+        rays = shards[i].carried_rays
         for t, _, orders, parcel, _ in sorted(inbox[i]):
             if t > t0 + hold[1]:
                 break
@@ -122,8 +127,13 @@ def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps
         def emitted(out, c0=c0, early=early):
             early.append((time.process_time() - c0, out))
 
+        def waits(c0=c0, sid=sid, at=start + recv) -> bool:
+            """Whether a parcel reached the shard by now, into the step (its carry)."""
+            now = at + time.process_time() - c0
+            return any(it[0] <= now for it in inbox[sid])
+
         res = shards[sid].step(orders, parcels, credits, emitted if emit_rays else None,
-                               emit_rays)
+                               emit_rays, carry_when(waits, carry_rays))
         cpu = time.process_time() - c0
         sent_cpu = 0.0
         for offset, out in early:  # each leaves where it was made, after earlier sends

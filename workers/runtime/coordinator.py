@@ -414,7 +414,7 @@ class Coordinator:
                 hold = (remote.HOLD_RAYS, remote.HOLD_S)
                 send = (remote.SEND_RAYS, remote.SEND_S)
                 refs = [a.begin.remote(epoch, self.s, self.actors, self.trace is not None, hold,
-                                       send, remote.EMIT_RAYS)
+                                       send, remote.EMIT_RAYS, remote.CARRY_RAYS)
                         for a in self.actors]
                 self._incarnations = ray.get(refs, timeout=BEGIN_TIMEOUT_S)
                 self.totals = [None] * self.k

@@ -33,7 +33,13 @@ from nprt.workers.kernels.filmsum import splat
 from nprt.workers.passes import Pass, count_tiles, pass_at, tile_of
 from nprt.workers.routing.exact import DONE, nearest_unvisited, visited_bit
 from nprt.workers.routing.policies import ExactPolicy, OraclePolicy, ProxyPolicy
-from nprt.workers.runtime.protocol import EVERYWHERE, MeshRequest, Parcel, ShardConfig
+from nprt.workers.runtime.protocol import (
+    EVERYWHERE,
+    MeshRequest,
+    Parcel,
+    ShardConfig,
+    sum_credits,
+)
 from nprt.workers.settings import RenderSettings
 from nprt.workers.stats.counters import RenderStats, SplitStats
 from nprt.workers.traversal.closest import resolve_closest, resolve_closest_routed
@@ -87,13 +93,15 @@ class _PassState:
 class StepResult:
     """parcels: (k,) Parcel or None per target shard (epoch and source left to the
     caller); returned: pass index -> weight of the rays that ended here; times: the
-    step's phase times (wall and CPU)."""
+    step's phase times (wall and CPU); carried: rays (and shadow rays) this shard keeps
+    for its next step (`Shard.step`, carry), with their share of the weight."""
 
     parcels: list
     returned: dict[int, Fraction]
     times: RenderStats
     rays_in: int = 0
     bytes_in: int = 0
+    carried: int = 0
 
 
 TOKS_KEPT = 4  # pass tokens an iteration reuses: rays, shadow rays, the unoccluded, done
@@ -119,6 +127,8 @@ class _Step:
         self.credits: dict[int, Fraction] = {}
         self.emit = None
         self.emit_rays = 0
+        self.carry = None  # `Shard.step`'s carry
+        self.carried: tuple | None = None  # (rays, shadow rays) left for the next step
         self.out_camera: list = []  # per target: camera rays by name leaving (`_generate`)
 
     def tok(self, pixel: np.ndarray, of: np.ndarray | None = None, rows=None) -> np.ndarray:
@@ -189,6 +199,8 @@ class Shard:
         self.s: RenderSettings | None = None
         self.configure(config.settings)
         self.passes: dict[int, _PassState] = {}  # pass index -> its state, until collected
+        # Rays, shadow rays and weight carried into the next step (`step`, carry), or None
+        self.carried: tuple[RayBatch, ShadowRayBatch, dict[int, Fraction]] | None = None
         self.films: FilmPool | None = None  # the live passes' films (made for the tile size)
         # Proxy policy: a step's rays and shadow rays ask the proxies together
         # (`_wavefront_together`); False asks per ray kind, for tests to compare the two.
@@ -322,6 +334,12 @@ class Shard:
 
     def reset(self) -> None:
         self.passes.clear()
+        self.carried = None
+
+    @property
+    def carried_rays(self) -> int:
+        """Rays and shadow rays carried into the next step (`step`, carry)."""
+        return 0 if self.carried is None else len(self.carried[0]) + len(self.carried[1])
         if self.films is not None:
             self.films.clear()
 
@@ -341,11 +359,19 @@ class Shard:
     # -- the wavefront ---------------------------------------------------------------
 
     def step(self, orders: list[Pass], parcels: list, credits: dict[int, Fraction],
-             emit=None, emit_rays: int = 0) -> StepResult:
+             emit=None, emit_rays: int = 0, carry=None) -> StepResult:
         """Run the camera rays of `orders` and the rays of `parcels` (Parcel) as one
-        wavefront. credits: pass index -> the weight that came with them. Returns the
-        parcels for other shards (weights shared out) and the weight of passes whose
-        rays all ended here.
+        wavefront, with the rays the last step carried. credits: pass index -> the weight
+        that came with them. Returns the parcels for other shards (weights shared out) and
+        the weight of passes whose rays all ended here.
+
+        carry: None, or a callable given the rays (shadow rays included) still here after
+        an iteration, from the second on, that says whether they wait for the next step
+        (the runtime's rule: `remote.carry_when`). If so they are kept in `carried` with a
+        share of their passes' weight, as if sent to this shard, and the step ends; the
+        caller steps this shard again, and that step runs them with whatever else it
+        takes. Not a transfer: no hop, no bytes. A ray's answer does not depend on its
+        batch, nor the film on the order of its contributions: the same film.
 
         emit: None, or a callable given (k,) parcels (Parcel or None per target) that leave
         before the step ends: at the start of each iteration of the wavefront, what the
@@ -367,9 +393,18 @@ class Shard:
                 if parcels:
                     times.phase_s["transfer_wait"] += max(
                         0.0, time.time() - min(p.sent_at for p in parcels))
+                n_carried = 0
+                if self.carried is not None:  # not received: counted in no rays_in
+                    kept_rays, kept_shadow, kept_credits = self.carried
+                    self.carried = None
+                    received.append(kept_rays)
+                    shadow.append(kept_shadow)
+                    credits = sum_credits([credits, kept_credits])
+                    n_carried = len(kept_rays) + len(kept_shadow)
                 step = self._open(sorted(credits), times)
             step.credits = dict(credits)  # the weight still held here (`_emit` gives some)
             step.emit, step.emit_rays = emit, emit_rays
+            step.carry = carry
             out_rays, out_shadow = [], []  # (batch, rows, targets, tokens) leaving (`_send`)
             out_camera = step.out_camera = [[] for _ in range(self.k)]
             made = []  # the camera rays that start here
@@ -381,13 +416,13 @@ class Shard:
                         cam = self.integrator.camera_rays(*p.camera)
                         made.append(cam.replace(hops=np.ones(len(cam), np.uint8)))
             arrived, rays = _split_settled(received, made)
-            n_in = len(arrived) + len(rays) + sum(len(b) for b in shadow)
+            n_in = len(arrived) + len(rays) + sum(len(b) for b in shadow) - n_carried
             self._wavefront(step, arrived, rays, shadow, out_rays, out_shadow)
             with times.phase("send"):
                 parcels_out, returned = self._pack(step, out_rays, out_shadow, out_camera,
-                                                   step.credits)
+                                                   step.credits, carried=step.carried)
         step.stats.finish()  # after the bookkeeping phase closes: its time is shared too
-        return StepResult(parcels_out, returned, times, n_in, bytes_in)
+        return StepResult(parcels_out, returned, times, n_in, bytes_in, self.carried_rays)
 
     def _open(self, indices: list[int], times: RenderStats) -> _Step:
         """The step over these passes: their state (made on first sight) and the tile
@@ -450,7 +485,12 @@ class Shard:
         alone = not len(self.remote) and type(self.policy) is ExactPolicy
         fused = self._fused_routing()
         waiting = shadow  # shadow batches to trace, joined once (received ones too)
+        first = True
         while len(arrived) or len(rays) or any(len(b) for b in waiting):
+            if not first and self._carries(step, len(rays) + sum(len(b) for b in waiting)):
+                step.carried = (rays, ShadowRayBatch.concat(waiting))
+                return
+            first = False
             self._emit(step, out_rays, out_shadow)  # what the last iteration sent on
             if len(arrived) or len(rays):
                 rays, near = self._intersect(step, rays, alone, fused)
@@ -496,7 +536,12 @@ class Shard:
         a row does not depend on its batch (`Proxy.run`), nor the film on the order of its
         contributions (`_PassState`): the same film and counts."""
         stats = step.stats
+        first = True
         while len(arrived) or len(rays) or len(shadow):
+            if not first and self._carries(step, len(rays) + len(shadow)):
+                step.carried = (rays, shadow)
+                return
+            first = False
             self._emit(step, out_rays, out_shadow)  # what the last iteration sent on
             given = len(arrived) + len(rays) > 0
             if given:
@@ -514,6 +559,11 @@ class Shard:
                 shaded = self._shade(step, arrived, *self._leave(step, *routed_rays, out_rays))
                 arrived = RayBatch.empty()
                 shadow, rays = shaded.shadow, shaded.secondary
+
+    @staticmethod
+    def _carries(step: _Step, left: int) -> bool:
+        """Whether the `left` rays still here go to the next step (`step`, carry)."""
+        return step.carry is not None and bool(step.carry(left))
 
     def _intersect(self, step: _Step, rays: RayBatch, alone: bool, fused):
         """Count rays and intersect them here. Returns (rays, intersected; the routing
@@ -633,14 +683,20 @@ class Shard:
             step.emit(parcels)
 
     def _pack(self, step: _Step, out_rays: list, out_shadow: list, out_camera: list,
-              credits: dict[int, Fraction], keep: bool = False) -> tuple[list, dict]:
+              credits: dict[int, Fraction], keep: bool = False,
+              carried: tuple | None = None) -> tuple[list, dict]:
         """One parcel per target holding every pass's rays for it. A pass's weight is
         shared equally by the parcels that carry its rays; a pass with no ray leaving
         returns its whole weight. keep (a parcel sent before the step ends, `_emit`): the
         step keeps an equal share too, credits is updated to what it keeps, and no weight
-        is returned."""
+        is returned. carried: (rays, shadow rays) kept for the next step, which count as
+        one more target of their passes (their share goes into `self.carried`)."""
         npass = len(step.states)
         seen = np.zeros((self.k, npass), bool)  # target, pass: the pass has rays for it
+        held = np.zeros(npass, bool)  # the pass has carried rays
+        if carried is not None:
+            for batch in carried:
+                held[step.tok(batch.pixel)] = True
         rays = self._by_target(RayBatch, step, out_rays, seen, None)
         shadow = self._by_target(ShadowRayBatch, step, out_shadow, seen, SHADOW)
         cams: list = [None] * self.k
@@ -655,20 +711,25 @@ class Shard:
         parcels: list = [None] * self.k
         returned = {}
         shares: list[dict] = [{} for _ in range(self.k)]
+        kept: dict[int, Fraction] = {}  # the carried rays' weight
         by_pass = [[] for _ in step.states]  # per pass: the targets its rays go to
         for j, t in zip(*(a.tolist() for a in np.nonzero(seen.T)), strict=True):
             by_pass[j].append(t)
-        for st, targets in zip(step.states, by_pass, strict=True):
+        for st, targets, hold in zip(step.states, by_pass, held.tolist(), strict=True):
             i, w = st.pass_.index, credits[st.pass_.index]
-            if not targets:
+            if not targets and not hold:
                 if not keep:
                     returned[i] = w
                 continue
-            part = w / (len(targets) + int(keep))
+            part = w / (len(targets) + int(keep) + int(hold))
             if keep:
                 credits[i] = part
+            if hold:
+                kept[i] = part
             for t in targets:
                 shares[t][i] = part
+        if carried is not None:
+            self.carried = (*carried, kept)
         for t in range(self.k):
             if shares[t]:
                 parcels[t] = Parcel(-1, shares[t], rays[t], shadow[t], camera=cams[t])
