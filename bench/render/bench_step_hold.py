@@ -23,7 +23,7 @@ the shards wait for CPU anyway, and their steps are big whatever the hold.
     python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --windows 12 48 --rounds 2
     python -m bench.render.bench_step_hold --k 2 --holds 16384:8 --emits 0 8192 --rounds 2
     python -m bench.render.bench_step_hold --holds 16384:8 --collects now poll --rounds 3
-    python -m bench.render.bench_step_hold --k 4 --holds 16384:8 --carries 0 4096 --rounds 2
+    python -m bench.render.bench_step_hold --k 4 --holds 16384:8 --carries 0 1048576 --rounds 2
     python -m bench.render.bench_step_hold --smoke
 """
 

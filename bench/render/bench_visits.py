@@ -20,6 +20,7 @@ distort. It is a model: the grouping of rays into steps is this loop's, not a li
 
     python -m bench.render.bench_visits                          # forest, city; 320x180 8 spp
     python -m bench.render.bench_visits --scenes forest --ks 1 4 --modes exact
+    python -m bench.render.bench_visits --scenes city --ks 1 8 --modes proxy --step-cap 500
     python -m bench.render.bench_visits --smoke
 """
 
@@ -48,10 +49,13 @@ from nprt.workers.wavefront.inprocess import shards_in_process
 from nprt.workers.wavefront.shard import Shard
 
 
-def run(shards: list[Shard], s: RenderSettings, carry: bool = True) -> dict:
+def run(shards: list[Shard], s: RenderSettings, carry: bool = True, cap: int = 0) -> dict:
     """Render every pass of `s` on `shards`; returns CPU, visits, phases and the film.
     carry: a shard's few rays left after an iteration wait for its next step when rays
-    for it were sent this round (`Shard.step`, carry), as the runtime does."""
+    for it were sent this round (`Shard.step`, carry), as the runtime does. cap: a step
+    takes parcels up to this many rays, the rest wait a round (0: no cap): the same rays
+    in more, smaller steps, as on dedicated cores, whose extra CPU is the steps' fixed
+    cost."""
     k, tiles = len(shards), count_tiles(s)
     window = live_window(k, tiles)
     inbox: list[list] = [[] for _ in range(k)]  # per shard: (orders, parcel or None, credits)
@@ -78,6 +82,16 @@ def run(shards: list[Shard], s: RenderSettings, carry: bool = True) -> dict:
         # cores would at once: a parcel sent this round waits for the next (no chain of
         # steps within a round, which the model would replay as serial).
         arrived, inbox = inbox, [[] for _ in range(k)]
+        for sid in range(k) if cap else ():  # what is past the cap waits, orders never
+            kept, n = [], 0
+            for item in arrived[sid]:
+                rays = 0 if item[1] is None else item[1].n_rays
+                if kept and not item[0] and n + rays > cap:
+                    inbox[sid].append(item)
+                else:
+                    kept.append(item)
+                    n += rays
+            arrived[sid] = kept
         for sid, sh in enumerate(shards):
             if not arrived[sid]:
                 continue
@@ -139,7 +153,8 @@ def bench(args) -> dict:
         for mode in args.modes:
             for k in args.ks:
                 s = RenderSettings(**base, shards=k, mode=mode)
-                r = run(shards_in_process(scene, s), s, carry=not args.no_carry)
+                r = run(shards_in_process(scene, s), s, carry=not args.no_carry,
+                        cap=args.step_cap)
                 if k == 1 and one is None:
                     one = r
                 elif k == 1:
@@ -253,10 +268,13 @@ def main(argv=None) -> None:
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--no-carry", action="store_true",
                     help="no shard carries its last few rays into its next step")
+    ap.add_argument("--step-cap", type=int, default=0,
+                    help="rays a step takes at most, the rest wait a round (0: no cap): "
+                         "the cost of smaller steps")
     ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8, 16])
     add_output_flags(ap)
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,
-                 spp=1, spp_per_pass=1, ks=[1, 2], modes=["exact"])
+                 spp=1, spp_per_pass=1, ks=[1, 2], modes=["exact"], step_cap=16)
     res = bench(args)
     finish(res, args.out / "bench_visits.json", plot=plot, markdown=markdown,
            section="bench_visits", update_readme=not args.no_readme,

@@ -14,6 +14,10 @@ process, and runs the shard as a mailbox:
   if it is waiting).
   A small parcel may wait in the shard's `Outbox` to leave with a later parcel for the
   same target;
+- a step whose own rays stay here bounces them again (another iteration) until they end
+  or leave; once parcels wait in the inbox, the rays left after an iteration go on in
+  the next step instead, with those parcels (`Shard.step`, carry; CARRY_RAYS), so the
+  small later bounces share an iteration's fixed cost with the new arrivals;
 - the weight of passes whose rays ended here waits until `poll` (a long poll the
   coordinator keeps outstanding) hands it back with the shard's CPU and phase totals.
 
@@ -74,12 +78,15 @@ SEND_S = 0.02
 EMIT_RAYS = 8192
 # A step's rays that stay on their shard bounce again in the same step (another iteration of
 # the wavefront), and each iteration has a fixed cost (kernel and onnxruntime calls, batch
-# glue: about 1 ms in proxy mode and 0.4 ms in exact, in one process at K = 8), while the
-# later iterations are small (city at K = 8: medians of 340, 180 and 90 rays from the third).
-# Once parcels wait in the shard's inbox, fewer than CARRY_RAYS rays left after an iteration
-# go on in the next step, with those (`carry_when`; 0: never). The coordinator hands it to
-# `begin`.
-CARRY_RAYS = 4096
+# glue: in one process at K = 8, about 6 ms a step in proxy mode and 2.3 ms in exact, a step
+# running about five iterations), while the later iterations are small (city at K = 8:
+# medians of 340, 180 and 90 rays from the third). Once parcels wait in the shard's inbox,
+# the rays left after an iteration (if fewer than CARRY_RAYS) go on in the next step, with
+# those (`carry_when`; 0: never). The coordinator hands it to `begin`. In the dedicated-core
+# model at K = 8 (bench/README.md, "A step's last bounces go on in the next step"), carrying
+# whatever is left beat carrying under 4,096 rays in proxy mode in 6 of 6 paired rounds
+# (city, forest, windy) and in exact mode in 2 of 4. 2^20 carries, in effect, whatever is left.
+CARRY_RAYS = 1 << 20
 
 
 def carry_when(waiting, carry_rays: int):
