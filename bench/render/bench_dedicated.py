@@ -5,8 +5,9 @@ on K cores, each shard holding for more rays as the runtime does (`remote.HOLD_R
 `HOLD_S`; `--hold 0:0` for none) and small parcels waiting in its outbox for company
 (`remote.SEND_RAYS`, `SEND_S`; `--send 0:0` for none; before 2026-11-27 the model sent
 every parcel at once). Each K runs twice: parcels only at a step's end, and
-also during a long step (`remote.EMIT_RAYS`); `--carries on off` runs each also without
-carrying a step's last few rays into the next step (`Shard.step`, carry). What it answers
+also during a long step (`remote.EMIT_RAYS`); `--carries 0 1048576` runs each also without
+carrying what a step has left into the shard's next step (`Shard.step`, carry; the number is
+`remote.CARRY_RAYS`, 0: never). What it answers
 on a machine with few cores: how the wall falls with K, and what sending during a step
 does where no core waits for another's CPU.
 
@@ -57,14 +58,13 @@ def bench(args) -> dict:
                                    shards=k, mode=mode, byte_slack=args.byte_slack)
                 shards = shards_in_process(scene, s)
                 runs = [(e, c) for e in ([0] if k == 1 else args.emits)
-                        for c in (["on"] if k == 1 else args.carries)]
+                        for c in ([remote.CARRY_RAYS] if k == 1 else args.carries)]
                 for emit, carry in runs:
                     r = simulate(shards, s, cost, FALLBACK_RPC_S, MODEL_LINK_BPS, emit,
-                                 args.hold, args.send,
-                                 remote.CARRY_RAYS if carry == "on" else 0)
+                                 args.hold, args.send, carry)
                     one = r if k == 1 else one
                     row = {"scene": name, "mode": mode, "k": k, "emit_rays": emit,
-                           "carry": carry == "on",
+                           "carry_rays": carry,
                            "wall_s": round(r["wall_s"], 3),
                            "busy": [round(float(b / r["wall_s"]), 3) for b in r["busy_s"]],
                            "steps": r["steps"], "parcels": r["parcels"],
@@ -83,10 +83,16 @@ def bench(args) -> dict:
 
 def _line(r: dict) -> str:
     return (f"{r['scene']} {r['mode']:6s} K={r['k']:2d} emit {r['emit_rays']:5d} carry "
-            f"{'on' if r.get('carry', False) else 'off'}: wall "
+            f"{_carry(r)}: wall "
             f"{r['wall_s']:7.3f} s = x{r.get('vs_one_shard', 1.0):.3f} of one shard, busy "
             f"{np.mean(r['busy']):.2f}, steps {r['steps']}, parcels {r['parcels']} "
             f"({r['early_parcels']} during a step)")
+
+
+def _carry(r: dict) -> str:
+    """A row's carry setting: CARRY_RAYS, or off (0, or a run from before it existed)."""
+    rays = r.get("carry_rays", 0)
+    return f"{rays:,}" if rays else "off"
 
 
 def markdown(res: dict) -> str:
@@ -106,7 +112,7 @@ def markdown(res: dict) -> str:
     for r in res["rows"]:
         same = r.get("same_film_as_one_shard")
         out.append(f"| {r['scene']} | {r['mode']} | {r['k']} | {r['emit_rays']} | "
-                   f"{'on' if r.get('carry', False) else 'off'} | "
+                   f"{_carry(r)} | "
                    f"{r['wall_s']:.2f} | {r.get('vs_one_shard', 1.0):.3f}x | "
                    f"{np.mean(r['busy']):.2f}, {min(r['busy']):.2f} | {r['steps']} | "
                    f"{r['parcels']} | {r['early_parcels']} | "
@@ -127,15 +133,15 @@ def plot(res: dict, png) -> None:
     for ax, name in zip(axes[0], scenes, strict=True):
         rows = [r for r in res["rows"] if r["scene"] == name and "vs_one_shard" in r]
         for mode, marker in (("exact", "o"), ("proxy", "s")):
-            carries = sorted({r.get("carry", False) for r in rows if r["k"] > 1})
+            carries = sorted({r.get("carry_rays", 0) for r in rows if r["k"] > 1})
             for emit in sorted({r["emit_rays"] for r in rows if r["k"] > 1}):
                 for carry in carries:
                     rs = [r for r in rows if r["mode"] == mode and (r["k"] == 1 or (
-                        r["emit_rays"] == emit and r.get("carry", False) == carry))]
+                        r["emit_rays"] == emit and r.get("carry_rays", 0) == carry))]
                     if len(rs) > 1:
                         label = f"{mode}, {'sends during a step' if emit else 'end only'}"
                         if len(carries) > 1:
-                            label += ", carry" if carry else ", no carry"
+                            label += f", carry {carry:,}" if carry else ", no carry"
                         ax.plot([r["k"] for r in rs], [r["vs_one_shard"] for r in rs],
                                 marker + ("-" if emit else "--"), alpha=1.0 if carry else 0.5,
                                 label=label)
@@ -173,9 +179,10 @@ def main(argv=None) -> None:
                          f"{remote.SEND_S * 1e3:g}; 0:0 for none)")
     ap.add_argument("--emits", type=int, nargs="+", default=[0, remote.EMIT_RAYS],
                     help="EMIT_RAYS settings to compare at each K > 1 (0: at a step's end)")
-    ap.add_argument("--carries", nargs="+", choices=["on", "off"], default=["on"],
-                    help="carrying a step's last few rays into the next step (the runtime: "
-                         "on) to compare at each K > 1")
+    ap.add_argument("--carries", nargs="+", type=int, default=[remote.CARRY_RAYS],
+                    help="CARRY_RAYS settings to compare at each K > 1: what a step has left "
+                         "goes on in the next step once parcels wait, if fewer (0: never; "
+                         f"default: the runtime's, {remote.CARRY_RAYS})")
     add_byte_slack_flag(ap)
     add_output_flags(ap)
     args = smoke(ap.parse_args(argv), scenes=["forest"], size="tiny", width=32, height=24,

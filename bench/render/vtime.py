@@ -97,9 +97,9 @@ def simulate(shards: list, s: RenderSettings, cost: dict, rpc_s: float, link_bps
         """When shard i steps next on what is known to reach it. Every other shard starts
         no earlier (the loop takes the earliest), so nothing sent later arrives before."""
         t0 = max(free_at[i], inbox[i][0][0])
-        if hold[1] <= 0:
+        if hold[1] <= 0 or shards[i].carried_rays:  # carried rays do not wait (remote.py)
             return t0
-        rays = shards[i].carried_rays
+        rays = 0
         for t, _, orders, parcel, _ in sorted(inbox[i]):
             if t > t0 + hold[1]:
                 break

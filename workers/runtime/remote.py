@@ -77,15 +77,16 @@ SEND_S = 0.02
 # starts on them during the step rather than after it. The coordinator hands it to `begin`.
 EMIT_RAYS = 8192
 # A step's rays that stay on their shard bounce again in the same step (another iteration of
-# the wavefront), and each iteration has a fixed cost (kernel and onnxruntime calls, batch
-# glue: in one process at K = 8, about 6 ms a step in proxy mode and 2.3 ms in exact, a step
-# running about five iterations), while the later iterations are small (city at K = 8:
-# medians of 340, 180 and 90 rays from the third). Once parcels wait in the shard's inbox,
-# the rays left after an iteration (if fewer than CARRY_RAYS) go on in the next step, with
-# those (`carry_when`; 0: never). The coordinator hands it to `begin`. In the dedicated-core
-# model at K = 8 (bench/README.md, "A step's last bounces go on in the next step"), carrying
-# whatever is left beat carrying under 4,096 rays in proxy mode in 6 of 6 paired rounds
-# (city, forest, windy) and in exact mode in 2 of 4. 2^20 carries, in effect, whatever is left.
+# the wavefront). Each iteration has a fixed cost (kernel and onnxruntime calls, batch glue),
+# and the later ones are small: in one process at K = 8 a step costs 5.6-7.2 ms beyond its
+# rays in proxy mode and 2.1-3.3 ms in exact (`bench_visits --step-cap`), and runs about five
+# iterations, of median 340, 180 and 90 rays from the third (city). Once parcels wait in the
+# shard's inbox, the rays left after an iteration (if fewer than CARRY_RAYS) go on in the
+# next step, with those (`carry_when`; 0: never). The coordinator hands it to `begin`. In
+# the dedicated-core model at K = 8 (bench/README.md, "A step's last bounces go on in the
+# next step"), carrying whatever is left beat carrying under 4,096 rays in proxy mode in 6
+# of 6 paired rounds (city, forest, windy) and in exact mode in 2 of 4; 2^20 carries, in
+# effect, whatever is left.
 CARRY_RAYS = 1 << 20
 
 
@@ -273,10 +274,12 @@ class ShardActor:
 
     def _held_enough(self, epoch: int | None) -> bool:
         """Whether a holding wavefront thread steps now (with self._cv held): rays enough,
-        orders (camera rays come in passes: already a big batch), or the run ended."""
-        carried = self._shard.carried_rays if self._shard is not None else 0
+        orders (camera rays come in passes: already a big batch), rays carried from the last
+        step (they would have run in it: a carry regroups rays, it never makes them wait),
+        or the run ended."""
         return (self._epoch != epoch or any(p.orders for p in self._inbox)
-                or carried + sum(p.n_rays for p in self._inbox) >= self._hold[0])
+                or (self._shard is not None and self._shard.carried_rays > 0)
+                or sum(p.n_rays for p in self._inbox) >= self._hold[0])
 
     def _loop(self) -> None:
         name_os_thread(WAVEFRONT_THREAD)
