@@ -13,7 +13,7 @@ from nprt.scene.store import open_scene
 from nprt.workers.passes import iter_passes
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
-from tests.workers.pass_totals import pass_totals
+from tests.workers.pass_totals import deliver, pass_totals
 
 NET_CALLS = "proxy_net_calls"
 
@@ -30,12 +30,7 @@ def _render(shards, s: RenderSettings) -> tuple[list[bytes], list[dict]]:
             for sid, (orders, parcels, credits) in sorted(arrived.items()):
                 res = shards[sid].step(orders, parcels, credits)
                 back += sum(res.returned.values(), Fraction(0))
-                for t, out in enumerate(res.parcels):
-                    if out is not None:
-                        _, got, owed = inbox.setdefault(t, ([], [], {}))
-                        got.append(out)
-                        for i, w in out.credits.items():
-                            owed[i] = owed.get(i, Fraction(0)) + w
+                deliver(inbox, res.parcels)
         assert back == 1  # every ray of the pass ended
         film, summed = pass_totals(shards, p)
         films.append(film)

@@ -16,7 +16,7 @@ from nprt.workers.passes import iter_passes
 from nprt.workers.runtime.remote import CARRY_RAYS, carry_when
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
-from tests.workers.pass_totals import pass_totals
+from tests.workers.pass_totals import deliver, pass_totals
 
 
 def _render(shards, s: RenderSettings, carry: bool):
@@ -39,12 +39,7 @@ def _render(shards, s: RenderSettings, carry: bool):
                 carried += res.carried > 0
                 assert (res.carried > 0) == (sh.carried is not None)
                 back += sum(res.returned.values(), Fraction(0))
-                for t, out in enumerate(res.parcels):
-                    if out is not None:
-                        _, got, owed = inbox.setdefault(t, ([], [], {}))
-                        got.append(out)
-                        for i, w in out.credits.items():
-                            owed[i] = owed.get(i, Fraction(0)) + w
+                deliver(inbox, res.parcels)
         assert back == 1  # all of the pass's weight came back, once
         film, summed = pass_totals(shards, p)
         films.append(film)

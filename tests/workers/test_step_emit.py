@@ -14,7 +14,7 @@ from nprt.scene.store import open_scene
 from nprt.workers.passes import iter_passes
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
-from tests.workers.pass_totals import pass_totals
+from tests.workers.pass_totals import deliver, pass_totals
 
 
 def _render(shards, s: RenderSettings, emit_rays: int | None):
@@ -44,15 +44,9 @@ def _render(shards, s: RenderSettings, emit_rays: int | None):
 def _deliver(inbox: dict, early: list | None, parcels: list) -> None:
     """Parcels ((k,) Parcel or None) into the next round's inbox; early: a [count] of
     parcels sent before their step ended, or None."""
-    for t, out in enumerate(parcels):
-        if out is None:
-            continue
-        if early is not None:
-            early[0] += 1
-        _, got, owed = inbox.setdefault(t, ([], [], {}))
-        got.append(out)
-        for i, w in out.credits.items():
-            owed[i] = owed.get(i, Fraction(0)) + w
+    sent = deliver(inbox, parcels)
+    if early is not None:
+        early[0] += sent
 
 
 @pytest.mark.parametrize("scene, mode, k", [("forest:small", "exact", 3),
