@@ -90,5 +90,7 @@ def test_a_step_carries_only_when_asked_and_only_a_few_rays():
     sent = sum((sum(x.credits.values(), Fraction(0)) for x in res.parcels if x is not None),
                Fraction(0))
     assert kept > 0 and kept + sent + sum(res.returned.values(), Fraction(0)) == 1
-    sh.reset()
+    generation = sh.films.generation
+    sh.reset()  # drops the carried rays with the passes' state and films
     assert sh.carried is None and sh.carried_rays == 0
+    assert sh.films.generation == generation + 1

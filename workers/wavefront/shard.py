@@ -335,13 +335,13 @@ class Shard:
     def reset(self) -> None:
         self.passes.clear()
         self.carried = None
+        if self.films is not None:
+            self.films.clear()
 
     @property
     def carried_rays(self) -> int:
         """Rays and shadow rays carried into the next step (`step`, carry)."""
         return 0 if self.carried is None else len(self.carried[0]) + len(self.carried[1])
-        if self.films is not None:
-            self.films.clear()
 
     def collect(self, indices: list[int]) -> list[tuple]:
         """[(pass index, FilmSums of n_pixels or None, stats dict)] of finished
