@@ -1,8 +1,8 @@
 """How long a shard waits to merge parcels into one step (nprt.workers.runtime.remote,
 HOLD_RAYS and HOLD_S), how long a small parcel waits for more before it leaves (SEND_RAYS
 and SEND_S, nprt.workers.runtime.outbox), how many rays leaving make a step send before it
-ends (EMIT_RAYS), how few rays left after an iteration go on in the next step once parcels
-wait (CARRY_RAYS), how many passes are live at once (the coordinator's window), and whether
+ends (EMIT_RAYS), up to how many rays left after an iteration go on in the next step once
+parcels wait (CARRY_RAYS), how many passes are live at once (the coordinator's window), and whether
 finished passes' films ride on the shards' next polls or are collected at once
 (coordinator.COLLECT_ON_POLL_FROM_K), side by side in one run: the 1-core reference, then each
 scene at one K in exact and proxy mode with each combination of settings.

@@ -51,8 +51,9 @@ from nprt.workers.wavefront.shard import Shard
 
 def run(shards: list[Shard], s: RenderSettings, carry: bool = True, cap: int = 0) -> dict:
     """Render every pass of `s` on `shards`; returns CPU, visits, phases and the film.
-    carry: a shard's few rays left after an iteration wait for its next step when rays
-    for it were sent this round (`Shard.step`, carry), as the runtime does. cap: a step
+    carry: what a shard's step has left after an iteration waits for its next step when
+    rays for it were sent this round (`Shard.step`, carry; `remote.CARRY_RAYS`), as the
+    runtime does. cap: a step
     takes parcels up to this many rays, the rest wait a round (0: no cap): the same rays
     in more, smaller steps, as on dedicated cores, whose extra CPU is the steps' fixed
     cost."""
@@ -267,7 +268,8 @@ def main(argv=None) -> None:
     ap.add_argument("--spp-per-pass", type=int, default=4)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--no-carry", action="store_true",
-                    help="no shard carries its last few rays into its next step")
+                    help="no step carries what it has left after an iteration into the "
+                         "shard's next step (remote.CARRY_RAYS)")
     ap.add_argument("--step-cap", type=int, default=0,
                     help="rays a step takes at most, the rest wait a round (0: no cap): "
                          "the cost of smaller steps")

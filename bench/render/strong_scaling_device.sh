@@ -14,6 +14,8 @@
 # CPU the machine itself adds to a render when that many run at once (one round each).
 # THREADS=city:8 (say) then runs bench_shard_threads for that scene and K (both modes):
 # the shards' CPU split by thread (the wavefront thread, Ray's Python and C++ threads).
+# CARRIES=city:8 (say) then runs bench_step_hold for that scene and K (both modes), with and
+# without carrying a step's leftover rays into the next step (remote.CARRY_RAYS), one round.
 # PACK=FILE tars the results folder into FILE after each run. A lent machine hands back
 # at most 8 files, so there: PACK=$OUT/res.tgz OUT=/tmp/res bash ... (in that order: the
 # device's $OUT is expanded first); what a cut run left still comes back.
@@ -47,6 +49,13 @@ if [ -n "${THREADS:-}" ]; then
   python3 -m bench.render.bench_shard_threads --scenes "${THREADS%%:*}" --k "${THREADS#*:}" \
     --no-readme --out "$OUT" 2>&1 | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/threads.log"
   echo "threads done at $(( $(date +%s) - t0 )) s"
+  if [ -n "${PACK:-}" ]; then tar -czf "$PACK" -C "$OUT" .; fi
+fi
+if [ -n "${CARRIES:-}" ]; then
+  python3 -m bench.render.bench_step_hold --scenes "${CARRIES%%:*}" --k "${CARRIES#*:}" \
+    --holds 16384:8 --carries 0 1048576 --rounds 1 --no-readme --out "$OUT" 2>&1 \
+    | grep -v -E '^\(|WARNING|INFO' | tee -a "$OUT/carries.log"
+  echo "carries done at $(( $(date +%s) - t0 )) s"
   if [ -n "${PACK:-}" ]; then tar -czf "$PACK" -C "$OUT" .; fi
 fi
 for spec in "$@"; do

@@ -16,8 +16,9 @@ then, in virtual time. The rules, following workers/runtime/coordinator.py and r
   later; with `send` (`remote.SEND_RAYS`, `SEND_S`) it goes through the runtime's own
   `Outbox` first, on the virtual clock: a small one waits for the next parcels to its
   target, and everything held leaves when nothing has reached the shard by a step's end;
-- with `carry_rays`, a step leaves its last few rays to the next one once a parcel has
-  reached the shard, in virtual time (`Shard.step`, `remote.carry_when`);
+- with `carry_rays`, a step leaves what it has left after an iteration to the shard's next
+  step once a parcel has reached the shard, in virtual time, and a shard with carried rays
+  steps without holding (`Shard.step`, `remote.carry_when`);
 - a pass is done once its weight is back (`rpc_s` after the step that returns the last of
   it ends); the next pass is ordered then (films are collected at once, outside the
   clock).

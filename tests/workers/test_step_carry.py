@@ -1,9 +1,9 @@
-"""A step that carries its last few rays into the shard's next step (`Shard.step`, carry; on
-Ray whenever parcels already wait in the shard's inbox) only regroups rays into steps: every
-pass's weight still comes back exactly once, and the film and every statistic (rays, ray
-transfers and bytes, hops, counters) are those of steps that run every ray to its end, but
-the onnxruntime calls made (`proxy_net_calls`: a call per mesh a batch asks about, and the
-batches are grouped otherwise)."""
+"""A step that carries what it has left after an iteration into the shard's next step
+(`Shard.step`, carry; on Ray once parcels wait in the shard's inbox) only regroups rays into
+steps: every pass's weight still comes back exactly once, and the film and every statistic
+(rays, ray transfers and bytes, hops, counters) are those of steps that run every ray to its
+end, but the onnxruntime calls made (`proxy_net_calls`: a call per mesh a batch asks about,
+and the batches are grouped otherwise)."""
 
 from __future__ import annotations
 
