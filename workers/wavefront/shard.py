@@ -420,7 +420,7 @@ class Shard:
             self._wavefront(step, arrived, rays, shadow, out_rays, out_shadow)
             with times.phase("send"):
                 parcels_out, returned = self._pack(step, out_rays, out_shadow, out_camera,
-                                                   step.credits, carried=step.carried)
+                                                   step.credits)
         step.stats.finish()  # after the bookkeeping phase closes: its time is shared too
         return StepResult(parcels_out, returned, times, n_in, bytes_in, self.carried_rays)
 
@@ -683,17 +683,18 @@ class Shard:
             step.emit(parcels)
 
     def _pack(self, step: _Step, out_rays: list, out_shadow: list, out_camera: list,
-              credits: dict[int, Fraction], keep: bool = False,
-              carried: tuple | None = None) -> tuple[list, dict]:
+              credits: dict[int, Fraction], keep: bool = False) -> tuple[list, dict]:
         """One parcel per target holding every pass's rays for it. A pass's weight is
         shared equally by the parcels that carry its rays; a pass with no ray leaving
         returns its whole weight. keep (a parcel sent before the step ends, `_emit`): the
         step keeps an equal share too, credits is updated to what it keeps, and no weight
-        is returned. carried: (rays, shadow rays) kept for the next step, which count as
-        one more target of their passes (their share goes into `self.carried`)."""
+        is returned. The step's carried rays (`step.carried`, set when its wavefront stops:
+        never during an `_emit`) count as one more target of their passes; their share goes
+        into `self.carried`."""
         npass = len(step.states)
         seen = np.zeros((self.k, npass), bool)  # target, pass: the pass has rays for it
         held = np.zeros(npass, bool)  # the pass has carried rays
+        carried = step.carried
         if carried is not None:
             for batch in carried:
                 held[step.tok(batch.pixel)] = True
