@@ -480,9 +480,10 @@ class Shard:
             return self._wavefront_together(step, arrived, rays, ShadowRayBatch.concat(shadow),
                                             out_rays, out_shadow)
         stats = step.stats
-        # Every instance is here and the policy forwards only to other shards' instances
-        # (the reference): every ray ends here, so routing and visited bits are skipped.
-        alone = not len(self.remote) and type(self.policy) is ExactPolicy
+        # Every instance is here (the reference, or any policy at K = 1: a proxy answers
+        # only for boxes elsewhere): every ray ends here, so routing and visited bits are
+        # skipped. Proxy mode at K = 1 spent 6-14 % more CPU than exact without this.
+        alone = not len(self.remote)
         fused = self._fused_routing()
         waiting = shadow  # shadow batches to trace, joined once (received ones too)
         first = True
