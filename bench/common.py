@@ -262,6 +262,19 @@ def stored_scene(name: str, size: str):
     return open_scene(name if size == "default" else f"{name}:{size}")
 
 
+def placeable_ks(ks, scene, name: str) -> list[int]:
+    """The shard counts of ks that `scene` (Scene or SceneMeta) can be placed on: a shard
+    owns one instance or more, so K above the instance count is skipped with a line that
+    says so, instead of failing the run after its smaller K (the default K list follows
+    the machine's cores, not the scene)."""
+    n = len(scene.instances)
+    kept = [k for k in ks if k <= n]
+    if len(kept) < len(ks):
+        print(f"{name}: {n} instances, so K = {', '.join(str(k) for k in ks if k > n)} "
+              f"skipped (a shard owns one instance or more)", flush=True)
+    return kept
+
+
 def add_output_flags(ap, out: Path = RESULTS) -> None:
     """--out, --no-readme and --smoke (the smallest input; never writes a README)."""
     ap.add_argument("--out", type=Path, default=out)

@@ -33,6 +33,7 @@ from bench.common import (
     add_output_flags,
     finish,
     machine,
+    placeable_ks,
     smoke,
     stored_scene,
 )
@@ -53,7 +54,7 @@ def bench(args) -> dict:
         scene = stored_scene(name, args.size).load()
         for mode in args.modes:
             one = None
-            for k in args.ks:
+            for k in placeable_ks(args.ks, scene, name):
                 s = RenderSettings(width=args.width, height=args.height, spp=args.spp, seed=0,
                                    shards=k, mode=mode, byte_slack=args.byte_slack)
                 shards = shards_in_process(scene, s)

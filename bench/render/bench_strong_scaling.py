@@ -44,6 +44,7 @@ from bench.common import (
     finish,
     fmt_or_blank,
     machine,
+    placeable_ks,
     quality,
     smoke,
     stored_scene,
@@ -134,7 +135,7 @@ def bench(args) -> dict:
         rows.append(ref)
         print(_line(ref), flush=True)
         dist, runs = [], []
-        for k in args.ks:
+        for k in placeable_ks(args.ks, loaded, name):
             exact_img = None
             for mode in args.modes:
                 row, img, run = run_one(scene, RenderSettings(**base, shards=k, mode=mode))

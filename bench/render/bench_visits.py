@@ -33,7 +33,15 @@ from fractions import Fraction
 
 import numpy as np
 
-from bench.common import add_image_flags, add_output_flags, finish, machine, smoke, stored_scene
+from bench.common import (
+    add_image_flags,
+    add_output_flags,
+    finish,
+    machine,
+    placeable_ks,
+    smoke,
+    stored_scene,
+)
 from bench.network.netmodel import film_bytes, replay
 from bench.render.bench_strong_scaling import FALLBACK_RPC_S, MODEL_LINK_BPS
 from bench.render.raycalls import parcel_cost, with_ray_cost
@@ -152,7 +160,7 @@ def bench(args) -> dict:
                     spp_per_pass=args.spp_per_pass)
         one = None
         for mode in args.modes:
-            for k in args.ks:
+            for k in placeable_ks(args.ks, scene, name):
                 s = RenderSettings(**base, shards=k, mode=mode)
                 r = run(shards_in_process(scene, s), s, carry=not args.no_carry,
                         cap=args.step_cap)
