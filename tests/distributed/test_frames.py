@@ -74,8 +74,8 @@ def test_proxy_frames_train_nothing_after_the_first(ray_local, windy, monkeypatc
     seen, pids = [], []
     try:
         # K = 4: at K = 2 and 3 every instance of windy:small that is not replicated (its
-        # light meshes are: lighter than a proxy) lands on one shard, which holds them all
-        # and asks no proxy, and the other shard's rays all go there.
+        # light meshes are: lighter than a proxy) lands on one shard, and no shard asks a
+        # proxy (no proxy counter at all, in process).
         for done in render_frames(windy, settings(4, mode="proxy"), range(windy.frames),
                                   pools=pools, proxy_dir=tmp_path / "proxies"):
             seen.append((len(plans), len(lookups), len(trained)))
