@@ -54,7 +54,7 @@ def test_stale_metadata_is_recomputed_and_a_changed_mesh_is_refused(scene_cache)
 
 def test_each_shard_loads_only_its_meshes(ray_local, scene_cache, monkeypatch):
     # city: 11 meshes, and in proxy mode only the ground and the lightest building are
-    # replicated (at `small`, forest replicates every tree but pine, so one shard holds all).
+    # replicated (at `small`, forest replicates every tree but pine).
     meta = open_scene("city:small")
     refuse_mesh_reads(monkeypatch)
     for k, mode in ((2, "exact"), (3, "proxy")):

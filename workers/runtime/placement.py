@@ -67,20 +67,36 @@ def lighter_than_a_proxy(meta: SceneMeta, settings: RenderSettings) -> list[int]
 
 def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
                    trainer=None) -> Placement:
-    """Plan K shards for `scene` (a Scene or SceneMeta) from its metadata only."""
+    """Plan K shards for `scene` (a Scene or SceneMeta) from its metadata only.
+
+    The partition balances ray work over the meshes that are not copied to every shard.
+    In proxy (and oracle) mode the plan may copy more meshes (a proxy that outweighs its
+    mesh, nprt.proxies.policy), and those may be all a shard was given: forest:small at
+    K = 8 left five shards with no instance of their own, idle while the others worked.
+    So the partition is made again with them copied, until the plan copies nothing new
+    (the copied set only grows, so at most once per mesh; once in practice)."""
     meta = SceneMeta.of(scene)
     k = settings.shards
-    tiny = lighter_than_a_proxy(meta, settings) if k > 1 else []
-    part = partition(meta, k, replicated=tiny, byte_slack=settings.byte_slack)
-    owner = np.asarray(part.instance_shard, np.int32).copy()
-    held = [set(m) for m in part.shard_meshes]
-    plan, proxies = None, {}
-    replicated = {m for m in tiny if all(m in h for h in held)}
-    if settings.mode in ("proxy", "oracle"):
+    copied = set(lighter_than_a_proxy(meta, settings)) if k > 1 else set()
+    plan = None
+    while True:
+        part = partition(meta, k, replicated=sorted(copied), byte_slack=settings.byte_slack)
+        if settings.mode not in ("proxy", "oracle"):
+            break
         # The oracle bounds the proxy mode, so it gets the same placement: meshes
         # lighter than their proxy are replicated (it trains nothing to learn that).
-        plan = make_plan(meta, part, settings, proxy_dir, train=settings.mode == "proxy",
-                         trainer=trainer)
+        plan = _kept(plan, make_plan(meta, part, settings, proxy_dir,
+                                     train=settings.mode == "proxy", trainer=trainer))
+        if plan.replicated <= copied:
+            break
+        copied |= plan.replicated
+    owner = np.asarray(part.instance_shard, np.int32).copy()
+    held = [set(m) for m in part.shard_meshes]
+    # A mesh to copy is copied only where the partition took it as such (it does not with
+    # fewer instances of other meshes than shards), and wherever the plan says so.
+    replicated = {m for m in copied if all(m in h for h in held)}
+    proxies = {}
+    if plan is not None:
         proxies = plan.proxies if settings.mode == "proxy" else {}
         replicated |= plan.replicated
     for m in sorted(replicated):  # cheaper to copy than to model, or to forward rays to
@@ -88,3 +104,17 @@ def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
         for h in held:
             h.add(m)
     return Placement(meta, part, owner, [tuple(sorted(h)) for h in held], plan, proxies)
+
+
+def _kept(before, plan):
+    """`plan`, keeping an earlier plan's `replicate` decisions: once copied to every shard,
+    the partition gives those meshes to all of them, and a new plan would only say so
+    ("held by all K shards"), not why they are copied."""
+    if before is None:
+        return plan
+    from nprt.proxies.policy import ProxyPlan
+
+    decisions = [b if b.decision == "replicate" else d
+                 for b, d in zip(before.decisions, plan.decisions, strict=True)]
+    return ProxyPlan(decisions, plan.proxies, before.replicated | plan.replicated,
+                     plan.target_accuracy)
