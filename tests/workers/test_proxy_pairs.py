@@ -13,7 +13,7 @@ from nprt.scene.model import Camera, Instance, Scene
 from nprt.scene.store import open_scene
 from nprt.workers.routing import proxy_pairs
 from nprt.workers.routing.proxy_query import Query, QueryKnobs, predict, predict_together
-from nprt.workers.settings import RenderSettings
+from nprt.workers.settings import ProxySettings, RenderSettings
 from nprt.workers.traversal.toplevel import InstanceTable
 from nprt.workers.wavefront.inprocess import shards_in_process
 from tests.workers import proxy_oracles as oracle
@@ -183,9 +183,11 @@ def test_decide_gives_the_numpy_bits_ties_included(seed):
 @pytest.fixture(scope="module", params=["forest:small", "city:small"])
 def policies(request):
     """Every shard's ProxyPolicy of a small demo at K = 3 (shipped proxies; the tiny demos
-    replicate every mesh)."""
+    replicate every mesh), at an accuracy target forest's tree proxies meet (at the default
+    the plan copies those trees to every shard, and no shard would model anything)."""
     scene = open_scene(request.param).load()
-    s = RenderSettings(width=8, height=8, spp=1, shards=3, mode="proxy")
+    s = RenderSettings(width=8, height=8, spp=1, shards=3, mode="proxy",
+                       proxy=ProxySettings(accuracy_target=0.9))
     return [(sh.world, sh.policy) for sh in shards_in_process(scene, s, warm=False)]
 
 

@@ -21,14 +21,17 @@ import json, sys
 from nprt.scene.demos import make_demo
 from nprt.workers.kernels import crossings
 from nprt.workers.routing import net_rows, proxy_pairs
-from nprt.workers.settings import RenderSettings
+from nprt.workers.settings import ProxySettings, RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
 
 mode, k = sys.argv[1], int(sys.argv[2])
 kernels = {"occluded_walk": crossings.occluded_walk, "walk_queries": proxy_pairs.walk_queries,
            "decide": proxy_pairs.decide_queries, "net_inputs": net_rows.net_inputs,
            "deep_inputs": net_rows.deep_inputs, "net_answers": net_rows.net_answers}
-s = RenderSettings(width=64, height=48, spp=1, mode=mode, shards=k)
+# An accuracy target forest:small's tree proxies meet: at the default the plan copies the
+# trees to every shard, and no shard would model anything.
+s = RenderSettings(width=64, height=48, spp=1, mode=mode, shards=k,
+                   proxy=ProxySettings(accuracy_target=0.9))
 shards = shards_in_process(make_demo("forest", "small"), s, warm=False)
 before = {n: len(f.signatures) for n, f in kernels.items()}
 for sh in shards:
