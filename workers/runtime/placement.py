@@ -70,8 +70,9 @@ def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
     """Plan K shards for `scene` (a Scene or SceneMeta) from its metadata only.
 
     The partition balances ray work over the meshes that are not copied to every shard.
-    In proxy (and oracle) mode the plan may copy more meshes (a proxy that outweighs its
-    mesh, nprt.proxies.policy), and those may be all a shard was given: forest:small at
+    In proxy (and oracle) mode the plan may copy more meshes (its proxy outweighs it, or no
+    width meets the accuracy target and it is lighter than the widest proxy:
+    nprt.proxies.policy), and those may be all a shard was given: forest:small at
     K = 8 left five shards with no instance of their own, idle while the others worked.
     So the partition is made again with them copied, until the plan copies nothing new
     (the copied set only grows, so at most once per mesh; once in practice)."""
