@@ -41,3 +41,19 @@ def test_exact_mode_places_as_before(forest_small):
     placed = plan_placement(forest_small, RenderSettings(width=16, height=12, shards=4))
     assert placed.plan is None and placed.proxies == {}
     assert np.bincount(placed.owner[placed.owner != EVERYWHERE], minlength=4).min() >= 1
+
+
+def test_a_scene_in_memory_trains_its_missing_proxies_here(tmp_path):
+    """With no trainer (in-process shards: benchmarks, tests), the plan trains the proxies
+    the cache lacks from the Scene's own meshes. It was handed the scene's metadata, which
+    has no vertices, so every training failed and every mesh was traced exactly."""
+    from nprt.scene.demos.family import build
+    from nprt.workers.settings import ProxySettings
+
+    scene = build("tiny")
+    s = RenderSettings(width=16, height=12, shards=2, mode="proxy",
+                       proxy=ProxySettings(width=16, steps=20))
+    placed = plan_placement(scene, s, proxy_dir=tmp_path)
+    failed = [d.reason for d in placed.plan.decisions if "failed" in d.reason]
+    assert failed == []
+    assert placed.proxies, [(d.name, d.decision, d.reason) for d in placed.plan.decisions]

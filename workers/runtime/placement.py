@@ -86,7 +86,9 @@ def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
             break
         # The oracle bounds the proxy mode, so it gets the same placement: meshes
         # lighter than their proxy are replicated (it trains nothing to learn that).
-        plan = _kept(plan, make_plan(meta, part, settings, proxy_dir,
+        # The scene as given: a Scene's meshes are trained here when no trainer is given
+        # (the metadata has no vertices); the pool passes metadata and a trainer.
+        plan = _kept(plan, make_plan(scene, part, settings, proxy_dir,
                                      train=settings.mode == "proxy", trainer=trainer))
         if plan.replicated <= copied:
             break
