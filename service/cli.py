@@ -16,7 +16,7 @@ from nprt.scene.errors import SceneError
 from nprt.scene.partition import BYTE_SLACK
 from nprt.service.logconfig import add_log_flags
 from nprt.service.preflight import CliError
-from nprt.workers.settings import ProxySettings
+from nprt.workers.settings import SPP_PER_PASS, ProxySettings
 
 log = logging.getLogger(__name__)
 # RenderSettings fields whose flag is not "--" + the field name with dashes.
@@ -64,7 +64,7 @@ def _add_settings_flags(p: argparse.ArgumentParser, **defaults) -> None:
     p.add_argument("--mode", choices=["exact", "proxy", "oracle"],
                    default=defaults.get("mode", "exact"), help="traversal policy of the shards")
     p.add_argument("--tile-size", type=int, default=64, help="tile edge, pixels")
-    p.add_argument("--spp-per-pass", type=int, default=defaults.get("spp_per_pass", 4),
+    p.add_argument("--spp-per-pass", type=int, default=defaults.get("spp_per_pass", SPP_PER_PASS),
                    help="samples per pixel that one pass renders")
     p.add_argument("--byte-slack", type=float, default=BYTE_SLACK,
                    help="a shard may hold this times the geometry bytes of the largest shard "

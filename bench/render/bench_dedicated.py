@@ -43,7 +43,7 @@ from bench.render.raycalls import parcel_cost
 from bench.render.vtime import simulate
 from nprt.scene.partition import BYTE_SLACK
 from nprt.workers.runtime import remote
-from nprt.workers.settings import RenderSettings
+from nprt.workers.settings import SPP_PER_PASS, RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
 
 
@@ -56,7 +56,8 @@ def bench(args) -> dict:
             one = None
             for k in placeable_ks(args.ks, scene, name):
                 s = RenderSettings(width=args.width, height=args.height, spp=args.spp, seed=0,
-                                   shards=k, mode=mode, byte_slack=args.byte_slack)
+                                   spp_per_pass=args.spp_per_pass, shards=k, mode=mode,
+                                   byte_slack=args.byte_slack)
                 shards = shards_in_process(scene, s)
                 runs = [(e, c) for e in ([0] if k == 1 else args.emits)
                         for c in ([remote.CARRY_RAYS] if k == 1 else args.carries)]
@@ -168,6 +169,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench.render.bench_dedicated",
                                  description=__doc__.splitlines()[0])
     add_image_flags(ap)
+    ap.add_argument("--spp-per-pass", type=int, default=SPP_PER_PASS)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--ks", type=int, nargs="+", default=[1, 2, 4, 8],
                     help="shard counts; the first should be 1 (the baseline)")

@@ -52,7 +52,7 @@ from bench.common import (  # noqa: E402
 from nprt.scene.demos import DEMOS, make_demo  # noqa: E402
 from nprt.scene.model import Scene  # noqa: E402
 from nprt.workers.render import render  # noqa: E402
-from nprt.workers.settings import RenderSettings  # noqa: E402
+from nprt.workers.settings import SPP_PER_PASS, RenderSettings  # noqa: E402
 from nprt.workers.wavefront.batch import KIND_NAMES  # noqa: E402
 
 log = logging.getLogger(__name__)
@@ -283,7 +283,7 @@ def main(argv=None) -> int:
     ap.add_argument("--width", type=int, default=160)
     ap.add_argument("--height", type=int, default=None, help="default: 3/4 of the width")
     ap.add_argument("--spp", type=int, default=4)
-    ap.add_argument("--spp-per-pass", type=int, default=4)
+    ap.add_argument("--spp-per-pass", type=int, default=SPP_PER_PASS)
     ap.add_argument("--bounces", type=int, default=5)
     ap.add_argument("--shadow-rays", type=int, default=4)
     ap.add_argument("--tile-size", type=int, default=64)

@@ -51,7 +51,7 @@ from bench.common import (
     timed_render,
 )
 from bench.network.netmodel import film_bytes, fit_rpc_s, replay, step_cpu
-from nprt.workers.settings import RenderSettings
+from nprt.workers.settings import SPP_PER_PASS, RenderSettings
 
 TARGETS = {"proxy_k8_wall": 0.3, "exact_k8_wall": 0.5, "proxy_cpu": 2.0, "exact_cpu": 3.0,
            "coordinator_cpu_share": 0.05, "exact_k2_wall_2core": 0.8, "proxy_k2_wall_2core": 0.65}
@@ -318,7 +318,7 @@ def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench.render.bench_strong_scaling",
                                  description=__doc__)
     add_image_flags(ap)
-    ap.add_argument("--spp-per-pass", type=int, default=4)
+    ap.add_argument("--spp-per-pass", type=int, default=SPP_PER_PASS)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--ref-runs", type=int, default=1,
                     help="runs of the reference per scene: the first before the distributed "

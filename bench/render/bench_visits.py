@@ -51,7 +51,7 @@ from nprt.workers.runtime import remote
 from nprt.workers.runtime.coordinator import live_window
 from nprt.workers.runtime.protocol import sum_credits
 from nprt.workers.runtime.remote import carry_when
-from nprt.workers.settings import RenderSettings
+from nprt.workers.settings import SPP_PER_PASS, RenderSettings
 from nprt.workers.stats.counters import RenderStats
 from nprt.workers.wavefront.inprocess import shards_in_process
 from nprt.workers.wavefront.shard import Shard
@@ -273,7 +273,7 @@ def main(argv=None) -> None:
                                  description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     add_image_flags(ap, 320, 180, 8)
-    ap.add_argument("--spp-per-pass", type=int, default=4)
+    ap.add_argument("--spp-per-pass", type=int, default=SPP_PER_PASS)
     ap.add_argument("--modes", nargs="+", default=["exact", "proxy"])
     ap.add_argument("--no-carry", action="store_true",
                     help="no step carries what it has left after an iteration into the "
