@@ -81,7 +81,7 @@ class ProxySettings(BaseModel):
 # a tail of small steps before the tile's next pass may start. 16 (was 4) puts 4x the rays
 # in each live pass: at 640x360, 16 spp (60 tiles), K = 8 in one process, exact CPU
 # 1.26-1.64x the one-shard CPU instead of 1.38-2.00x and proxy 1.53-1.64x instead of
-# 1.80-1.99x, with 4-5x fewer steps (bench/README.md, "Bigger passes"). A progressive
+# 1.80-1.99x, with about 4x fewer steps (bench/README.md, "Bigger passes"). A progressive
 # preview refines every 16 samples; pass --spp-per-pass 1 for a first look sooner.
 SPP_PER_PASS = 16
 
