@@ -84,7 +84,8 @@ MAX_PASS_ATTEMPTS = 4
 # 11), on 2 cores at 640x360, K = 2 shards were busy 0.66-0.79 of the wall; at 24 (48 live)
 # 0.79-0.94, with 10-15 % less CPU at K = 2 and 4 (bench/README.md, "A wider window"). A
 # live pass holds a film slot on each shard it visits: tile_size^2 x 48 bytes, 192 KiB at
-# 64-pixel tiles.
+# 64-pixel tiles; and its paths' rays, about 330 bytes a path in flight: 24 passes of
+# 64-pixel, 16-sample tiles are about 0.5 GB a shard (bench/README.md, "Bigger passes").
 WINDOW_PER_SHARD = 24
 MIN_WINDOW = 4
 POLL_S = 0.25  # a shard's long poll; also how often a cancel is noticed
