@@ -112,4 +112,6 @@ class RenderSettings(BaseModel):
     def _check(self):
         if self.mode != "exact" and self.shards == 0:
             raise ValueError(f"mode {self.mode!r} needs shards >= 1 (got shards=0)")
+        if self.spp_per_pass > self.spp:  # the same passes; a job then says what it renders
+            object.__setattr__(self, "spp_per_pass", self.spp)
         return self

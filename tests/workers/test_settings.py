@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from pydantic import ValidationError
 
-from nprt.workers.settings import RenderSettings
+from nprt.workers.settings import SPP_PER_PASS, RenderSettings
 
 
 @pytest.mark.parametrize("field,value", [
@@ -41,3 +41,16 @@ def test_defaults_are_valid_and_frozen():
     assert s.width >= 1 and s.spp >= 1
     with pytest.raises(ValidationError):
         s.spp = 0
+
+
+def test_a_pass_never_holds_more_samples_than_the_job():
+    """spp_per_pass above spp renders the same passes (one chunk of spp samples); the
+    settings then say so, so a job's record and its memory estimate count what it renders."""
+    from nprt.workers.passes import count_passes
+
+    s = RenderSettings(width=100, height=70, spp=4)
+    assert s.spp_per_pass == 4 and s == RenderSettings(width=100, height=70, spp=4,
+                                                       spp_per_pass=4)
+    assert count_passes(s) == count_passes(RenderSettings(width=100, height=70, spp=4,
+                                                          spp_per_pass=1000))
+    assert RenderSettings(spp=64).spp_per_pass == SPP_PER_PASS
