@@ -103,7 +103,7 @@ def settings_from_args(a: argparse.Namespace):
         width=a.width, height=a.height, spp=a.spp, bounces=a.bounces,
         shadow_rays=a.shadow_rays, seed=a.seed, russian_roulette=a.russian_roulette,
         shards=a.shards, mode=a.mode, tile_size=a.tile_size,
-        spp_per_pass=min(a.spp_per_pass, max(a.spp, 1)),  # a bad --spp: one error
+        spp_per_pass=a.spp_per_pass,  # above --spp it is --spp (RenderSettings)
         byte_slack=a.byte_slack,
         proxy=ProxySettings(threshold=a.threshold, width=a.proxy_width, steps=a.proxy_steps,
                             check=a.check, **{k: v for k, v in (

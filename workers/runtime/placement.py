@@ -67,7 +67,8 @@ def lighter_than_a_proxy(meta: SceneMeta, settings: RenderSettings) -> list[int]
 
 def plan_placement(scene, settings: RenderSettings, proxy_dir=None,
                    trainer=None) -> Placement:
-    """Plan K shards for `scene` (a Scene or SceneMeta) from its metadata only.
+    """Plan K shards for `scene` (a Scene or SceneMeta) from its metadata; a Scene's meshes
+    are read only to train the proxies it lacks when no trainer is given.
 
     The partition balances ray work over the meshes that are not copied to every shard.
     In proxy (and oracle) mode the plan may copy more meshes (its proxy outweighs it, or no
