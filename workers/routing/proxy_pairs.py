@@ -13,24 +13,27 @@ import numpy as np
 from numba import njit
 
 from nprt.proxies.lineenc import _fmax, _fmin
-from nprt.workers.kernels.bvh import _next_leaf, _slab
+from nprt.workers.kernels.bvh import _flat_slabs, _next_leaf, _slab
 from nprt.workers.kernels.nearest import ray_line
 
 JIT = {"cache": True, "nogil": True, "error_model": "numpy"}
 
 
 @njit(**JIT)
-def walk_queries(origin, direction, tmax, world_boxes, bvh, col_of, members, owner, visited,
-                 use_visited, w2l, bounds, mesh_of, has_m):
+def walk_queries(origin, direction, tmax, world_boxes, bvh, col_of, members, flat, owner,
+                 visited, use_visited, w2l, bounds, mesh_of, has_m):
     """`InstanceTable.box_entries` of the rays against the boxes `members` (k,) int64 (the
     same world slab test, crossings ray-major and then in the order of `members`), less
     the boxes on shards in visited (n,) uint64 (when use_visited; owner (m,) int32), then
     `box_queries` of each crossing, in one pass: the pairs whose local box the ray crosses
     (the only ones `decide` and the nets look at), and nothing else.
 
-    origin, direction (n, 3) float64; tmax (n,) float32; world_boxes (m, 2, 3) float64 and
-    bvh (`bvh_build`'s arrays over them), walked when col_of (m,) int32 (each box's position
-    in members, -1: not asked) has any entry >= 0, else a plain loop over members; w2l,
+    origin, direction (n, 3) float64; tmax (n,) float32; world_boxes (m, 2, 3) float64.
+    flat (6, k) float64, the members' boxes as rows lo x, y, z, hi x, y, z, or (6, 0):
+    with columns, every ray tests all of them in one branch-free loop that vectorises (the
+    local walk's `FLAT_WALK_MAX` choice; the slab test's crossings). Else bvh
+    (`bvh_build`'s arrays over world_boxes) is walked when col_of (m,) int32 (each box's
+    position in members, -1: not asked) has any entry >= 0, else a plain loop; w2l,
     bounds as in `box_queries`; mesh_of (m,) int32 base mesh of each instance, has_m
     (meshes,) bool (a proxy answers for it). Returns, per kept pair: ray (p,) int64, inst
     (p,) int32, mesh (p,) int64, has (p,) bool, and box_queries' internal, t_box, length,
@@ -39,7 +42,10 @@ def walk_queries(origin, direction, tmax, world_boxes, bvh, col_of, members, own
     (meshes + 1,) int64."""
     n, k = origin.shape[0], members.shape[0]
     node_box, node_child, node_start, node_count, prim = bvh
-    walk = col_of.shape[0] > 0 and node_child.shape[0] > 0
+    use_flat = flat.shape[1] > 0
+    walk = not use_flat and col_of.shape[0] > 0 and node_child.shape[0] > 0
+    plain = use_flat and not np.isnan(flat).any()  # `_flat_slabs` may skip NaN handling
+    f_te, f_ok = np.empty(flat.shape[1]), np.empty(flat.shape[1], np.bool_)
     stack = np.empty(node_child.shape[0] + 1, np.int32)
     hit_col = np.empty(k, np.int64)  # one ray's crossings, by position in members
     cap = 4 * n + k + 16
@@ -55,7 +61,13 @@ def walk_queries(origin, direction, tmax, world_boxes, bvh, col_of, members, own
         tm = np.float64(tmax[r])
         seen = visited[r] if use_visited else np.uint64(0)
         h = 0
-        if walk and finite:
+        if use_flat:  # crossings come out in position order
+            _flat_slabs(flat, plain, o0, o1, o2, i0, i1, i2, tm, f_te, f_ok)
+            for j in range(k):
+                if f_ok[j] and not (seen >> np.uint64(owner[members[j]])) & np.uint64(1):
+                    hit_col[h] = j
+                    h += 1
+        elif walk and finite:
             top, lo, hi = _next_leaf(bvh, stack, -1, line, tm)
             while lo < hi:
                 for x in range(lo, hi):

@@ -11,6 +11,7 @@ import numpy as np
 
 from nprt.workers.kernels.bvh import bvh_build
 from nprt.workers.routing import net_rows, proxy_pairs
+from nprt.workers.traversal.toplevel import FLAT_WALK_MAX
 from nprt.workers.wavefront.world import ShardWorld
 
 
@@ -106,7 +107,7 @@ def predict_together(world: ShardWorld, proxies: dict, remote: np.ndarray,
     if off[-1] == 0 or len(remote) == 0:
         return [nothing_asked(best_t[a:b], best_i[a:b])
                 for a, b in zip(off[:-1], off[1:], strict=True)], 0
-    boxes, bvh, col_of, members, ids, owner, w2l, bounds, mesh_of = _walk_inputs(
+    boxes, bvh, col_of, members, flat, ids, owner, w2l, bounds, mesh_of = _walk_inputs(
         table, world.owner, remote)
     use_visited = any(q.visited is not None for q in queries)
     visited = np.zeros(0, np.uint64)
@@ -119,7 +120,7 @@ def predict_together(world: ShardWorld, proxies: dict, remote: np.ndarray,
     (ray, inst, mesh, has, internal, t_box, length, point, qdir, grouped,
      start) = proxy_pairs.walk_queries(
         origin, np.ascontiguousarray(direction, np.float64), tmax, boxes, bvh, col_of,
-        members, owner, visited, use_visited, w2l, bounds, mesh_of, banks[0].has)
+        members, flat, owner, visited, use_visited, w2l, bounds, mesh_of, banks[0].has)
     inst = ids[inst]  # positions in the asked set -> instance ids
     # Pairs come ray-major: each query's are a slice, and each its own threshold.
     cut = np.searchsorted(ray, off)
@@ -171,12 +172,19 @@ def _walk_inputs(table, owner: np.ndarray, remote: np.ndarray) -> tuple:
     """`walk_queries`' arrays for the instances remote (k,) of table, restricted to them:
     their world boxes (k, 2, 3) and a BVH over those alone (the table's BVH also holds this
     shard's boxes, which the walk would visit only to skip: 10-20 % of the walk's CPU at
-    K = 8), col_of and members the positions 0..k-1, ids (k,) int32 each position's instance
-    id (walk_queries' inst are positions), owner, w2l, bounds and mesh_of of those ids.
-    The walk meets the same boxes in the same order: crossings are sorted by position, and
-    a box passing the slab test is reached through any BVH over it (`bvh._node_hit`).
-    Without the table's BVH (few or non-finite boxes) the walk's plain loop, as before.
-    Kept per table, set and owners: a shard asks about the same instances at every step."""
+    K = 8), col_of and members the positions 0..k-1, flat (6, k) float64 the boxes for the
+    walk's flat loop where k <= FLAT_WALK_MAX or there is no BVH ((6, 0): walk the BVH),
+    ids (k,) int32 each position's instance id (walk_queries' inst are positions), owner,
+    w2l, bounds and mesh_of of those ids. Every way meets the same boxes in the same
+    order: crossings are sorted by position, and a box passing the slab test is reached
+    through any BVH over it (`bvh._node_hit`).
+
+    The flat loop, as in the local walk: the walk alone (same rays, same crossings) on
+    renders' captured queries, flat against BVH CPU: city K = 8 (62 boxes) 0.137 / 0.259
+    s, city K = 2 (28) 0.085 / 0.213, forest K = 8 (62) 0.096 / 0.172, the held-out
+    foliage K = 8 (12 interpenetrating boxes) 0.042 / 0.233 (bench/README.md, "The proxy
+    walk's flat loop"). Kept per table, set and owners: a shard asks about the same
+    instances at every step."""
     got = _WALKS.get(id(table))
     if got is None or got[0]() is not table:
         key = id(table)
@@ -188,15 +196,17 @@ def _walk_inputs(table, owner: np.ndarray, remote: np.ndarray) -> tuple:
         return hit
     boxes, bvh, col_of, members, w2l, bounds, mesh_of = table.pair_inputs(remote)
     ids = np.array(members, np.int32)
-    if len(col_of):
-        boxes = np.ascontiguousarray(boxes[members])
+    boxes = np.ascontiguousarray(boxes[ids])
+    members = np.arange(len(ids), dtype=np.int64)
+    flat = np.zeros((6, 0))
+    if len(col_of) and len(ids) > FLAT_WALK_MAX:
         bvh = bvh_build(boxes)
-        col_of = np.arange(len(members), dtype=np.int32)
-        members = np.arange(len(members), dtype=np.int64)
-    else:  # the plain loop, over the members' rows alone as well
-        members = np.arange(len(ids), dtype=np.int64)
-        boxes = np.ascontiguousarray(boxes[ids])
-    hit = (boxes, bvh, col_of, members, ids, np.ascontiguousarray(owner[ids], np.int32),
+        col_of = np.arange(len(ids), dtype=np.int32)
+    else:  # one flat loop over the members' boxes; no BVH
+        flat = np.ascontiguousarray(boxes.reshape(len(ids), 6).T)
+        col_of = np.zeros(0, np.int32)
+    hit = (boxes, bvh, col_of, members, flat, ids,
+           np.ascontiguousarray(owner[ids], np.int32),
            np.ascontiguousarray(w2l[ids]), np.ascontiguousarray(bounds[ids]),
            np.ascontiguousarray(mesh_of[ids]))
     if len(got[1]) >= 8:  # a shard asks about one or two sets
