@@ -89,7 +89,8 @@ def test_walk_queries_keep_the_crossed_pairs_of_box_entries(seed, asked):
     the local box is crossed: the same pairs in the same order with the same bits, through
     the BVH (more than BVH_MIN_INSTANCES boxes asked) or the plain loop (few, or repeated),
     and through the vectorised flat loop over the same boxes, with and without visited
-    masks, rays with NaN and inf components included."""
+    masks, directions as float64 or as the float32 the rays carry, rays with NaN and inf
+    components included."""
     rng = np.random.default_rng(seed)
     table = _table(rng)
     origin, direction, tmax = _rays(rng, table, 3000)
@@ -104,13 +105,14 @@ def test_walk_queries_keep_the_crossed_pairs_of_box_entries(seed, asked):
     boxes, bvh, col_of, members, w2l, bounds, mesh_of = table.pair_inputs(remote)
     assert (len(col_of) > 0) == (asked == "bvh")
     flats = (np.zeros((6, 0)), np.ascontiguousarray(boxes[members].reshape(-1, 6).T))
-    for visited, flat in itertools.product(
-            (None, rng.integers(0, 32, len(origin)).astype(np.uint64)), flats):
+    for visited, flat, d_type in itertools.product(
+            (None, rng.integers(0, 32, len(origin)).astype(np.uint64)), flats,
+            (np.float64, np.float32)):
         ray, inst = oracle.asked_boxes(world, remote, origin, direction, tmax, visited)
         q = oracle.box_queries(table, inst, origin[ray], direction[ray], tmax[ray])
         keep = q.crosses
         got = proxy_pairs.walk_queries(
-            origin, direction.astype(np.float64), tmax, boxes, bvh, col_of, members, flat,
+            origin, direction.astype(d_type), tmax, boxes, bvh, col_of, members, flat,
             owner, np.zeros(0, np.uint64) if visited is None else visited,
             visited is not None, w2l, bounds, mesh_of, has_m)
         mesh = table.mesh[inst[keep]].astype(np.int64)

@@ -28,7 +28,9 @@ def walk_queries(origin, direction, tmax, world_boxes, bvh, col_of, members, fla
     `box_queries` of each crossing, in one pass: the pairs whose local box the ray crosses
     (the only ones `decide` and the nets look at), and nothing else.
 
-    origin, direction (n, 3) float64; tmax (n,) float32; world_boxes (m, 2, 3) float64.
+    origin (n, 3) float64, direction (n, 3) float32 or float64 (a float32 one is read as
+    its float64 values: a copy per call saved); tmax (n,) float32; world_boxes (m, 2, 3)
+    float64.
     flat (6, k) float64, the members' boxes as rows lo x, y, z, hi x, y, z, or (6, 0):
     with columns, every ray tests all of them in one branch-free loop that vectorises (the
     local walk's `FLAT_WALK_MAX` choice; the slab test's crossings). Else bvh
@@ -129,11 +131,12 @@ def _grow(a, p, cap):
 
 @njit(**JIT)
 def box_queries(ray, inst, origin, direction, tmax, w2l, bounds):
-    """ray (p,) int64, inst (p,) int32 pairs; origin, direction (n, 3) float64 world;
-    tmax (n,) float32; w2l (m, 3, 4) float64 world to local; bounds (m, 2, 3) float64 local
-    boxes. Returns, per pair: crosses (p,) bool (meets the local box before tmax), internal
-    (p,) bool (origin inside), t_box (p,) float64 world t of the query point (entry, or exit
-    when internal), length (p,) float64 local units per world unit, point, qdir (p, 3)
+    """ray (p,) int64, inst (p,) int32 pairs; origin (n, 3) float64 and direction (n, 3)
+    float64 or float32 world; tmax (n,) float32; w2l (m, 3, 4) float64 world to local;
+    bounds (m, 2, 3) float64 local boxes. Returns, per pair: crosses (p,) bool (meets the
+    local box before tmax), internal (p,) bool (origin inside), t_box (p,) float64 world t
+    of the query point (entry, or exit when internal), length (p,) float64 local units per
+    world unit, point, qdir (p, 3)
     float32 local query point and unit direction (reversed when internal)."""
     p = len(inst)
     crosses = np.empty(p, np.bool_)

@@ -119,8 +119,8 @@ def predict_together(world: ShardWorld, proxies: dict, remote: np.ndarray,
     # mesh. Pairs whose local box the ray misses are dropped there: no rule looks at them.
     (ray, inst, mesh, has, internal, t_box, length, point, qdir, grouped,
      start) = proxy_pairs.walk_queries(
-        origin, np.ascontiguousarray(direction, np.float64), tmax, boxes, bvh, col_of,
-        members, flat, owner, visited, use_visited, w2l, bounds, mesh_of, banks[0].has)
+        origin, direction, tmax, boxes, bvh, col_of, members, flat, owner, visited,
+        use_visited, w2l, bounds, mesh_of, banks[0].has)
     inst = ids[inst]  # positions in the asked set -> instance ids
     # Pairs come ray-major: each query's are a slice, and each its own threshold.
     cut = np.searchsorted(ray, off)
