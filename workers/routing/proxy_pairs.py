@@ -136,8 +136,8 @@ def box_queries(ray, inst, origin, direction, tmax, w2l, bounds):
     bounds (m, 2, 3) float64 local boxes. Returns, per pair: crosses (p,) bool (meets the
     local box before tmax), internal (p,) bool (origin inside), t_box (p,) float64 world t
     of the query point (entry, or exit when internal), length (p,) float64 local units per
-    world unit, point, qdir (p, 3)
-    float32 local query point and unit direction (reversed when internal)."""
+    world unit, point, qdir (p, 3) float32 local query point and unit direction (reversed
+    when internal)."""
     p = len(inst)
     crosses = np.empty(p, np.bool_)
     internal = np.empty(p, np.bool_)
