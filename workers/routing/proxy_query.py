@@ -179,12 +179,13 @@ def _walk_inputs(table, owner: np.ndarray, remote: np.ndarray) -> tuple:
     order: crossings are sorted by position, and a box passing the slab test is reached
     through any BVH over it (`bvh._node_hit`).
 
-    The flat loop, as in the local walk: the walk alone (same rays, same crossings) on
-    renders' captured queries, flat against BVH CPU: city K = 8 (62 boxes) 0.137 / 0.259
-    s, city K = 2 (28) 0.085 / 0.213, forest K = 8 (62) 0.096 / 0.172, the held-out
-    foliage K = 8 (12 interpenetrating boxes) 0.042 / 0.233 (bench/README.md, "The proxy
-    walk's flat loop"). Kept per table, set and owners: a shard asks about the same
-    instances at every step."""
+    The flat loop, as in the local walk: `bench_proxy_walk` replays a render's walks both
+    ways (the same pairs), flat over BVH CPU 0.54x / 0.71x in city at K = 2 / 8 (36 / 62
+    remote boxes at most), 0.60x / 0.74x in forest and windy (46 / 68), 0.49-0.50x on the
+    held-out foliage scene (12-14 interpenetrating boxes, whose BVH nodes overlap and cull
+    little; bench/README.md, "The proxy walk's flat loop"). Above FLAT_WALK_MAX the BVH,
+    as in the local walk (not measured for this walk). Kept per table, set and owners: a
+    shard asks about the same instances at every step."""
     got = _WALKS.get(id(table))
     if got is None or got[0]() is not table:
         key = id(table)
