@@ -30,10 +30,9 @@ def walk_queries(origin, direction, tmax, world_boxes, bvh, col_of, members, fla
 
     origin (n, 3) float64, direction (n, 3) float32 or float64 (a float32 one is read as
     its float64 values: a copy per call saved); tmax (n,) float32; world_boxes (m, 2, 3)
-    float64.
-    flat (6, k) float64, the members' boxes as rows lo x, y, z, hi x, y, z, or (6, 0):
-    with columns, every ray tests all of them in one branch-free loop that vectorises (the
-    local walk's `FLAT_WALK_MAX` choice; the slab test's crossings). Else bvh
+    float64. flat (6, k) float64, the members' boxes as rows lo x, y, z, hi x, y, z, or
+    (6, 0): with columns, every ray tests all of them in one branch-free loop that
+    vectorises (the local walk's `FLAT_WALK_MAX` choice; the slab test's crossings). Else bvh
     (`bvh_build`'s arrays over world_boxes) is walked when col_of (m,) int32 (each box's
     position in members, -1: not asked) has any entry >= 0, else a plain loop; w2l,
     bounds as in `box_queries`; mesh_of (m,) int32 base mesh of each instance, has_m
