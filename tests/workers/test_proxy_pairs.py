@@ -13,7 +13,7 @@ import trimesh
 
 from nprt.scene.model import Camera, Instance, Scene
 from nprt.scene.store import open_scene
-from nprt.workers.routing import proxy_pairs
+from nprt.workers.routing import proxy_pairs, proxy_query
 from nprt.workers.routing.proxy_query import Query, QueryKnobs, predict, predict_together
 from nprt.workers.settings import ProxySettings, RenderSettings
 from nprt.workers.traversal.toplevel import InstanceTable
@@ -198,12 +198,19 @@ def policies(request):
     return [(sh.world, sh.policy) for sh in shards_in_process(scene, s, warm=False)]
 
 
-def test_predict_gives_the_numpy_oracles_answers_on_a_scene(policies):
+@pytest.mark.parametrize("walk", ["flat", "bvh"])
+def test_predict_gives_the_numpy_oracles_answers_on_a_scene(policies, walk, monkeypatch):
+    """Field by field, the bits of the numpy formulas, with the remote boxes walked in the
+    flat loop (up to FLAT_WALK_MAX, every demo here) and through a BVH over them (above)."""
+    monkeypatch.setattr(proxy_query, "FLAT_WALK_MAX", 10**9 if walk == "flat" else 0)
+    monkeypatch.setattr(proxy_query, "_WALKS", {})  # the inputs are kept per asked set
     rng = np.random.default_rng(3)
     fields = ("t", "inst", "uncertain", "internal", "ambiguous", "first_open", "asked_ray",
               "asked_mesh")
     asked = 0
     for world, policy in policies:
+        flat = proxy_query._walk_inputs(world.table, world.owner, policy.modeled)[4]
+        assert (flat.shape[1] > 0) == (walk == "flat")
         origin, direction, tmax = _rays(rng, world.table, 4000)
         visited = rng.integers(0, 8, len(origin)).astype(np.uint64)
         for knobs in (policy.secondary, policy.shadow,
