@@ -26,7 +26,7 @@ import numpy as np
 from bench.common import add_image_flags, add_output_flags, finish, machine, smoke, stored_scene
 from bench.render.bench_visits import run
 from nprt.workers.kernels.bvh import bvh_build
-from nprt.workers.routing import proxy_pairs, proxy_query
+from nprt.workers.routing import proxy_pairs
 from nprt.workers.settings import RenderSettings
 from nprt.workers.wavefront.inprocess import shards_in_process
 
@@ -100,7 +100,6 @@ def bench(args) -> dict:
             if not calls:
                 raise SystemExit(f"{name} K={k}: no proxy walk to time (no shard asks a "
                                  "proxy: every mesh held or replicated)")
-            proxy_query._WALKS.clear()  # the shards' cached inputs go with them
             row = {"scene": name, "k": k, **time_calls(calls)}
             rows.append(row)
             print(_line(row), flush=True)
