@@ -33,7 +33,7 @@ def add_serve_parsers(subparsers) -> None:
         ("serve", cmd_serve, "run the REST + gRPC render service",
          "REST (and /docs, dashboard at /) in API worker processes, gRPC in a process of its "
          "own, and a scheduler process that renders; other settings come from NPRT_* "
-         "variables.", "; -1 disables gRPC"),
+         "variables.", "; 0: a free one, logged; -1 disables gRPC"),
         ("grpc", cmd_grpc, "run the gRPC server alone",
          "An API worker for gRPC only (`nprt serve` starts one beside its HTTP workers): "
          "stores, reads and watches the jobs of a data directory; renders nothing.", ""))
@@ -42,7 +42,7 @@ def add_serve_parsers(subparsers) -> None:
         p.add_argument("--host", default="127.0.0.1", help="bind address")
         p.add_argument("--grpc-port", type=int, default=50051, help="gRPC port" + disable)
     p = subparsers.choices["serve"]
-    p.add_argument("--port", type=int, default=8000, help="REST port")
+    p.add_argument("--port", type=int, default=8000, help="REST port (0: a free one, logged)")
     p.add_argument("--workers", type=int, default=None,
                    help="HTTP API worker processes sharing the port and the store "
                         "(default: NPRT_API_WORKERS, else 2 on a host with 2 or more cores)")
@@ -137,12 +137,13 @@ def cmd_grpc(args: argparse.Namespace) -> int:
     return run_grpc(_settings(args), args.host, args.grpc_port)
 
 
-def _start_grpc(args: argparse.Namespace, settings, port: int):
-    """The gRPC child process, once it listens (its own process: see grpc_child)."""
-    from nprt.service.grpc_child import free_port, wait_listening
+def _start_grpc(args: argparse.Namespace, settings, held):
+    """The gRPC child process on the port `held` holds (nprt.service.ports; gRPC's listener
+    joins it with SO_REUSEPORT), once it listens (its own process: see grpc_child)."""
+    from nprt.service.grpc_child import wait_listening
     from nprt.service.processes import ChildProcess, spawn_child
 
-    port = port or free_port(args.host)
+    port = held.getsockname()[1]
     command = ["grpc", "--host", args.host, "--grpc-port", str(port), *_log_args(args)]
     child = ChildProcess("gRPC server", lambda: spawn_child(settings, command))
     try:
@@ -165,13 +166,16 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from nprt.service.app import create_app
+    from nprt.service.ports import hold_port
     from nprt.service.processes import SchedulerChild
 
     level = getattr(args, "log_level", None) or "INFO"
     configure_logging(level, getattr(args, "log_json", False))
     settings = _settings(args)
     settings.data_dir.mkdir(parents=True, exist_ok=True)
-    grpc_port = None if args.grpc_port < 0 else args.grpc_port
+    # The ports first: a refused one starts nothing (nprt.service.ports).
+    rest_held = hold_port(args.host, args.port, "REST")
+    grpc_held = None if args.grpc_port < 0 else hold_port(args.host, args.grpc_port, "gRPC")
     scheduler = None if args.api_only else SchedulerChild(settings, _log_args(args))
     grpc = None
     # uvicorn re-raises SIGTERM/SIGINT once it has shut down: exit through `finally` then,
@@ -183,13 +187,13 @@ def cmd_serve(args: argparse.Namespace) -> int:
     # log_config=None: uvicorn's records go through the root handler (text or JSON) too.
     # access_log: uvicorn formats each request's access line before the logger drops it;
     # above INFO (the benchmarks' WARNING) none would be written.
-    options = {"host": args.host, "port": args.port, "log_level": level.lower(),
+    options = {"log_level": level.lower(),
                "log_config": None, "timeout_graceful_shutdown": 3, "loop": "uvloop",
                "http": "httptools",
                "access_log": logging.getLevelName(level.upper()) <= logging.INFO}
     try:
-        if grpc_port is not None:
-            grpc = _start_grpc(args, settings, grpc_port)
+        if grpc_held is not None:
+            grpc = _start_grpc(args, settings, grpc_held)
         workers = args.workers or settings.api_workers or default_api_workers()
         if workers > 1:  # each worker builds its app from NPRT_* (app_from_env)
             from nprt.service.httpworkers import HttpWorkers
@@ -197,17 +201,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
             for name, value in settings.model_dump(exclude_none=True).items():
                 os.environ[f"NPRT_{name.upper()}"] = str(value)
             os.environ.pop("NPRT_GRPC_PORT", None)  # gRPC is the child's
-            http = HttpWorkers(workers, options.pop("host"), options.pop("port"), options)
+            http = HttpWorkers(workers, args.host, rest_held, options)
             log.info("REST on http://%s:%d (%d HTTP workers)", args.host, http.port, workers)
             http.run()
         else:
-            app = create_app(settings)
-            uvicorn.Server(uvicorn.Config(app, **options)).run()
+            rest_held.listen(2048)  # uvicorn's default backlog
+            log.info("REST on http://%s:%d (1 HTTP worker)", args.host,
+                     rest_held.getsockname()[1])
+            uvicorn.Server(uvicorn.Config(create_app(settings), **options)).run(
+                sockets=[rest_held])
     finally:
         if grpc is not None:
             grpc.stop()
         if scheduler is not None:
             scheduler.stop()
+        for held in (rest_held, grpc_held):
+            if held is not None:
+                held.close()
     return 0
 
 

@@ -16,6 +16,7 @@ import time
 import uvloop
 
 from nprt.service.config import ServiceSettings
+from nprt.service.ports import connect_target
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +56,7 @@ def wait_listening(proc, host: str, port: int, timeout_s: float = READY_TIMEOUT_
     """Return once host:port accepts connections; RuntimeError if `proc` exits first or
     timeout_s passes (HTTP should not answer before gRPC can)."""
     deadline = time.monotonic() + timeout_s
-    target = "127.0.0.1" if host in ("0.0.0.0", "") else "::1" if host == "::" else host
+    target = connect_target(host)
     while True:
         if proc.poll() is not None:
             raise RuntimeError(f"the gRPC process exited with {proc.returncode} on start")
@@ -67,10 +68,3 @@ def wait_listening(proc, host: str, port: int, timeout_s: float = READY_TIMEOUT_
                 raise RuntimeError(f"gRPC did not listen on {host}:{port} within "
                                    f"{timeout_s:.0f} s") from None
             time.sleep(0.05)
-
-
-def free_port(host: str) -> int:
-    """A port free on host now (for --grpc-port 0: the parent must know it to wait)."""
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
-        s.bind((host, 0))
-        return s.getsockname()[1]

@@ -16,25 +16,13 @@ from multiprocessing.connection import wait
 
 from uvicorn.config import STARTUP_FAILURE
 
+from nprt.service.ports import reuseport_socket
+
 log = logging.getLogger(__name__)
 
 _CTX = mp.get_context("spawn")  # a fresh interpreter: the parent may hold threads
 APP = "nprt.service.app:app_from_env"
 RESTART_PAUSE_S = 1.0
-
-
-def reuseport_socket(host: str, port: int) -> socket.socket:
-    """A TCP socket bound to host:port with SO_REUSEPORT (not listening yet)."""
-    family = socket.AF_INET6 if ":" in host else socket.AF_INET
-    sock = socket.socket(family, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEPORT, 1)
-    try:
-        sock.bind((host, port))
-    except OSError:
-        sock.close()
-        raise
-    return sock
 
 
 def _worker(host: str, port: int, options: dict, parent: int) -> None:
@@ -61,15 +49,16 @@ def _worker(host: str, port: int, options: dict, parent: int) -> None:
 class HttpWorkers:
     """n worker processes serving APP on host:port until this process is told to stop
     (SIGTERM/SIGINT end run() through the caller's handlers); a worker that dies is
-    started again. The port is held here, bound but not listening (a socket that does not
-    listen gets no connections), so nothing else takes it between restarts."""
+    started again. The port is held here, bound but not listening (nprt.service.ports), so
+    nothing else takes it between restarts."""
 
-    def __init__(self, n: int, host: str, port: int, options: dict):
+    def __init__(self, n: int, host: str, held: socket.socket, options: dict):
+        """held: the port, bound and not listening (nprt.service.ports.hold_port)."""
         if n < 1:
             raise ValueError(f"HTTP workers must be >= 1, got {n}")
         self.n, self.host, self.options = n, host, options
-        self._held = reuseport_socket(host, port)
-        self.port = self._held.getsockname()[1]  # port 0: the one the kernel picked
+        self._held = held
+        self.port = held.getsockname()[1]  # port 0: the one the kernel picked
         self._procs: list = []
 
     def run(self) -> None:

@@ -5,7 +5,10 @@ from __future__ import annotations
 
 import io
 import json
+import re
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -20,6 +23,7 @@ from nprt.service.app import create_app
 from nprt.service.config import ServiceSettings
 from nprt.service.scheduler import Scheduler
 
+REPO = Path(__file__).resolve().parents[2]
 TINY = {"width": 32, "height": 32, "spp": 4, "bounces": 2, "shadow_rays": 1,
         "tile_size": 16, "spp_per_pass": 2}
 START_TIMEOUT_S = 20.0
@@ -133,6 +137,35 @@ def wait_serving(proc, url: str, log_path: Path, timeout_s: float = 60.0) -> Non
             return False
 
     wait_for(ready, timeout_s, what=f"{url}/healthz")
+
+
+def logged(proc, log_path: Path, start: int, pattern: bytes, timeout_s: float) -> str:
+    """The first group of `pattern` in what `proc` wrote to log_path after byte `start`;
+    fails with the log if it exits first."""
+    def found() -> str | None:
+        assert proc.poll() is None, log_path.read_text()
+        with log_path.open("rb") as f:
+            f.seek(start)
+            m = re.search(pattern, f.read())
+        return m and m[1].decode()
+
+    return wait_for(found, timeout_s, what=f"{pattern!r} in {log_path}")
+
+
+def start_serve(args: list[str], log_path: Path, env: dict[str, str],
+                timeout_s: float = 60.0) -> tuple[subprocess.Popen, str]:
+    """`nprt serve --port 0 *args` of this checkout, its output appended to log_path;
+    returns (process, REST URL) once it answers. Port 0: the service binds one the kernel
+    picks and logs it, where a port picked here and bound there later could be handed to
+    another test's service meanwhile (and SO_REUSEPORT would let both serve it)."""
+    start = log_path.stat().st_size if log_path.exists() else 0
+    with log_path.open("ab") as log:
+        proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", "0",
+                                 *args], cwd=REPO, env=env, stdout=log,
+                                stderr=subprocess.STDOUT)
+    url = logged(proc, log_path, start, rb"REST on (http://\S+:\d+)", timeout_s)
+    wait_serving(proc, url, log_path, timeout_s)
+    return proc, url
 
 
 BLOCKER = {**TINY, "width": 64, "height": 64, "spp": 1024, "spp_per_pass": 1}

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -19,9 +18,8 @@ import pytest
 
 from nprt.service.config import ServiceSettings
 from nprt.service.priority import yield_cpu
-from tests.service.helpers import wait_for, wait_serving
+from tests.service.helpers import REPO, start_serve, wait_for
 
-REPO = Path(__file__).resolve().parents[2]
 # Far more passes than the checks take; canceled after them.
 SHARDED = {"scene": "forest:tiny", "width": 32, "height": 32, "spp": 4096, "bounces": 1,
            "tile_size": 32, "spp_per_pass": 1, "shards": 2}
@@ -31,20 +29,13 @@ SHARDED = {"scene": "forest:tiny", "width": 32, "height": 32, "spp": 4096, "boun
 def _serve(tmp_path: Path, **env: str):
     """`nprt serve` (REST only) on a fresh data dir, with env added; yields (process, URL)
     once it answers, and stops it on the way out."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
     # The defaults, whatever conftest set for the other tests' services.
     environ = {**os.environ, "PYTHONPATH": str(REPO), "NPRT_SCHEDULER_CPU": "idle",
                "NPRT_SCHEDULER_OWN_SESSION": "false", **env}
     environ.pop("NPRT_API_TOKEN", None)
-    log = (tmp_path / "serve.log").open("ab")
-    proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--port", str(port),
-                             "--grpc-port", "-1", "--data-dir", str(tmp_path / "data")],
-                            cwd=REPO, env=environ, stdout=log, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
+    proc, url = start_serve(["--grpc-port", "-1", "--data-dir", str(tmp_path / "data")],
+                            tmp_path / "serve.log", environ)
     try:
-        wait_serving(proc, url, tmp_path / "serve.log")
         yield proc, url
     finally:
         proc.terminate()

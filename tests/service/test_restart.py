@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -19,9 +18,8 @@ from nprt.scene.io import load_any
 from nprt.workers.film import tonemap_srgb
 from nprt.workers.render import render
 from nprt.workers.settings import RenderSettings
-from tests.service.helpers import png_pixels, wait_for, wait_serving
+from tests.service.helpers import REPO, png_pixels, start_serve, wait_for
 
-REPO = Path(__file__).resolve().parents[2]
 # 128 passes of one 32x32 tile-sample each: a few seconds, with many pass boundaries.
 SPP = 32
 JOB = {"scene": "forest:tiny", "width": 64, "height": 64, "spp": SPP, "bounces": 2,
@@ -29,31 +27,25 @@ JOB = {"scene": "forest:tiny", "width": 64, "height": 64, "spp": SPP, "bounces":
 PASSES = 4 * SPP
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _popen(args: list[str], data_dir: Path, log_path: Path) -> subprocess.Popen:
+def _env() -> dict[str, str]:
     # Checkpoint after every pass: the kill below lands between two of them.
     env = {**os.environ, "PYTHONPATH": str(REPO), "NPRT_MAX_CONCURRENT_JOBS": "1",
            "NPRT_CHECKPOINT_INTERVAL_S": "0"}
     env.pop("NPRT_API_TOKEN", None)
-    log = log_path.open("ab")
-    return subprocess.Popen([sys.executable, "-m", "service", *args, "--data-dir",
-                             str(data_dir)], cwd=REPO, env=env, stdout=log,
-                            stderr=subprocess.STDOUT)
+    return env
+
+
+def _scheduler(data_dir: Path, log_path: Path) -> subprocess.Popen:
+    with log_path.open("ab") as log:
+        return subprocess.Popen([sys.executable, "-m", "service", "scheduler", "--data-dir",
+                                 str(data_dir)], cwd=REPO, env=_env(), stdout=log,
+                                stderr=subprocess.STDOUT)
 
 
 def _start(data_dir: Path, log_path: Path, *flags: str) -> tuple[subprocess.Popen, str]:
     """`serve` with flags; returns it and its URL once /healthz answers."""
-    port = _free_port()
-    proc = _popen(["serve", "--port", str(port), "--grpc-port", "-1", *flags], data_dir,
-                  log_path)
-    url = f"http://127.0.0.1:{port}"
-    wait_serving(proc, url, log_path)
-    return proc, url
+    return start_serve(["--grpc-port", "-1", "--data-dir", str(data_dir), *flags], log_path,
+                       _env())
 
 
 def _finished(url: str, job_id: str) -> dict:
@@ -65,7 +57,7 @@ def test_killed_scheduler_leaves_the_api_answering_and_the_job_resumes(tmp_path)
     data = tmp_path / "data"
     log_path = tmp_path / "service.log"
     api, url = _start(data, log_path, "--api-only")
-    scheduler = _popen(["scheduler"], data, tmp_path / "scheduler.log")
+    scheduler = _scheduler(data, tmp_path / "scheduler.log")
     try:
         job = httpx.post(f"{url}/v1/jobs", json=JOB, timeout=10).json()
         job_id = job["id"]
@@ -88,7 +80,7 @@ def test_killed_scheduler_leaves_the_api_answering_and_the_job_resumes(tmp_path)
         partial = httpx.get(f"{url}/v1/jobs/{job_id}/image.png")
         assert partial.status_code == 200 and partial.headers["x-nprt-partial"] == "true"
 
-        scheduler = _popen(["scheduler"], data, tmp_path / "scheduler.log")
+        scheduler = _scheduler(data, tmp_path / "scheduler.log")
         final = _finished(url, job_id)
         assert final["state"] == "succeeded", final["error"]
         assert _finished(url, later.json()["id"])["state"] == "succeeded"

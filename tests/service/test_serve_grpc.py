@@ -5,9 +5,6 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
-import subprocess
-import sys
 from pathlib import Path
 
 import grpc
@@ -16,15 +13,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from nprt.protos import nprt_pb2 as pb
 from nprt.protos import nprt_pb2_grpc
-from tests.service.helpers import TINY, wait_serving
-
-REPO = Path(__file__).resolve().parents[2]
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.service.helpers import REPO, TINY, logged, start_serve
 
 
 def _children(pid: int) -> dict[int, str]:
@@ -40,19 +29,15 @@ def _children(pid: int) -> dict[int, str]:
 
 
 def test_serve_runs_grpc_in_a_child_on_the_same_store_and_stops_it(tmp_path):
-    port, grpc_port = _free_port(), _free_port()
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     env.pop("NPRT_API_TOKEN", None)
-    log = (tmp_path / "serve.log").open("wb")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "service", "serve", "--api-only", "--port", str(port),
-         "--grpc-port", str(grpc_port), "--data-dir", str(tmp_path / "data")],
-        cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT)
-    url = f"http://127.0.0.1:{port}"
+    log_path = tmp_path / "serve.log"
+    proc, url = start_serve(["--api-only", "--grpc-port", "0", "--data-dir",
+                             str(tmp_path / "data")], log_path, env, 90)
     try:
-        wait_serving(proc, url, tmp_path / "serve.log", 90)
-        with grpc.insecure_channel(f"127.0.0.1:{grpc_port}") as channel:
-            # No wait_for_ready: REST answering means gRPC listens already.
+        # Logged before REST listens: REST answering means gRPC listens already.
+        grpc_target = logged(proc, log_path, 0, rb"gRPC on (\S+:\d+)", 1)
+        with grpc.insecure_channel(grpc_target) as channel:
             health = health_pb2_grpc.HealthStub(channel).Check(
                 health_pb2.HealthCheckRequest(), timeout=10)
             assert health.status == health_pb2.HealthCheckResponse.SERVING
@@ -67,6 +52,5 @@ def test_serve_runs_grpc_in_a_child_on_the_same_store_and_stops_it(tmp_path):
     finally:
         proc.send_signal(signal.SIGTERM)
         proc.wait(60)
-        log.close()
     assert not Path(f"/proc/{grpc_children[0]}").exists() or \
         Path(f"/proc/{grpc_children[0]}/stat").read_text().split(") ")[1][0] == "Z"
