@@ -87,9 +87,13 @@ class PathIntegrator:
 
     def primary(self, p: Pass) -> RayBatch:
         """Camera rays of one pass: every pixel of the tile times every sample of the chunk."""
+        return self.camera_rays(*self.camera_names(p))
+
+    def camera_names(self, p: Pass) -> tuple[np.ndarray, np.ndarray]:
+        """(pixel, sample) (n,) uint32 each of one pass's camera rays, in `primary`'s order."""
         pix = p.pixels(self.s.width)
         samples = np.arange(p.sample0, p.sample1, dtype=np.uint32)
-        return self.camera_rays(np.repeat(pix, len(samples)), np.tile(samples, len(pix)))
+        return np.repeat(pix, len(samples)), np.tile(samples, len(pix))
 
     def camera_rays(self, pixel: np.ndarray, sample: np.ndarray) -> RayBatch:
         """The camera rays of (pixel, sample) pairs, (n,) uint32 each: a function of them
