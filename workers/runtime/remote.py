@@ -307,8 +307,11 @@ class ShardActor:
 
     def _run(self, epoch: int, peers: list, trace: bool, outbox: Outbox, emit_rays: int,
              parcels: list[Parcel]) -> None:
-        t0, c0 = time.perf_counter(), time.thread_time()
+        # The wall clock first: a parcel sent `at` seconds after t0 then leaves no earlier
+        # than start + at (the trace's bound, tests/deploy/test_trace.py), even where this
+        # thread is preempted between the two reads.
         start = time.time()
+        t0, c0 = time.perf_counter(), time.thread_time()
         orders = [o for p in parcels for o in p.orders]
         credits = sum_credits(p.credits for p in parcels)
         rays = [p for p in parcels if p.n_rays]
