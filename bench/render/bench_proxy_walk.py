@@ -28,6 +28,7 @@ from bench.render.bench_visits import run
 from nprt.workers.kernels.bvh import bvh_build
 from nprt.workers.routing import proxy_pairs
 from nprt.workers.settings import RenderSettings
+from nprt.workers.traversal.toplevel import flat_rows
 from nprt.workers.wavefront.inprocess import shards_in_process
 
 ROUNDS = 3  # timed, after one warm round
@@ -59,11 +60,10 @@ def both_ways(call: tuple) -> dict[str, tuple]:
     if not np.array_equal(members, np.arange(len(members))):
         raise ValueError("a walk call over a subset of its boxes: not a shard's call")
     k = len(members)
-    flat = np.ascontiguousarray(boxes.reshape(k, 6).T)
     by_bvh, by_flat = list(call), list(call)
     by_bvh[BVH], by_bvh[COL_OF] = bvh_build(boxes), np.arange(k, dtype=np.int32)
     by_bvh[FLAT] = np.zeros((6, 0))
-    by_flat[FLAT] = flat
+    by_flat[FLAT] = flat_rows(boxes)
     return {"bvh": tuple(by_bvh), "flat": tuple(by_flat)}
 
 

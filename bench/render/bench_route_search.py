@@ -31,6 +31,7 @@ from nprt.workers.kernels import crossings
 from nprt.workers.kernels.nearest import nearest_owner
 from nprt.workers.settings import RenderSettings
 from nprt.workers.traversal import local
+from nprt.workers.traversal.toplevel import flat_rows
 from nprt.workers.wavefront.inprocess import shards_in_process
 
 # Positions in the walking kernels' argument lists (crossings.closest_walk / occluded_walk).
@@ -72,7 +73,7 @@ def _every_box(c) -> tuple:
     boxes, n = c[CLOSEST["boxes"]], len(c[CLOSEST["origin"]])
     m = boxes.shape[0]
     return (np.ones(m, np.int32), np.arange(m, dtype=np.int64),
-            np.ascontiguousarray(boxes.reshape(m, 6).T), np.zeros(n, np.uint64))
+            flat_rows(boxes), np.zeros(n, np.uint64))
 
 
 def time_search(calls: list, every: bool) -> dict:

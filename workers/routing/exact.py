@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from nprt.workers.kernels import owned
 from nprt.workers.kernels.nearest import NONE as NO_OWNER
 from nprt.workers.kernels.nearest import nearest_owner
 from nprt.workers.runtime.protocol import EVERYWHERE
@@ -55,20 +56,11 @@ def nearest_unvisited(world: ShardWorld, remote: np.ndarray, origin, direction, 
     # either way): the walks pass the same types, so `near_search` compiles once, not
     # twice (about 6.5 s of a cold compile).
     owner = nearest_owner(
-        _kernel_arg(origin, np.float64), _kernel_arg(direction, np.float32),
-        _kernel_arg(box_tmax, np.float64), *world.table.search_arrays(),
+        owned(origin, np.float64), owned(direction, np.float32), owned(box_tmax, np.float64),
+        *world.table.search_arrays(),
         *(route_in or world.table.route_inputs(candidate_owner(world, remote))),
-        _kernel_arg(visited, np.uint64))
+        owned(visited, np.uint64))
     return np.where(owner == NO_OWNER, DONE, owner).astype(np.int32)
-
-
-def _kernel_arg(a, dtype) -> np.ndarray:
-    """a as a writable C-contiguous array of dtype, copied only where it is not one (a
-    batch's columns are: in a profile, copying them took 0.2 s for city's 3.7M camera rays
-    at 640x360 16 spp).
-    Writable: numba compiles a kernel again for read-only arrays."""
-    out = np.ascontiguousarray(a, dtype)
-    return out if out.flags.writeable else out.copy()
 
 
 def candidate_owner(world: ShardWorld, remote: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 
 from nprt.workers.kernels.bvh import bvh_build
 from nprt.workers.routing import net_rows, proxy_pairs
-from nprt.workers.traversal.toplevel import FLAT_WALK_MAX
+from nprt.workers.traversal.toplevel import FLAT_WALK_MAX, flat_rows
 from nprt.workers.wavefront.world import ShardWorld
 
 
@@ -204,7 +204,7 @@ def _walk_inputs(table, owner: np.ndarray, remote: np.ndarray) -> tuple:
         bvh = bvh_build(boxes)
         col_of = np.arange(len(ids), dtype=np.int32)
     else:  # one flat loop over the members' boxes; no BVH
-        flat = np.ascontiguousarray(boxes.reshape(len(ids), 6).T)
+        flat = flat_rows(boxes)
         col_of = np.zeros(0, np.int32)
     hit = (boxes, bvh, col_of, members, flat, ids,
            np.ascontiguousarray(owner[ids], np.int32),

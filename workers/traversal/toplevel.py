@@ -160,7 +160,7 @@ class InstanceTable:
         members = np.array(instances, np.int64)
         col_of = self._columns(members)
         bounds = np.asarray(self.world_bounds, np.float64)[members]  # (k, 2, 3)
-        flat = np.ascontiguousarray(bounds.reshape(len(members), 6).T)
+        flat = flat_rows(bounds)
         bvh = _no_bvh() if self._bvh is None else self._bvh[1:]
         if col_of is None or len(members) <= FLAT_WALK_MAX:
             boxes = np.array(self.world_bounds, np.float64, order="C")
@@ -186,7 +186,7 @@ class InstanceTable:
                              f"{cand.shape}")
         cands = np.flatnonzero(cand >= 0).astype(np.int64)
         bounds = np.asarray(self.world_bounds, np.float64)[cands]  # (c, 2, 3)
-        cand_flat = np.ascontiguousarray(bounds.reshape(len(cands), 6).T)
+        cand_flat = flat_rows(bounds)
         return cand, cands, cand_flat, self._bvh is not None and len(cands) > ROUTE_FLAT_MAX
 
     def box_entries(self, origin, direction, tmax, instances: np.ndarray):
@@ -214,6 +214,12 @@ class InstanceTable:
             boxes = np.array(self.world_bounds[instances], np.float64, order="C")
             ray, col, t_enter, t_exit = kernels.slab_all(o, d, tm, boxes)
         return ray, instances[col].astype(np.int32), t_enter, t_exit
+
+
+def flat_rows(boxes: np.ndarray) -> np.ndarray:
+    """boxes (k, 2, 3) float64 as the flat loops take them: (6, k) float64 rows lo x, y, z,
+    hi x, y, z."""
+    return np.ascontiguousarray(np.asarray(boxes, np.float64).reshape(len(boxes), 6).T)
 
 
 def _no_bvh() -> tuple:

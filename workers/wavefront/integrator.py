@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from nprt.scene.model import Camera, Material, Mesh
-from nprt.workers.kernels import quads
+from nprt.workers.kernels import owned, quads
 from nprt.workers.kernels import shade as shade_kernels
 from nprt.workers.passes import Pass
 from nprt.workers.settings import RenderSettings
@@ -60,12 +60,6 @@ def new_rays(origin, direction, throughput, pixel, sample, depth, kind, pdf_prev
         hit_inst=np.full(n, NO_HIT, np.int32), hit_prim=np.full(n, -1, np.int32),
         hit_u=np.zeros(n, np.float32), hit_v=np.zeros(n, np.float32),
         hops=np.zeros(n, np.uint8), flags=np.zeros(n, np.uint8))
-
-
-def _owned(a: np.ndarray) -> np.ndarray:
-    """a itself, or a writable C-ordered copy where it is not one (a column read back from
-    Ray's object store is read-only: numba would compile the kernels again for it)."""
-    return a if a.flags.writeable and a.flags.c_contiguous else np.array(a, order="C")
 
 
 # The ray columns the shading kernels read, in `shade_kernels.shade_hits`' order first.
@@ -117,7 +111,7 @@ class PathIntegrator:
         if self._surfaces is None:
             self._surfaces = SurfaceTables(self.meshes, self.materials, self.table)
         tables, L, S = self._surfaces, self.lights, self.s.shadow_rays
-        cols = {c: _owned(getattr(rays, c)) for c in _SHADE_COLUMNS}
+        cols = {c: owned(getattr(rays, c)) for c in _SHADE_COLUMNS}
         bad, m, f_pix, f_rgb, go_ray, thr, phi = shade_kernels.shade_hits(
             self.s.seed, self.s.bounces, S, *(cols[c] for c in _SHADE_COLUMNS[:7]),
             cols["hit_inst"], *self._environment(), *self._light_arrays()[3:6], L.count,
