@@ -4,6 +4,7 @@ narrowest proxy that meets the accuracy target, or an exact fallback with the re
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -15,6 +16,14 @@ from nprt.proxies.inference import Proxy
 log = logging.getLogger(__name__)
 
 DECISIONS = ("none", "replicate", "proxy", "fallback")
+# Where no width meets the target, a wider proxy is kept over a narrower one only for a lead
+# in held-out accuracy of more than Z_LEAD standard errors (a conventional level, not tuned).
+# A wider net costs more at every query it answers (its rows grow with width squared), and
+# what a job's accuracy target needs beyond the proxy's answers, its bands send to exact
+# tracing. On the held-out foliage scene the old rule (the most accurate, whatever its lead)
+# kept width 64 for +0.2 points at 1.6-1.9x the proxy phase's CPU, for no better image
+# (bench/README.md, "Proxy width at a job's accuracy target").
+Z_LEAD = 2.0
 
 
 @dataclass
@@ -64,10 +73,26 @@ def _accuracy(proxy: Proxy) -> float:
     return float(proxy.meta.get("report", {}).get("accuracy", 0.0))
 
 
+def lead_z(wide: Proxy, narrow: Proxy) -> float:
+    """wide's lead in held-out accuracy over narrow's, in standard errors of a difference of
+    two proportions over their held-out rays (report "eval_rays"). The two are treated as
+    independent samples; they are the same rays for every width of one config, so this
+    overstates the error, and a lead judged real is real. inf for a lead without counts
+    (proxies reported before eval_rays was) or with no error on either side."""
+    pw, pn = _accuracy(wide), _accuracy(narrow)
+    nw = wide.meta.get("report", {}).get("eval_rays")
+    nn = narrow.meta.get("report", {}).get("eval_rays")
+    if pw <= pn:
+        return 0.0 if pw == pn else -math.inf
+    var = (pw * (1 - pw) / nw + pn * (1 - pn) / nn) if nw and nn else 0.0
+    return (pw - pn) / math.sqrt(var) if var > 0 else math.inf
+
+
 def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: ProxyCache,
                     train: bool, progress: bool, max_bytes: int | None = None):
-    """Narrowest width whose proxy meets `target`, else the most accurate one found (of
-    those lighter than max_bytes where any is: a heavier one would be replicated instead).
+    """Narrowest width whose proxy meets `target`; else, of those found (those lighter than
+    max_bytes where any is: a heavier one would be replicated instead), the narrowest that
+    the most accurate does not lead by more than Z_LEAD standard errors (`lead_z`).
 
     returns (proxy or None, tried {width: accuracy}, why-unavailable or None)
     """
@@ -92,9 +117,10 @@ def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: Pro
             return proxy, tried, None
     if not found:
         return None, tried, unavailable or "no cached proxy and training is disabled"
-    light = [w for w in found if max_bytes is None or found[w].nbytes < max_bytes]
-    best = max(light or found, key=lambda w: (tried[w], -w))
-    return found[best], tried, None
+    pool = [w for w in found if max_bytes is None or found[w].nbytes < max_bytes] or found
+    best = max(pool, key=lambda w: (tried[w], -w))
+    kept = min(w for w in pool if lead_z(found[best], found[w]) <= Z_LEAD)
+    return found[kept], tried, None
 
 
 def needs_training(mesh, config: ProxyConfig, widths, target: float, cache: ProxyCache) -> bool:
@@ -173,6 +199,7 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
     copy always meets the target, and it fits in what the policy was ready to ship."""
     d.width, d.accuracy = int(proxy.meta["width"]), _accuracy(proxy)
     d.proxy_bytes, d.train_s = proxy.nbytes, proxy.timing.get("train_s")
+    best_w = max(d.tried, key=lambda w: (d.tried[w], -w))
     if proxy.nbytes >= d.mesh_bytes:
         d.decision = "replicate"
         d.reason = (f"proxy at width {d.width} is {proxy.nbytes} B >= mesh {d.mesh_bytes} B: "
@@ -181,7 +208,6 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
         d.decision = "proxy"
         d.reason = f"width {d.width} is the narrowest meeting accuracy {target:.3f}"
     elif d.mesh_bytes <= budget:
-        best_w = max(d.tried, key=lambda w: (d.tried[w], -w))
         d.decision = "replicate"
         d.reason = (f"no width met accuracy {target:.3f} (best {d.tried[best_w]:.4f} at width "
                     f"{best_w}), and the mesh ({d.mesh_bytes} B) is lighter than the widest "
@@ -189,9 +215,13 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
     else:
         d.decision = "proxy"
         d.reason = (f"no width met accuracy {target:.3f}; best held-out accuracy "
-                    f"{d.accuracy:.4f} at width {d.width}; kept: a job's accuracy target (one is "
-                    f"set by default) picks its confidence bands from its own held-out error "
-                    f"curve, and the rays it is unsure of are traced exactly")
+                    f"{d.tried[best_w]:.4f} at width {best_w}")
+        if best_w != d.width:
+            d.reason += (f"; width {d.width} ({d.accuracy:.4f}) chosen: no wider proxy lighter "
+                         f"than the mesh leads it by more than {Z_LEAD:g} standard errors")
+        d.reason += ("; kept: a job's accuracy target (one is set by default) picks its "
+                     "confidence bands from its own held-out error curve, and the rays it is "
+                     "unsure of are traced exactly")
     if proxy.meta.get("report", {}).get("capped"):
         d.reason += ("; its training hit the wall-clock safety cap before its step budget, "
                      "so it is not reproducible")

@@ -46,7 +46,9 @@ class ProxySettings(BaseModel):
                                    description="held-out visibility accuracy a width must reach")
     width: Literal[16, 32, 64, 128, 256] | None = Field(
         None, description="proxy width N for every mesh; unset: the narrowest of 16/32/64 "
-                          "that reaches accuracy_target")
+                          "that reaches accuracy_target, or where none does, the narrowest "
+                          "that the most accurate does not lead by more than 2 standard "
+                          "errors of the held-out estimate")
     steps: int = Field(ProxyConfig.steps, ge=2, le=10_000_000,
                        description="training budget per proxy (both nets), optimiser steps; "
                                    "the same steps give the same proxy bytes, and the shipped "

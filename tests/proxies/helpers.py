@@ -49,15 +49,18 @@ def _mean_model(n_in: int, scale: float) -> bytes:
     return model.SerializeToString()
 
 
-def stand_in_proxy(mesh: Mesh, config) -> Proxy:
-    """A Proxy in the real container, keyed like a trained one, with fixed ONNX nets."""
+def stand_in_proxy(mesh: Mesh, config, accuracy: float = 0.5,
+                   eval_rays: int | None = None) -> Proxy:
+    """A Proxy in the real container, keyed like a trained one, with fixed ONNX nets; its
+    report gives `accuracy` held-out (over `eval_rays` rays where given)."""
     box_ = proxy_box(mesh.bounds)
     meta = {
         "content_hash": mesh.content_hash, "mesh_name": mesh.name, "width": config.width,
         "blocks": config.blocks, "encoding": "paper", "bounds": mesh.bounds.tolist(),
         "box": box_.tolist(), "diag": float(np.linalg.norm(box_[1] - box_[0])),
         "threshold": 0.5, "config": config.to_dict(), "config_key": config.key,
-        "report": {"accuracy": 0.5},
+        "report": {"accuracy": accuracy,
+                   **({} if eval_rays is None else {"eval_rays": eval_rays})},
     }
     models = {k: _mean_model(5, s) for k, s in zip(NETS, (1.0, 0.5), strict=True)}
     onnx.checker.check_model(onnx.load_from_string(models["depth"]))

@@ -9,7 +9,7 @@ import pytest
 
 from nprt.proxies.cache import ProxyCache
 from nprt.proxies.config import ProxyConfig
-from nprt.proxies.policy import plan_proxies
+from nprt.proxies.policy import Z_LEAD, lead_z, plan_proxies
 from nprt.scene.partition import partition
 from tests.proxies.helpers import scene_of, sphere, stand_in_proxy, torus, triangle
 
@@ -63,6 +63,51 @@ def test_a_mesh_no_width_models_well_enough_is_replicated_if_lighter_than_the_wi
     assert lt.decision == "replicate" and "lighter than the widest proxy" in lt.reason, lt
     assert hv.decision == "proxy" and "no width met" in hv.reason, hv
     assert plan.replicated == {0} and set(plan.proxies) == {1}
+
+
+def _below_target(cache, mesh, accuracy: dict[int, float], eval_rays=65536):
+    """Cache stand-ins of `mesh` scoring accuracy[width] over eval_rays held-out rays."""
+    for w, a in accuracy.items():
+        cfg = ProxyConfig().with_width(w)
+        cache.put(mesh, cfg, stand_in_proxy(mesh, cfg, a, eval_rays))
+
+
+def test_below_the_target_a_wider_proxy_must_lead_by_more_than_chance(cache):
+    """No width meets the target: the narrowest is kept unless a wider one's held-out lead is
+    beyond Z_LEAD standard errors. The accuracies are those the held-out foliage scene's
+    leaf meshes got (first two) and forest's pine (last), over 65,536 held-out rays."""
+    leafy, sparse, pine = torus(128, 64), torus(120, 64), torus(112, 64)
+    _below_target(cache, leafy, {16: 0.9057, 32: 0.9074, 64: 0.9078})
+    _below_target(cache, sparse, {16: 0.8912, 32: 0.8926, 64: 0.8947})
+    _below_target(cache, pine, {16: 0.9462, 32: 0.9522, 64: 0.9552})
+    scene = scene_of(leafy, sparse, pine)
+    plan = plan_proxies(scene, partition(scene, 2), cache=cache, train=False)
+    assert [d.decision for d in plan.decisions] == ["proxy"] * 3
+    # 64 leads 16 by 1.3 SE: chance, so the cheaper net
+    assert plan.decisions[0].width == 16 and "width 16 (0.9057) chosen" in plan.decisions[0].reason
+    # 64 leads 16 by 2.05 SE, but 32 by 1.2: the narrowest within reach of the best
+    assert plan.decisions[1].width == 32
+    # pine: 64 leads 32 by 2.6 SE and 16 by 7.5: the lead is real, the wider net is kept
+    assert plan.decisions[2].width == 64 and "chosen" not in plan.decisions[2].reason
+    assert plan.decisions[0].tried == {16: 0.9057, 32: 0.9074, 64: 0.9078}
+
+
+def test_a_lead_counts_in_standard_errors_of_the_held_out_rays(cache):
+    m = torus()
+    cfg = ProxyConfig()
+
+    def proxy(a, n=None):
+        return stand_in_proxy(m, cfg, a, n)
+
+    assert lead_z(proxy(0.90, 10_000), proxy(0.90, 10_000)) == 0.0
+    assert lead_z(proxy(0.89, 10_000), proxy(0.90, 10_000)) < 0
+    # sqrt(2 * 0.9 * 0.1 / 10,000) = 0.00424: a lead of 0.01 is 2.36 of them
+    assert lead_z(proxy(0.91, 10_000), proxy(0.90, 10_000)) == pytest.approx(
+        0.01 / ((0.91 * 0.09 + 0.9 * 0.1) / 10_000) ** 0.5)
+    # the same lead over 100x fewer rays is chance
+    assert lead_z(proxy(0.91, 100), proxy(0.90, 100)) < Z_LEAD
+    # without counts (older reports) any lead counts: the most accurate, as before
+    assert lead_z(proxy(0.91), proxy(0.90)) == float("inf")
 
 
 def test_an_easy_mesh_gets_the_narrowest_width(cache):
