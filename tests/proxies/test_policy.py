@@ -101,7 +101,7 @@ def test_a_lead_counts_in_standard_errors_of_the_held_out_rays(cache):
 
     assert lead_z(proxy(0.90, 10_000), proxy(0.90, 10_000)) == 0.0
     assert lead_z(proxy(0.89, 10_000), proxy(0.90, 10_000)) < 0
-    # sqrt(2 * 0.9 * 0.1 / 10,000) = 0.00424: a lead of 0.01 is 2.36 of them
+    # sqrt((0.91 * 0.09 + 0.9 * 0.1) / 10,000) = 0.0041: a lead of 0.01 is 2.4 of them
     assert lead_z(proxy(0.91, 10_000), proxy(0.90, 10_000)) == pytest.approx(
         0.01 / ((0.91 * 0.09 + 0.9 * 0.1) / 10_000) ** 0.5)
     # the same lead over 100x fewer rays is chance
