@@ -73,6 +73,12 @@ def _accuracy(proxy: Proxy) -> float:
     return float(proxy.meta.get("report", {}).get("accuracy", 0.0))
 
 
+def _most_accurate(tried: dict[int, float], widths=None) -> int:
+    """The width of widths (default: all of tried) with the best held-out accuracy, the
+    narrowest on a tie."""
+    return max(tried if widths is None else widths, key=lambda w: (tried[w], -w))
+
+
 def lead_z(wide: Proxy, narrow: Proxy) -> float:
     """wide's lead in held-out accuracy over narrow's, in standard errors of a difference of
     two proportions over their held-out rays (report "eval_rays"). The two are treated as
@@ -118,7 +124,7 @@ def narrowest_proxy(mesh, config: ProxyConfig, widths, target: float, cache: Pro
     if not found:
         return None, tried, unavailable or "no cached proxy and training is disabled"
     pool = [w for w in found if max_bytes is None or found[w].nbytes < max_bytes] or found
-    best = max(pool, key=lambda w: (tried[w], -w))
+    best = _most_accurate(tried, pool)
     kept = min(w for w in pool if lead_z(found[best], found[w]) <= Z_LEAD)
     return found[kept], tried, None
 
@@ -199,7 +205,7 @@ def _choose(d: ProxyDecision, proxy: Proxy, target: float, budget: int) -> None:
     copy always meets the target, and it fits in what the policy was ready to ship."""
     d.width, d.accuracy = int(proxy.meta["width"]), _accuracy(proxy)
     d.proxy_bytes, d.train_s = proxy.nbytes, proxy.timing.get("train_s")
-    best_w = max(d.tried, key=lambda w: (d.tried[w], -w))
+    best_w = _most_accurate(d.tried)
     if proxy.nbytes >= d.mesh_bytes:
         d.decision = "replicate"
         d.reason = (f"proxy at width {d.width} is {proxy.nbytes} B >= mesh {d.mesh_bytes} B: "

@@ -23,11 +23,18 @@ import os
 
 import numpy as np
 
-from bench.common import add_image_flags, add_output_flags, finish, machine, smoke, stored_scene
+from bench.common import (
+    add_image_flags,
+    add_output_flags,
+    finish,
+    machine,
+    quality,
+    smoke,
+    stored_scene,
+)
 from bench.render.bench_visits import run
 from nprt.workers.runtime.placement import plan_placement
 from nprt.workers.settings import ProxySettings, RenderSettings
-from nprt.workers.stats.quality import compare
 from nprt.workers.wavefront.inprocess import shards_in_process
 
 PLAN = "plan"
@@ -58,13 +65,13 @@ def bench(args) -> dict:
                                       width=None if w == PLAN else int(w))
                 s = RenderSettings(**base, mode="proxy", proxy=knobs)
                 r = run(shards_in_process(scene, s), s)
-                q = compare(ref, _image(r, s))
+                q = quality(ref, _image(r, s))
                 row = {"scene": name, "k": k, "width": w, "mesh_widths": _widths(scene, s),
                        "cpu_s": round(r["cpu_s"], 3), "exact_cpu_s": round(ex["cpu_s"], 3),
                        "proxy_s": round(r["phase_cpu_s"].get("proxy", 0.0), 3),
                        "rays_in": int(r["rays_in"]), "exact_rays_in": int(ex["rays_in"]),
-                       "psnr_db": None if not np.isfinite(q["psnr_db"]) else
-                       round(q["psnr_db"], 2), "ssim": round(q["ssim"], 5)}
+                       "psnr_db": q["psnr_db"] if np.isfinite(q["psnr_db"]) else None,
+                       "ssim": q["ssim"]}
                 rows.append(row)
                 print(_line(row), flush=True)
     return {"machine": machine(os.cpu_count()), "settings": vars(args) | {"out": str(args.out)},
